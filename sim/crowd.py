@@ -1,0 +1,295 @@
+"""Pedestrians: a vectorised Helbing social-force model plus the intention behaviour that bodies announce.
+
+Forces (Helbing & Molnár 1995; anisotropy after Helbing et al. 2000), per pedestrian ``i`` (accelerations,
+m/s²)::
+
+    f_goal  = (v0_i · e_i − v_i) / tau
+    f_ped   = Σ_j A_p · exp((r_i + r_j − d_ij) / B_p) · n_ij · w(φ_ij),  w = λ + (1 − λ)(1 + cos φ_ij)/2
+    f_wall  = A_w · exp((r_i − d_iW) / B_w) · n_iW            (nearest obstacle surface, from the
+                                                              scene's clearance grid and its gradient)
+    f_robot = A_r · exp((r_i + ρ − d_iR) / B_r) · n_iR · w    (only if pedestrians react to the robot)
+
+with ``n`` the unit vector pointing away from the other agent / surface and ``φ`` the angle between ``v_i``
+and ``−n``. Speeds are capped at 1.3·v0. After each integration step a hard constraint pushes anyone who ended
+up closer than their radius to an obstacle back out, so nobody walks through walls.
+
+Intention (what the articulated bodies show): a pedestrian decides on its next goal *before* it walks there.
+When a new goal is drawn (on approaching the current one, after standing idle, on a random change of mind, or
+when stuck), it becomes ``pending`` for a lead time drawn from ``[lead_min_s, lead_max_s]`` (0.3–1.0 s by
+default); during the lead the head and torso already turn toward the pending goal while the feet still walk to
+the old one; then the pending goal becomes the active one and the walking direction follows through the
+relaxation time ``tau``.
+
+:func:`social_force_reference` is the plain per-agent loop the vectorised :meth:`Crowd.social_forces` is
+tested and benchmarked against.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.geometry import wrap_angle
+from sim.scene import SceneLayout
+
+WALK, IDLE = 0, 1
+
+
+@dataclass
+class CrowdConfig:
+    """Social-force and behaviour parameters (units in the names)."""
+
+    speed_mean_mps: float = 1.0  # preferred walking speed, mean
+    speed_std_mps: float = 0.15  # and spread (clipped to [0.5, 1.5])
+    tau_s: float = 0.5  # relaxation time of the goal force
+    ped_a_mps2: float = 2.5  # pedestrian repulsion strength
+    ped_b_m: float = 0.35  # pedestrian repulsion range
+    anisotropy: float = 0.35  # λ: weight of interactions behind the walker
+    wall_a_mps2: float = 6.0  # obstacle repulsion strength
+    wall_b_m: float = 0.15  # obstacle repulsion range
+    robot_a_mps2: float = 3.5  # robot repulsion strength
+    robot_b_m: float = 0.5  # robot repulsion range
+    react_to_robot: bool = True  # whether pedestrians see and avoid the robot
+    interaction_range_m: float = 4.0  # pairs farther than this exert no force
+    goal_reached_m: float = 1.0  # a new goal is chosen within this distance of the current one
+    goal_distance_m: tuple[float, float] = (2.0, 9.0)  # range of distances to newly drawn goals
+    lead_min_s: float = 0.3  # head/torso turn this long before the walking direction changes ...
+    lead_max_s: float = 1.0  # ... up to this long
+    idle_prob: float = 0.25  # chance to stand still on reaching a goal
+    idle_s: tuple[float, float] = (1.0, 4.0)  # how long an idle stop lasts
+    turn_rate_hz: float = 0.05  # rate of spontaneous changes of mind while walking (per second)
+    stuck_s: float = 3.0  # walking slower than 0.15 m/s for this long draws a new goal
+
+
+class Crowd:
+    """State and dynamics of ``n`` pedestrians in one scene layout (all arrays world frame, SI units).
+
+    Attributes:
+        pos, vel: ``N x 2`` positions (m) and velocities (m/s).
+        radius: ``N`` body disc radii, m.
+        v0: ``N`` preferred speeds, m/s.
+        goal: ``N x 2`` active goals; ``pending``: ``N x 2`` next goals; ``lead``: ``N`` seconds until the pending
+            goal becomes active (``<= 0``: none pending).
+        mode: ``N`` WALK or IDLE; ``idle_left``: seconds of standing left.
+    """
+
+    def __init__(self, layout: SceneLayout, cfg: CrowdConfig, rng: np.random.Generator, n: int,
+                 radius: np.ndarray, avoid_xy: list[np.ndarray] | None = None, avoid_m: float = 1.0):
+        self.layout = layout
+        self.cfg = cfg
+        self.rng = rng
+        self.n = n
+        self.radius = np.asarray(radius, dtype=np.float64)
+        self.v0 = np.clip(rng.normal(cfg.speed_mean_mps, cfg.speed_std_mps, n), 0.5, 1.5)
+        self.pos = self._spawn(n, avoid_xy or [], avoid_m)
+        self.goal = self._draw_goals(np.arange(n))
+        heading = self.goal - self.pos
+        heading /= np.maximum(np.linalg.norm(heading, axis=1, keepdims=True), 1e-9)
+        self.vel = heading * self.v0[:, None] * rng.uniform(0.0, 1.0, (n, 1))
+        self.pending = self.goal.copy()
+        self.lead = np.zeros(n)
+        self.mode = np.full(n, WALK, dtype=np.int8)
+        self.idle_left = np.zeros(n)
+        self.slow_for = np.zeros(n)
+
+    # ---------------------------------------------------------------------------------------------- sampling
+    def _region(self):
+        return self.layout.spec.ped_region
+
+    def _spawn(self, n: int, avoid_xy: list[np.ndarray], avoid_m: float) -> np.ndarray:
+        pts = np.zeros((0, 2))
+        clearance = float(self.radius.max(initial=0.25)) + 0.1
+        for _ in range(200):
+            if len(pts) >= n:
+                break
+            cand = self.layout.free_points(self.rng, 4 * n, clearance, self._region())
+            for c in cand:
+                if len(pts) >= n:
+                    break
+                if len(pts) and np.min(np.hypot(*(pts - c).T)) < 0.8:
+                    continue
+                if any(np.hypot(*(c - a)) < avoid_m for a in avoid_xy):
+                    continue
+                pts = np.vstack([pts, c])
+        if len(pts) < n:
+            raise RuntimeError(f"could not place {n} pedestrians in scene {self.layout.spec.name!r}")
+        return pts
+
+    def _draw_goals(self, idx: np.ndarray, k: int = 24) -> np.ndarray:
+        """Random goals in line of sight of each pedestrian in ``idx`` (``len(idx) x 2``)."""
+        out = np.empty((len(idx), 2))
+        lo, hi = self.cfg.goal_distance_m
+        for m, i in enumerate(idx):
+            cand = self.layout.free_points(self.rng, k, self.radius[i] + 0.15, self._region())
+            d = np.hypot(*(cand - self.pos[i]).T)
+            ok = (d >= lo) & (d <= hi)
+            ok &= self.layout.segments_clear(np.repeat(self.pos[i][None], k, 0), cand, self.radius[i] + 0.05)
+            if ok.any():
+                out[m] = cand[np.argmax(ok)]
+            else:  # nothing in sight at that range: any visible free point, else stay
+                vis = self.layout.segments_clear(np.repeat(self.pos[i][None], k, 0), cand, self.radius[i])
+                out[m] = cand[np.argmax(vis)] if vis.any() else self.pos[i]
+        return out
+
+    # ---------------------------------------------------------------------------------------------- dynamics
+    def desired_velocity(self) -> np.ndarray:
+        """``N x 2`` preferred velocity: toward the active goal at v0 (slowing within 0.5 m), zero when idle."""
+        to_goal = self.goal - self.pos
+        dist = np.linalg.norm(to_goal, axis=1)
+        speed = self.v0 * np.clip(dist / 0.5, 0.0, 1.0) * (self.mode == WALK)
+        return to_goal / np.maximum(dist, 1e-9)[:, None] * speed[:, None]
+
+    def social_forces(self, robot_xy: np.ndarray | None, robot_radius: float) -> np.ndarray:
+        """``N x 2`` total social-force acceleration (vectorised over all pairs)."""
+        c = self.cfg
+        f = (self.desired_velocity() - self.vel) / c.tau_s
+        n = self.n
+        speed = np.linalg.norm(self.vel, axis=1)
+        e_v = self.vel / np.maximum(speed, 1e-9)[:, None]
+        if n > 1:
+            diff = self.pos[:, None, :] - self.pos[None, :, :]  # i - j
+            dist = np.linalg.norm(diff, axis=-1)
+            np.fill_diagonal(dist, np.inf)
+            nij = diff / np.maximum(dist, 1e-9)[..., None]
+            cos_phi = -(e_v[:, None, :] * nij).sum(-1)
+            w = c.anisotropy + (1 - c.anisotropy) * (1 + cos_phi) / 2
+            rsum = self.radius[:, None] + self.radius[None, :]
+            mag = c.ped_a_mps2 * np.exp((rsum - dist) / c.ped_b_m) * w
+            mag = np.where(dist < c.interaction_range_m, mag, 0.0)
+            f += (mag[..., None] * nij).sum(1)
+        d_w, grad = self.layout.clearance_fast(self.pos)
+        n_w = grad / np.maximum(np.linalg.norm(grad, axis=1), 1e-9)[:, None]
+        f += (c.wall_a_mps2 * np.exp((self.radius - d_w) / c.wall_b_m))[:, None] * n_w
+        if robot_xy is not None and c.react_to_robot:
+            diff = self.pos - robot_xy[None]
+            dist = np.linalg.norm(diff, axis=1)
+            nr = diff / np.maximum(dist, 1e-9)[:, None]
+            cos_phi = -(e_v * nr).sum(-1)
+            w = c.anisotropy + (1 - c.anisotropy) * (1 + cos_phi) / 2
+            mag = c.robot_a_mps2 * np.exp((self.radius + robot_radius - dist) / c.robot_b_m) * w
+            f += np.where(dist < c.interaction_range_m, mag, 0.0)[:, None] * nr
+        return f
+
+    def step(self, dt: float, robot_xy: np.ndarray | None = None, robot_radius: float = 0.3) -> None:
+        """Advance ``dt`` seconds: behaviour (goals, leads, idling), forces, integration, wall constraint."""
+        self._behaviour(dt)
+        acc = self.social_forces(robot_xy, robot_radius)
+        vel = self.vel + dt * acc
+        speed = np.linalg.norm(vel, axis=1)
+        cap = 1.3 * self.v0
+        vel *= np.minimum(1.0, cap / np.maximum(speed, 1e-9))[:, None]
+        pos = self.pos + dt * vel
+        # hard constraint: nobody inside an obstacle
+        d_w, grad = self.layout.clearance_fast(pos)
+        bad = d_w < self.radius
+        if bad.any():
+            # exact geometry for the few that touch: move them out along the surface normal
+            d_x, closest = self.layout.geometry.signed_distance(pos[bad])
+            away = pos[bad] - closest
+            nrm = np.linalg.norm(away, axis=1)
+            sign = np.where(d_x < 0, -1.0, 1.0)
+            n_w = away / np.maximum(nrm, 1e-9)[:, None] * sign[:, None]
+            pos[bad] = np.where((d_x < self.radius[bad])[:, None], closest + n_w * self.radius[bad][:, None], pos[bad])
+            # remove the velocity component into the wall
+            vn = (vel[bad] * n_w).sum(1)
+            vel[bad] -= np.minimum(vn, 0.0)[:, None] * n_w
+        self.pos, self.vel = pos, vel
+
+    def _behaviour(self, dt: float) -> None:
+        c, rng = self.cfg, self.rng
+        # pending goals whose lead has run out become active
+        had = self.lead > 0
+        self.lead -= dt
+        switch = had & (self.lead <= 0)
+        if switch.any():
+            self.goal[switch] = self.pending[switch]
+            self.mode[switch] = WALK
+            self.slow_for[switch] = 0.0
+        # idle pedestrians count down, then decide where to go (and announce it)
+        idle = self.mode == IDLE
+        self.idle_left[idle] -= dt
+        wake = idle & (self.idle_left <= 0) & (self.lead <= 0)
+        # walkers near their goal, stuck, or changing their mind decide on a new goal
+        walking = (self.mode == WALK) & (self.lead <= 0)
+        near = walking & (np.linalg.norm(self.goal - self.pos, axis=1) < c.goal_reached_m)
+        speed = np.linalg.norm(self.vel, axis=1)
+        self.slow_for = np.where(walking & (speed < 0.15), self.slow_for + dt, 0.0)
+        stuck = walking & (self.slow_for > c.stuck_s)
+        whim = walking & ~near & (rng.random(self.n) < c.turn_rate_hz * dt)
+        # some of the arrivals stop and stand for a while instead of walking on at once
+        stop = near & (rng.random(self.n) < c.idle_prob)
+        if stop.any():
+            self.mode[stop] = IDLE
+            self.idle_left[stop] = rng.uniform(*c.idle_s, stop.sum())
+            self.goal[stop] = self.pos[stop]
+        decide = wake | (near & ~stop) | stuck | whim
+        if decide.any():
+            idx = np.nonzero(decide)[0]
+            self.pending[idx] = self._draw_goals(idx)
+            self.lead[idx] = rng.uniform(c.lead_min_s, c.lead_max_s, len(idx))
+            self.slow_for[idx] = 0.0
+
+    def attention_xy(self) -> np.ndarray:
+        """``N x 2`` where each pedestrian is heading in mind: the pending goal during a lead, else the goal."""
+        return np.where((self.lead > 0)[:, None], self.pending, self.goal)
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """Copies of the privileged per-pedestrian state (world frame)."""
+        return {"pos": self.pos.copy(), "vel": self.vel.copy(), "radius": self.radius.copy(),
+                "goal": self.goal.copy(), "pending": self.pending.copy(), "lead_s": self.lead.copy(),
+                "mode": self.mode.copy()}
+
+
+def social_force_reference(pos, vel, goal, v0, radius, mode, layout: SceneLayout, cfg: CrowdConfig,
+                           robot_xy=None, robot_radius: float = 0.3) -> np.ndarray:
+    """The same accelerations as :meth:`Crowd.social_forces`, one agent and one pair at a time (reference)."""
+    n = len(pos)
+    out = np.zeros((n, 2))
+    for i in range(n):
+        gx, gy = goal[i][0] - pos[i][0], goal[i][1] - pos[i][1]
+        gd = math.hypot(gx, gy)
+        s = v0[i] * min(max(gd / 0.5, 0.0), 1.0) * (1.0 if mode[i] == WALK else 0.0)
+        des = (gx / max(gd, 1e-9) * s, gy / max(gd, 1e-9) * s)
+        fx = (des[0] - vel[i][0]) / cfg.tau_s
+        fy = (des[1] - vel[i][1]) / cfg.tau_s
+        sp = math.hypot(vel[i][0], vel[i][1])
+        ev = (vel[i][0] / max(sp, 1e-9), vel[i][1] / max(sp, 1e-9))
+        for j in range(n):
+            if j == i:
+                continue
+            dx, dy = pos[i][0] - pos[j][0], pos[i][1] - pos[j][1]
+            d = math.hypot(dx, dy)
+            if d >= cfg.interaction_range_m:
+                continue
+            nx, ny = dx / max(d, 1e-9), dy / max(d, 1e-9)
+            w = cfg.anisotropy + (1 - cfg.anisotropy) * (1 - (ev[0] * nx + ev[1] * ny)) / 2
+            m = cfg.ped_a_mps2 * math.exp((radius[i] + radius[j] - d) / cfg.ped_b_m) * w
+            fx += m * nx
+            fy += m * ny
+        dw, g = layout.clearance_fast(np.asarray(pos[i], dtype=float))
+        gn = max(math.hypot(g[0], g[1]), 1e-9)
+        m = cfg.wall_a_mps2 * math.exp((radius[i] - float(dw)) / cfg.wall_b_m)
+        fx += m * g[0] / gn
+        fy += m * g[1] / gn
+        if robot_xy is not None and cfg.react_to_robot:
+            dx, dy = pos[i][0] - robot_xy[0], pos[i][1] - robot_xy[1]
+            d = math.hypot(dx, dy)
+            if d < cfg.interaction_range_m:
+                nx, ny = dx / max(d, 1e-9), dy / max(d, 1e-9)
+                w = cfg.anisotropy + (1 - cfg.anisotropy) * (1 - (ev[0] * nx + ev[1] * ny)) / 2
+                m = cfg.robot_a_mps2 * math.exp((radius[i] + robot_radius - d) / cfg.robot_b_m) * w
+                fx += m * nx
+                fy += m * ny
+        out[i] = (fx, fy)
+    return out
+
+
+def heading_of(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Yaw of ``N x 2`` vectors, ``fallback`` where they are (near) zero."""
+    n = np.linalg.norm(v, axis=1)
+    return np.where(n > 1e-6, np.arctan2(v[:, 1], v[:, 0]), fallback)
+
+
+__all__ = ["Crowd", "CrowdConfig", "social_force_reference", "heading_of", "wrap_angle", "WALK", "IDLE"]
