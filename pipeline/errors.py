@@ -1,0 +1,34 @@
+"""Exception hierarchy of the pipeline.
+
+Every error a user can cause (a bad config value, a missing input, an output that already exists, a damaged
+artifact) is an :class:`ICrowdNavError`. The CLI prints such an error as exactly one line
+``error: <message>`` and exits with status 2, so each message must be one self-explanatory line that names the
+file or config key involved together with the expected and the actual value. Any other exception is a bug
+and is allowed to propagate with its traceback.
+"""
+
+from __future__ import annotations
+
+
+class ICrowdNavError(Exception):
+    """Base class of all user-facing pipeline errors (printed as one ``error:`` line by the CLI)."""
+
+    def __str__(self) -> str:
+        """Returns the message collapsed onto one line."""
+        return " ".join(super().__str__().split("\n"))
+
+
+class ConfigError(ICrowdNavError):
+    """A config key, value, profile or command-line argument is invalid."""
+
+
+class InputMissingError(ICrowdNavError):
+    """A file or directory that a stage reads does not exist."""
+
+
+class OutputExistsError(ICrowdNavError):
+    """A stage would write into an output directory that already exists (and is not up to date)."""
+
+
+class CorruptArtifactError(ICrowdNavError):
+    """A file written by the pipeline exists but cannot be read back (bad JSON, missing fields, ...)."""

@@ -1,0 +1,263 @@
+"""Stages: one CLI verb = one config class + a body that turns input files into an output directory.
+
+:func:`run_stage` wraps every stage body the same way:
+
+1. every input path must exist (:class:`InputMissingError` otherwise);
+2. in mode ``new``, an output directory whose ``manifest.json`` records the same config hash, the same input
+   hashes and output files that are all still there with the same sizes is *up to date*: the stage does no
+   work and returns the existing manifest (like ``dvc repro``); any other existing output is an
+   :class:`OutputExistsError` unless ``--overwrite`` or ``--resume`` is given;
+3. the body writes into a crash-safe :class:`OutputDir` and returns a counts dict;
+4. ``config.yaml`` (resolved config) and ``manifest.json`` (provenance) are written into the directory, which
+   is then published under its final name.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from pipeline.artifacts import OutputDir, OutputMode, require_input
+from pipeline.config import config_hash, dump_yaml, to_dict, validate_tree
+from pipeline.errors import ConfigError, ICrowdNavError, OutputExistsError
+from pipeline.manifest import (
+    MANIFEST_NAME,
+    FileRecord,
+    Manifest,
+    collect_versions,
+    git_info,
+    hash_file,
+    hash_tree,
+)
+
+log = logging.getLogger("icrowdnav")
+
+CONFIG_NAME = "config.yaml"
+_CODE_ROOT = Path(__file__).resolve().parent
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A pipeline stage.
+
+    Attributes:
+        name: The CLI verb and the section name in the YAML profiles.
+        config_cls: The config dataclass (a ``BaseStageConfig`` subclass).
+        help: One-line description for ``icrowdnav --help``.
+        output_dir: Maps a config to the stage's output directory.
+        inputs: Maps a config to the files/directories the stage reads.
+        body: ``body(cfg, out_dir) -> counts``: writes every output into ``out_dir`` and returns summary
+            numbers (int, float or str values).
+        resumable: Whether the body can continue a partially written output (``--resume``).
+    """
+
+    name: str
+    config_cls: type
+    help: str
+    output_dir: Callable[[Any], Path]
+    inputs: Callable[[Any], list[Path]]
+    body: Callable[[Any, Path], dict[str, Any]]
+    resumable: bool = False
+
+
+def mode_of(cfg: Any) -> OutputMode:
+    """Returns the output mode a config asks for: ``overwrite``, ``resume`` or ``new``.
+
+    Args:
+        cfg: A stage config (fields ``overwrite`` and ``resume``; missing ones count as false).
+
+    Raises:
+        ConfigError: Both ``overwrite`` and ``resume`` are set.
+    """
+    overwrite = bool(getattr(cfg, "overwrite", False))
+    resume = bool(getattr(cfg, "resume", False))
+    if overwrite and resume:
+        raise ConfigError(
+            "config keys 'overwrite' and 'resume' exclude each other: expected at most one to be true, "
+            "got overwrite=true, resume=true"
+        )
+    if overwrite:
+        return "overwrite"
+    if resume:
+        return "resume"
+    return "new"
+
+
+def _record_path(path: Path, data_dir: Path | None) -> str:
+    """An input path as stored in a manifest: relative to ``data_dir`` when inside it, else as given."""
+    if data_dir is not None:
+        try:
+            return path.resolve().relative_to(Path(data_dir).resolve()).as_posix()
+        except ValueError:
+            pass
+    return path.as_posix()
+
+
+def hash_inputs(paths: list[Path], data_dir: Path | None = None) -> list[FileRecord]:
+    """Hashes the inputs of a stage; a directory contributes one record per file under it.
+
+    Args:
+        paths: Input files and directories (they must exist).
+        data_dir: Paths inside it are recorded relative to it.
+
+    Returns:
+        Records sorted by path.
+    """
+    records: list[FileRecord] = []
+    for p in paths:
+        p = Path(p)
+        shown = _record_path(p, data_dir)
+        if p.is_dir():
+            prefix = "" if shown in ("", ".") else shown.rstrip("/") + "/"
+            records.extend(FileRecord(prefix + r.path, r.sha256, r.bytes) for r in hash_tree(p))
+        else:
+            records.append(FileRecord(shown, hash_file(p), p.stat().st_size))
+    unique = {r.path: r for r in records}
+    return [unique[k] for k in sorted(unique)]
+
+
+def _clean_counts(stage: str, counts: Any) -> dict[str, float | int | str]:
+    """Checks a body's return value; numpy scalars are turned into Python numbers."""
+    if counts is None:
+        return {}
+    if not isinstance(counts, dict):
+        raise TypeError(f"stage '{stage}': body must return a dict of counts, got {type(counts).__name__}")
+    out: dict[str, float | int | str] = {}
+    for k, v in counts.items():
+        if hasattr(v, "item") and callable(v.item) and not isinstance(v, int | float | str):
+            v = v.item()
+        if not isinstance(k, str) or not isinstance(v, int | float | str):
+            raise TypeError(
+                f"stage '{stage}': counts[{k!r}] must map a str to an int, float or str, got {v!r}"
+            )
+        out[k] = v
+    return out
+
+
+def staleness(stage: Stage, cfg: Any, out_dir: Path, inputs: list[FileRecord]) -> str | None:
+    """Says why an existing output directory is not an up-to-date result of this config.
+
+    Args:
+        stage: The stage.
+        cfg: Its config.
+        out_dir: The existing output directory.
+        inputs: Current input records (from :func:`hash_inputs`).
+
+    Returns:
+        None when the output is up to date, else a short reason.
+    """
+    manifest_path = out_dir / MANIFEST_NAME
+    if not manifest_path.is_file():
+        return f"it has no {MANIFEST_NAME}, so it is incomplete or was not made by this pipeline"
+    try:
+        old = Manifest.read(manifest_path)
+    except ICrowdNavError as e:
+        return str(e)
+    if old.stage != stage.name:
+        return f"it was made by stage '{old.stage}', not '{stage.name}'"
+    new_hash = config_hash(cfg)
+    if old.config_hash != new_hash:
+        return f"the config changed: config_hash {old.config_hash[:12]} there, {new_hash[:12]} now"
+    old_inputs = {r.path: r for r in old.inputs}
+    new_inputs = {r.path: r for r in inputs}
+    if old_inputs != new_inputs:
+        changed = sorted(set(old_inputs) ^ set(new_inputs)) or sorted(
+            p for p in new_inputs if old_inputs[p] != new_inputs[p]
+        )
+        return f"its inputs changed ({', '.join(changed[:3])}{' ...' if len(changed) > 3 else ''})"
+    for rec in old.outputs:
+        p = out_dir / rec.path
+        if not p.is_file():
+            return f"output file {rec.path} is missing"
+        size = p.stat().st_size
+        if size != rec.bytes:
+            return f"output file {rec.path} has {size} bytes, expected {rec.bytes}"
+    return None
+
+
+def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tuple[Manifest, bool]:
+    """Runs a stage like :func:`run_stage` and also says whether any work was done.
+
+    Returns:
+        ``(manifest, ran)``; ``ran`` is False when the existing output was up to date.
+    """
+    if not isinstance(cfg, stage.config_cls):
+        raise TypeError(
+            f"stage '{stage.name}': expected a {stage.config_cls.__name__}, got {type(cfg).__name__}"
+        )
+    validate_tree(cfg)
+    mode = mode_of(cfg)
+    if mode == "resume" and not stage.resumable:
+        raise ConfigError(f"stage '{stage.name}' cannot resume a partial output; use --overwrite to redo it")
+    input_paths = [Path(p) for p in stage.inputs(cfg)]
+    for p in input_paths:
+        require_input(p, f"input of stage '{stage.name}'")
+    out = Path(stage.output_dir(cfg))
+    data_dir = getattr(cfg, "data_dir", None)
+    inputs = hash_inputs(input_paths, data_dir)
+
+    if mode == "new" and out.exists():
+        reason = staleness(stage, cfg, out, inputs) if out.is_dir() else f"{out} is not a directory"
+        if reason is None:
+            log.info("%s: up to date (%s)", stage.name, out)
+            return Manifest.read(out / MANIFEST_NAME), False
+        if not out.is_dir() or any(out.iterdir()):
+            resume_hint = " or --resume to continue it" if stage.resumable else ""
+            raise OutputExistsError(
+                f"output directory {out} already exists and is not up to date ({reason}); "
+                f"pass --overwrite to replace it{resume_hint}"
+            )
+
+    chash = config_hash(cfg)
+    params = to_dict(cfg)
+    command = list(sys.argv) if command is None else list(command)
+    t0 = time.monotonic()
+    with OutputDir(out, mode) as od:
+        log.info("%s: running (mode %s) -> %s", stage.name, mode, out)
+        counts = _clean_counts(stage.name, stage.body(cfg, od.path))
+        dump_yaml(cfg, od.path / CONFIG_NAME)
+        commit, dirty = git_info(_CODE_ROOT)
+        seed = getattr(cfg, "seed", None)
+        manifest = Manifest(
+            stage=stage.name,
+            params=params,
+            config_hash=chash,
+            seed=seed if isinstance(seed, int) and not isinstance(seed, bool) else None,
+            inputs=inputs,
+            outputs=hash_tree(od.path),
+            counts=counts,
+            created_utc=datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+            git_commit=commit,
+            git_dirty=dirty,
+            versions=collect_versions(),
+            duration_s=round(time.monotonic() - t0, 3),
+            command=command,
+        )
+        manifest.write(od.path / MANIFEST_NAME)
+    log.info("%s: done in %.1f s -> %s", stage.name, manifest.duration_s, out)
+    return manifest, True
+
+
+def run_stage(stage: Stage, cfg: Any, command: list[str] | None = None) -> Manifest:
+    """Runs a stage: checks inputs, skips up-to-date outputs, runs the body crash-safely, writes provenance.
+
+    Args:
+        stage: The stage.
+        cfg: Its config (an instance of ``stage.config_cls``; validated again here).
+        command: The command line to record (default: ``sys.argv``).
+
+    Returns:
+        The manifest of the (new or up-to-date) output directory.
+
+    Raises:
+        InputMissingError: An input path does not exist.
+        OutputExistsError: The output exists, is not up to date, and neither overwrite nor resume is set.
+        ConfigError: Invalid config, or ``resume`` for a stage that is not resumable.
+    """
+    return run_stage_ex(stage, cfg, command)[0]

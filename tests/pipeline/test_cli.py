@@ -1,0 +1,213 @@
+"""Tests of the icrowdnav command line (pipeline.cli), with a fake stage defined here."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+import yaml
+
+from pipeline import cli
+from pipeline.config import PROFILES_ENV, BaseStageConfig
+from pipeline.stage import Stage
+
+REPO = Path(__file__).resolve().parents[2]
+BODY_CALLS: list[Path] = []
+
+
+@dataclass
+class CamConfig:
+    width_px: int = field(default=64, metadata={"help": "camera image width"})
+
+
+@dataclass
+class FakeSimConfig:
+    camera: CamConfig = field(default_factory=CamConfig)
+    scenes: list[str] = field(default_factory=lambda: ["lobby"])
+
+
+@dataclass
+class FakeConfig(BaseStageConfig):
+    episodes: int = field(default=2, metadata={"help": "number of fake episodes"})
+    max_episode_s: float = field(default=30.0, metadata={"help": "episode time limit"})
+    record_video: bool = field(default=False, metadata={"help": "also write a video"})
+    input_path: Path | None = field(default=None, metadata={"help": "optional input"})
+    sim: FakeSimConfig = field(default_factory=FakeSimConfig)
+
+
+def fake_body(cfg: FakeConfig, out: Path) -> dict[str, int | float | str]:
+    BODY_CALLS.append(out)
+    for i in range(cfg.episodes):
+        (out / f"ep{i}.json").write_text(json.dumps({"i": i, "width": cfg.sim.camera.width_px}))
+    return {"episodes": cfg.episodes, "video": str(cfg.record_video).lower(), "limit_s": cfg.max_episode_s}
+
+
+FAKE_STAGE = Stage(
+    name="fake",
+    config_cls=FakeConfig,
+    help="writes fake episodes for the CLI tests",
+    output_dir=lambda cfg: cfg.data_dir / "fake",
+    inputs=lambda cfg: [cfg.input_path] if cfg.input_path else [],
+    body=fake_body,
+)
+
+
+def hello(argv: list[str]) -> int:
+    """Prints its arguments (a non-stage verb)."""
+    print("hello", *argv)
+    return 3
+
+
+@pytest.fixture(autouse=True)
+def setup(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    profiles = tmp_path / "profiles"
+    profiles.mkdir()
+    (profiles / "default.yaml").write_text("fake:\n  episodes: 3\n")
+    (profiles / "smoke.yaml").write_text("common:\n  max_episode_s: 5\nfake:\n  episodes: 1\n")
+    monkeypatch.setenv(PROFILES_ENV, str(profiles))
+    monkeypatch.setitem(cli.VERBS, "fake", "tests.pipeline.test_cli:FAKE_STAGE")
+    monkeypatch.setitem(cli.VERBS, "hello", "tests.pipeline.test_cli:hello")
+    monkeypatch.setitem(cli.VERBS, "ghost", "tests.pipeline.no_such_module:STAGE")
+    BODY_CALLS.clear()
+
+
+def files_under(d: Path) -> list[Path]:
+    return [p for p in d.rglob("*") if p.is_file()] if d.exists() else []
+
+
+def test_run_and_rerun(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    data = tmp_path / "data"
+    argv = [
+        "fake", "--data-dir", str(data), "--profile", "smoke", "--max-episode-s", "2.5",
+        "--sim.camera.width_px=8", "--record-video", "--sim.scenes", "a,b", "--seed", "4",
+    ]  # fmt: skip
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out == [f"fake: done -> {data / 'fake'} (episodes=1, video=true, limit_s=2.5)"]
+    resolved = yaml.safe_load((data / "fake" / "config.yaml").read_text())
+    assert resolved["profile"] == "smoke" and resolved["seed"] == 4
+    assert resolved["sim"] == {"camera": {"width_px": 8}, "scenes": ["a", "b"]}
+    manifest = json.loads((data / "fake" / "manifest.json").read_text())
+    assert manifest["command"] == ["icrowdnav", *argv]
+
+    assert cli.main(argv) == 0
+    assert "up to date" in capsys.readouterr().out
+    assert len(BODY_CALLS) == 1
+
+    assert cli.main([*argv, "--episodes", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: output directory") and "--overwrite" in err[0]
+
+    assert cli.main([*argv, "--episodes", "2", "--overwrite"]) == 0
+    assert len(BODY_CALLS) == 2 and len(list((data / "fake").glob("ep*.json"))) == 2
+
+
+def test_profile_default_and_bool_forms(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    data = tmp_path / "data"
+    assert cli.main(["fake", f"--data-dir={data}", "--record-video", "false", "--no-overwrite"]) == 0
+    assert "(episodes=3, video=false, limit_s=30)" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["--episodes", "abc"],
+            "error: config key 'episodes' in command line: expected int, got 'abc' (str)",
+        ),
+        (["--sim.camera.widht-px", "3"], "error: unknown config key 'sim.camera.widht_px' in command line"),
+        (["--record-video=maybe"], "error: config key 'record_video' in command line: expected bool"),
+        (["--profile", "papr"], "error: unknown profile 'papr'"),
+        (["--overwrite", "--resume"], "error: config keys 'overwrite' and 'resume' exclude each other"),
+        (["--seed", "-1"], "error: config key 'seed': expected an int >= 0, got -1"),
+        (["--input-path", "/nonexistent/x"], "error: missing input of stage 'fake': /nonexistent/x"),
+        (["--config", "/nonexistent/c.yaml"], "error: missing config file: /nonexistent/c.yaml"),
+        (["stray"], "error: unexpected argument 'stray'"),
+        (["--episodes"], "error: option --episodes needs a value"),
+    ],
+)
+def test_user_errors_print_one_line_and_write_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str
+) -> None:
+    data = tmp_path / "data"
+    assert cli.main(["fake", "--data-dir", str(data), *args]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert len(lines) == 1, captured.err
+    assert lines[0].startswith(message)
+    assert captured.out == ""
+    assert files_under(data) == []
+    assert BODY_CALLS == []
+
+
+def test_config_file_between_profile_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    data = tmp_path / "data"
+    cfg_file = tmp_path / "mine.yaml"
+    cfg_file.write_text("fake:\n  episodes: 4\n  max_episode_s: 9\n")
+    assert cli.main(["fake", "--data-dir", str(data), "--config", str(cfg_file), "--episodes", "5"]) == 0
+    assert "(episodes=5, video=false, limit_s=9)" in capsys.readouterr().out
+
+
+def test_verb_help_lists_keys(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["fake", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "writes fake episodes for the CLI tests" in out
+    for key in [
+        "data_dir",
+        "seed",
+        "overwrite",
+        "episodes",
+        "max_episode_s",
+        "sim.camera.width_px",
+        "sim.scenes",
+    ]:
+        assert f"--{key} " in out
+    assert "camera image width" in out and "list[str]" in out and "default 64" in out
+    assert "default, smoke" in out  # profiles
+
+
+def test_top_level_help_lists_verbs(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert "fake" in out and "writes fake episodes for the CLI tests" in out
+    assert "Prints its arguments (a non-stage verb)." in out
+    assert "ghost" in out and "unavailable" in out
+    assert "rollout" in out
+    assert cli.main([]) == 2
+    assert "commands:" in capsys.readouterr().out
+
+
+def test_unknown_and_unavailable_verbs(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["nope"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("error: unknown command 'nope'; available commands: ")
+    assert cli.main(["ghost"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err == [
+        "error: command 'ghost' is not available: module tests.pipeline.no_such_module does not exist"
+    ]
+
+
+def test_callable_verb_gets_argv_and_returns_status(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["hello", "--x", "1"]) == 3
+    assert capsys.readouterr().out == "hello --x 1\n"
+
+
+def test_register_verb(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(cli, "VERBS", dict(cli.VERBS))
+    cli.register_verb("fake2", "tests.pipeline.test_cli:FAKE_STAGE")
+    assert cli.resolve_verb("fake2") is FAKE_STAGE
+    with pytest.raises(ValueError, match="module.path:OBJECT"):
+        cli.register_verb("bad", "no_colon")
+
+
+def test_python_dash_m_pipeline() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "commands:" in proc.stdout and "rollout" in proc.stdout

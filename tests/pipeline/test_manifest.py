@@ -1,0 +1,272 @@
+"""Tests of pipeline.manifest and pipeline.stage (provenance, idempotent stage runs)."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+import yaml
+
+import pipeline
+from pipeline.config import BaseStageConfig, apply_dict, config_hash, from_dict
+from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError, OutputExistsError
+from pipeline.manifest import FileRecord, Manifest, collect_versions, git_info, hash_file, hash_tree
+from pipeline.stage import Stage, mode_of, run_stage, run_stage_ex
+
+# ------------------------------------------------------------------ manifest
+
+
+def sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def test_hash_file_and_tree(tmp_path: Path) -> None:
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "z.bin").write_bytes(b"zz")
+    (tmp_path / "a.txt").write_bytes(b"a")
+    (tmp_path / "manifest.json").write_text("{}")
+    (tmp_path / "b" / "manifest.json").write_text("{}")  # only the top-level one is excluded
+    assert hash_file(tmp_path / "a.txt") == sha(b"a")
+    assert hash_tree(tmp_path) == [
+        FileRecord("a.txt", sha(b"a"), 1),
+        FileRecord("b/manifest.json", sha(b"{}"), 2),
+        FileRecord("b/z.bin", sha(b"zz"), 2),
+    ]
+    assert [r.path for r in hash_tree(tmp_path, exclude=set())][1] == "b/manifest.json"
+    assert len(hash_tree(tmp_path, exclude=set())) == 4
+    with pytest.raises(InputMissingError):
+        hash_tree(tmp_path / "nope")
+
+
+def make_manifest() -> Manifest:
+    return Manifest(
+        stage="toy",
+        params={"episodes": 2, "sim": {"dt_s": 0.1}},
+        config_hash="ab" * 32,
+        seed=7,
+        inputs=[FileRecord("in/x.bin", "cd" * 32, 10)],
+        outputs=[FileRecord("a.txt", "ef" * 32, 3)],
+        counts={"episodes": 2, "success_rate": 0.5, "note": "ok"},
+        created_utc="2025-01-01T00:00:00Z",
+        git_commit="unknown",
+        git_dirty=False,
+        versions={"python": "3.11.7"},
+        duration_s=1.25,
+        command=["icrowdnav", "toy"],
+    )
+
+
+def test_manifest_round_trip(tmp_path: Path) -> None:
+    m = make_manifest()
+    path = m.write(tmp_path / "manifest.json")
+    assert Manifest.read(path) == m
+    text = path.read_text()
+    assert text.startswith('{\n  "command"')  # indent 2, sorted keys
+    assert json.loads(text)["inputs"] == [{"bytes": 10, "path": "in/x.bin", "sha256": "cd" * 32}]
+
+
+def test_manifest_read_missing(tmp_path: Path) -> None:
+    with pytest.raises(InputMissingError, match=r"missing manifest: .*manifest\.json"):
+        Manifest.read(tmp_path / "manifest.json")
+
+
+@pytest.mark.parametrize(
+    ("content", "problem"),
+    [
+        ('{"stage": ', r"invalid JSON at line 1"),
+        ("[1, 2]", r"expected a JSON object, got list"),
+        ('{"stage": "x"}', r"missing field\(s\) params, config_hash"),
+        (None, r"field 'seed' must be an int or null, got 'seven'"),
+        ("bad-outputs", r"outputs\[0\] must be"),
+    ],
+)
+def test_corrupt_manifest_names_file_and_problem(tmp_path: Path, content: str | None, problem: str) -> None:
+    path = tmp_path / "manifest.json"
+    data = make_manifest().to_dict()
+    if content is None:
+        data["seed"] = "seven"
+        content = json.dumps(data)
+    elif content == "bad-outputs":
+        data["outputs"] = [{"path": "a"}]
+        content = json.dumps(data)
+    path.write_text(content)
+    with pytest.raises(CorruptArtifactError) as e:
+        Manifest.read(path)
+    assert str(e.value).startswith(f"corrupt manifest {path}: ")
+    assert re.search(problem, str(e.value))
+
+
+def test_collect_versions() -> None:
+    v = collect_versions()
+    assert re.fullmatch(r"3\.\d+\.\d+.*", v["python"])
+    assert "platform" in v
+    assert v["numpy"]  # installed in the venv
+    assert all(isinstance(x, str) for x in v.values())
+
+
+def test_git_info(tmp_path: Path) -> None:
+    assert git_info(tmp_path) == ("unknown", False)
+    commit, dirty = git_info(Path(pipeline.__file__))
+    assert commit == "unknown" or re.fullmatch(r"[0-9a-f]{40}", commit)
+    assert isinstance(dirty, bool)
+
+
+# ------------------------------------------------------------------ run_stage
+
+CALLS: list[Path] = []
+
+
+@dataclass
+class ToyStageConfig(BaseStageConfig):
+    episodes: int = field(default=2, metadata={"help": "episodes to write"})
+    input_path: Path | None = field(default=None, metadata={"help": "optional input file or directory"})
+    fail: bool = False
+
+
+def toy_body(cfg: ToyStageConfig, out: Path) -> dict[str, int | float | str]:
+    CALLS.append(out)
+    if cfg.fail:
+        (out / "half.txt").write_text("half")
+        raise RuntimeError("body crashed")
+    (out / "episodes").mkdir(exist_ok=True)
+    for i in range(cfg.episodes):
+        (out / "episodes" / f"ep{i:03d}.txt").write_text(f"episode {i} seed {cfg.seed}")
+    (out / "summary.txt").write_text(f"{cfg.episodes}")
+    return {"episodes": cfg.episodes, "mean_len_s": 1.5}
+
+
+TOY = Stage(
+    name="toy",
+    config_cls=ToyStageConfig,
+    help="writes toy episodes",
+    output_dir=lambda cfg: cfg.data_dir / "toy",
+    inputs=lambda cfg: [cfg.input_path] if cfg.input_path is not None else [],
+    body=toy_body,
+)
+TOY_RESUMABLE = dataclasses.replace(TOY, resumable=True)
+
+
+@pytest.fixture
+def cfg(tmp_path: Path) -> ToyStageConfig:
+    CALLS.clear()
+    return from_dict(ToyStageConfig, {"data_dir": str(tmp_path / "data")}, "test")
+
+
+def test_run_stage_writes_outputs_config_and_manifest(cfg: ToyStageConfig) -> None:
+    m = run_stage(TOY, cfg, command=["icrowdnav", "toy"])
+    out = cfg.data_dir / "toy"
+    assert sorted(p.name for p in out.iterdir()) == [
+        "config.yaml",
+        "episodes",
+        "manifest.json",
+        "summary.txt",
+    ]
+    assert Manifest.read(out / "manifest.json") == m
+    assert m.stage == "toy" and m.seed == 0 and m.command == ["icrowdnav", "toy"]
+    assert m.config_hash == config_hash(cfg)
+    assert m.counts == {"episodes": 2, "mean_len_s": 1.5}
+    assert [r.path for r in m.outputs] == [
+        "config.yaml",
+        "episodes/ep000.txt",
+        "episodes/ep001.txt",
+        "summary.txt",
+    ]
+    assert m.params["episodes"] == 2
+    assert yaml.safe_load((out / "config.yaml").read_text())["episodes"] == 2
+    assert sorted(p.name for p in cfg.data_dir.iterdir()) == ["toy"]  # no staging dir left
+
+
+def test_run_stage_twice_is_a_noop(cfg: ToyStageConfig, caplog: pytest.LogCaptureFixture) -> None:
+    first = run_stage(TOY, cfg)
+    caplog.set_level(logging.INFO, logger="icrowdnav")
+    second, ran = run_stage_ex(TOY, cfg)
+    assert len(CALLS) == 1 and not ran
+    assert second == first
+    assert f"toy: up to date ({cfg.data_dir / 'toy'})" in caplog.messages
+
+
+def test_changed_config_raises_then_overwrite_reruns(cfg: ToyStageConfig) -> None:
+    run_stage(TOY, cfg)
+    changed = apply_dict(cfg, {"episodes": 3}, "test")
+    with pytest.raises(OutputExistsError, match=r"already exists and is not up to date \(the config changed"):
+        run_stage(TOY, changed)
+    assert len(CALLS) == 1
+    m = run_stage(TOY, apply_dict(changed, {"overwrite": True}, "test"))
+    assert len(CALLS) == 2 and m.counts["episodes"] == 3
+    assert len(list((cfg.data_dir / "toy" / "episodes").iterdir())) == 3
+    run_stage(TOY, changed)  # the overwritten output is up to date for the new config
+    assert len(CALLS) == 2
+
+
+def test_deleted_output_is_not_up_to_date(cfg: ToyStageConfig) -> None:
+    run_stage(TOY, cfg)
+    (cfg.data_dir / "toy" / "summary.txt").unlink()
+    with pytest.raises(OutputExistsError, match="output file summary.txt is missing"):
+        run_stage(TOY, cfg)
+
+
+def test_output_without_manifest_is_not_overwritten(cfg: ToyStageConfig) -> None:
+    out = cfg.data_dir / "toy"
+    out.mkdir(parents=True)
+    (out / "foreign.txt").write_text("not ours")
+    with pytest.raises(OutputExistsError, match="has no manifest.json"):
+        run_stage(TOY, cfg)
+    assert [p.name for p in out.iterdir()] == ["foreign.txt"]
+    assert CALLS == []
+
+
+def test_missing_input(cfg: ToyStageConfig) -> None:
+    missing = cfg.data_dir / "rollouts" / "none"
+    with pytest.raises(InputMissingError, match=re.escape(f"missing input of stage 'toy': {missing}")):
+        run_stage(TOY, apply_dict(cfg, {"input_path": str(missing)}, "test"))
+    assert CALLS == [] and not cfg.data_dir.exists()
+
+
+def test_inputs_are_hashed_and_changes_detected(cfg: ToyStageConfig) -> None:
+    src = cfg.data_dir / "rollouts"
+    (src / "eps").mkdir(parents=True)
+    (src / "eps" / "0.bin").write_bytes(b"0")
+    (src / "meta.json").write_text("{}")
+    (src / "manifest.json").write_text("{}")  # an upstream manifest is not an input
+    with_input = apply_dict(cfg, {"input_path": str(src)}, "test")
+    m = run_stage(TOY, with_input)
+    assert m.inputs == [
+        FileRecord("rollouts/eps/0.bin", sha(b"0"), 1),
+        FileRecord("rollouts/meta.json", sha(b"{}"), 2),
+    ]
+    run_stage(TOY, with_input)
+    assert len(CALLS) == 1
+    (src / "eps" / "0.bin").write_bytes(b"1")
+    with pytest.raises(OutputExistsError, match=r"its inputs changed \(rollouts/eps/0.bin\)"):
+        run_stage(TOY, with_input)
+
+
+def test_body_exception_leaves_nothing(cfg: ToyStageConfig) -> None:
+    with pytest.raises(RuntimeError, match="body crashed"):
+        run_stage(TOY, apply_dict(cfg, {"fail": True}, "test"))
+    assert list(cfg.data_dir.iterdir()) == []
+
+
+def test_resume(cfg: ToyStageConfig) -> None:
+    resume = apply_dict(cfg, {"resume": True}, "test")
+    with pytest.raises(ConfigError, match="stage 'toy' cannot resume"):
+        run_stage(TOY, resume)
+    run_stage(TOY_RESUMABLE, resume)
+    assert CALLS == [cfg.data_dir / "toy"]  # resumable stages write in place
+    run_stage(TOY_RESUMABLE, resume)
+    assert len(CALLS) == 2  # resume always runs the body (it skips finished work itself)
+
+
+def test_mode_of() -> None:
+    base = BaseStageConfig()
+    assert mode_of(base) == "new"
+    assert mode_of(dataclasses.replace(base, overwrite=True)) == "overwrite"
+    assert mode_of(dataclasses.replace(base, resume=True)) == "resume"
+    with pytest.raises(ConfigError, match="exclude each other"):
+        mode_of(dataclasses.replace(base, resume=True, overwrite=True))
