@@ -42,6 +42,7 @@ PROG = "icrowdnav"
 
 VERBS: dict[str, str] = {
     "rollout": "sim.rollout:STAGE",
+    "bench": "pipeline.bench:main",
 }
 
 _LOG_FORMAT = "%(asctime)s %(levelname).1s %(message)s"

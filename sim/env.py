@@ -44,7 +44,7 @@ from pipeline.errors import ConfigError
 from sim.cameras import CameraSpec, pose_matrix
 from sim.crowd import Crowd, CrowdConfig
 from sim.detector import CameraFrame, DetectorConfig, OracleDetector, PoseDetector
-from sim.humans import BodyConfig, Bodies
+from sim.humans import Bodies, BodyConfig
 from sim.reward import RewardConfig, reward_terms
 from sim.robot import RobotConfig, action_grid, unicycle_step
 from sim.scene import SceneLayout, SceneSpec, load_scene

@@ -1,0 +1,46 @@
+# iCrowdNav pipeline. Every stage target takes PROFILE=smoke|default|paper and DATA_DIR=<dir>.
+#   make all      install (if needed), then run the pipeline end to end on the default profile
+#   make test     install (if needed), then run the test suite
+SHELL := /bin/bash
+PROFILE ?= default
+DATA_DIR ?= data
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+export HF_HUB_OFFLINE := 1
+export PYTHONHASHSEED := 0
+
+.PHONY: install all rollout smoke test bench lint help
+
+help:
+	@echo "targets: install all rollout smoke test bench lint   (PROFILE=$(PROFILE) DATA_DIR=$(DATA_DIR))"
+
+# The venv is rebuilt only when the lock file or pyproject.toml change (the stamp is newer otherwise).
+# uv installs the exact pins of requirements.lock; its cache (~/.cache/uv) makes a re-install fast.
+install: $(STAMP)
+$(STAMP): requirements.lock pyproject.toml
+	@test -x $(PY) || python3 -m venv $(VENV)
+	@$(PY) -m pip --version >/dev/null 2>&1 || $(PY) -m ensurepip >/dev/null
+	@$(VENV)/bin/python -m pip install -q --disable-pip-version-check "uv==0.13.9"
+	$(VENV)/bin/uv pip sync -q --python $(PY) requirements.lock
+	$(VENV)/bin/uv pip install -q --python $(PY) --no-deps -e . --config-settings editable_mode=compat
+	@touch $(STAMP)
+
+# Stages of the pipeline that exist so far (record / pretrain / train / eval arrive with their issues).
+rollout: install
+	$(PY) -m pipeline rollout --profile $(PROFILE) --data-dir $(DATA_DIR)
+
+all: install rollout
+
+# Every stage on tiny sizes through real files, into its own data dir (replaced on each run).
+smoke: install
+	$(PY) -m pipeline rollout --profile smoke --data-dir $(DATA_DIR)/smoke --overwrite
+
+test: install
+	$(PY) -m pytest -q -p no:cacheprovider
+
+bench: install
+	$(PY) -m pipeline bench --profile $(PROFILE) --data-dir $(DATA_DIR)
+
+lint: install
+	$(VENV)/bin/ruff check pipeline sim tests

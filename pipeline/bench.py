@@ -1,0 +1,176 @@
+"""``icrowdnav bench``: performance figures, each fast path measured against a simple reference in the same run.
+
+::
+
+    icrowdnav bench --profile default --data-dir data        # or: make bench
+
+Writes ``DATA_DIR/bench/bench.json`` (a flat dict of named figures; figures written by other stages' benchmarks
+are kept, ours are replaced) and prints every figure. Figures (single process, this machine):
+
+* ``env_steps_per_s_norender`` — ``gymnasium.make`` env, office lobby at 0.2 ped/m², ``obs_mode=state``,
+  ``info_level=basic``, random actions (the RL fast path); ``..._full_info`` the same with keypoints and the
+  static scan in ``info``; ``env_steps_per_s_privileged`` the teacher's observation mode;
+* ``env_steps_per_s_render`` — the same with both RGB-D cameras rendered at the profile's resolution plus
+  the oracle pose detector (``obs_mode=visual``); ``render_ms_per_camera`` the TinyRenderer share;
+* ``sfm_vectorized_speedup`` — :meth:`sim.crowd.Crowd.social_forces` vs the per-agent loop
+  :func:`sim.crowd.social_force_reference` on the same state (and ``..._n40`` for a 40-person crowd);
+* ``static_distance_speedup`` — vectorised obstacle distances vs the plain loop, 1,000 points;
+* ``expert_ms_per_step`` — one decision of the privileged expert.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.artifacts import atomic_write_json
+from pipeline.config import BaseStageConfig, load_config
+from pipeline.errors import ConfigError
+from sim.env import SimConfig
+
+
+@dataclass
+class BenchConfig(BaseStageConfig):
+    """Config of the benchmark."""
+
+    seconds_per_figure: float = field(default=5.0, metadata={"help": "measuring time per throughput figure, s"})
+    scene: str = field(default="office_lobby", metadata={"help": "scene of the env figures"})
+    density: float = field(default=0.2, metadata={"help": "crowd density of the env figures, ped/m²"})
+    sim: SimConfig = field(default_factory=SimConfig, metadata={"help": "the crowd world (camera resolution)"})
+
+    def validate(self) -> None:
+        super().validate()
+        if self.seconds_per_figure <= 0:
+            raise ConfigError(f"seconds_per_figure: expected > 0, got {self.seconds_per_figure}")
+
+
+def _throughput(step, seconds: float) -> float:
+    """Calls of ``step`` per second over about ``seconds`` (after one warm-up call)."""
+    step()
+    n, t0 = 0, time.perf_counter()
+    while True:
+        step()
+        n += 1
+        dt = time.perf_counter() - t0
+        if dt >= seconds:
+            return n / dt
+
+
+def _env_rate(cfg: BenchConfig, seconds: float, **overrides) -> tuple[float, object]:
+    import gymnasium as gym
+
+    import sim  # noqa: F401
+
+    env = gym.make("icrowdnav/CrowdNav-v0", config=replace(cfg.sim, scene=cfg.scene, density=cfg.density,
+                                                           **overrides))
+    env.reset(seed=cfg.seed)
+    env.action_space.seed(cfg.seed)
+
+    def step():
+        _, _, term, trunc, _ = env.step(env.action_space.sample())
+        if term or trunc:
+            env.reset()
+
+    return _throughput(step, seconds), env
+
+
+def _time_call(fn, seconds: float) -> float:
+    """Mean seconds per call of ``fn``."""
+    return 1.0 / _throughput(fn, seconds)
+
+
+def measure(cfg: BenchConfig) -> dict[str, float]:
+    """All figures of this module (see the module docstring)."""
+    from sim.crowd import Crowd, social_force_reference
+    from sim.expert import PrivilegedExpert
+    from sim.geometry import signed_distance_reference
+
+    s = cfg.seconds_per_figure
+    out: dict[str, float] = {}
+    out["env_steps_per_s_norender"], _ = _env_rate(cfg, s, obs_mode="state", info_level="basic")
+    out["env_steps_per_s_norender_full_info"], _ = _env_rate(cfg, s, obs_mode="state", info_level="full")
+    out["env_steps_per_s_privileged"], _ = _env_rate(cfg, s, obs_mode="privileged", info_level="basic")
+    out["env_steps_per_s_render"], env = _env_rate(cfg, s, obs_mode="visual", info_level="full")
+    u = env.unwrapped
+    out["render_ms_per_camera"] = 1000 * _time_call(u.render_cameras, s / 2) / 2
+    out["render_resolution_px"] = float(cfg.sim.camera.width_px * cfg.sim.camera.height_px)
+    out["bench_peds"] = float(u.crowd.n)
+
+    def sfm_pair(crowd: Crowd, prefix: str) -> None:
+        robot = np.array(u.robot[:2])
+        args = (crowd.pos, crowd.vel, crowd.goal, crowd.v0, crowd.radius, crowd.mode, crowd.layout, crowd.cfg,
+                robot, 0.3)
+        fast = crowd.social_forces(robot, 0.3)
+        ref = social_force_reference(*args)
+        if not np.allclose(fast, ref, atol=1e-9):
+            raise RuntimeError("vectorised social force disagrees with the reference")
+        t_fast = _time_call(lambda: crowd.social_forces(robot, 0.3), s / 4)
+        t_ref = _time_call(lambda: social_force_reference(*args), s / 4)
+        out[f"{prefix}_us"] = 1e6 * t_fast
+        out[f"{prefix}_reference_us"] = 1e6 * t_ref
+        out[f"{prefix}_speedup"] = t_ref / t_fast
+
+    sfm_pair(u.crowd, "sfm_vectorized")
+    from sim.humans import Bodies
+
+    rng = np.random.default_rng(cfg.seed)
+    big = Crowd(u.layout, u.crowd.cfg, rng, 40, Bodies(u.cfg.body, rng, 40, np.zeros(40)).radius) \
+        if u.layout.ped_count(0.6) >= 40 else None
+    if big is not None:
+        sfm_pair(big, "sfm_vectorized_n40")
+    pts = rng.uniform([u.layout.spec.bounds[0], u.layout.spec.bounds[2]],
+                      [u.layout.spec.bounds[1], u.layout.spec.bounds[3]], (1000, 2))
+    t_fast = _time_call(lambda: u.layout.geometry.signed_distance(pts), s / 4)
+    t_ref = _time_call(lambda: [signed_distance_reference(u.layout.obstacles, p) for p in pts], s / 4)
+    out["static_distance_speedup"] = t_ref / t_fast
+    env.close()
+    # the expert's decision time
+    import gymnasium as gym
+
+    env = gym.make("icrowdnav/CrowdNav-v0", config=replace(cfg.sim, scene=cfg.scene, density=cfg.density,
+                                                           obs_mode="state", info_level="basic"))
+    env.reset(seed=cfg.seed)
+    expert = PrivilegedExpert()
+    expert.reset(env.unwrapped)
+    out["expert_ms_per_step"] = 1000 * _time_call(lambda: expert.command(env.unwrapped), s / 2)
+    env.close()
+    return {k: round(float(v), 3) for k, v in out.items()}
+
+
+def main(argv: list[str]) -> int:
+    """CLI: ``icrowdnav bench [--profile P] [--data-dir D] [--seconds-per-figure S]``."""
+    ap = argparse.ArgumentParser(prog="icrowdnav bench", description=__doc__.split("\n")[0])
+    ap.add_argument("--profile", default="default")
+    ap.add_argument("--data-dir", default="data")
+    ap.add_argument("--seconds-per-figure", default=None)
+    a = ap.parse_args(argv)
+    overrides = {"data_dir": a.data_dir}
+    if a.seconds_per_figure is not None:
+        overrides["seconds_per_figure"] = a.seconds_per_figure
+    cfg = load_config(BenchConfig, "bench", a.profile, overrides)
+    figures = measure(cfg)
+    path = Path(cfg.data_dir) / "bench" / "bench.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    current = {}
+    if path.exists():
+        try:
+            current = json.loads(path.read_text())
+        except json.JSONDecodeError:
+            current = {}
+    current.update(figures)
+    current["machine"] = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, " \
+                         f"python {platform.python_version()}"
+    current["profile"] = cfg.profile
+    atomic_write_json(path, current)
+    width = max(len(k) for k in figures)
+    for k, v in figures.items():
+        print(f"{k:<{width}}  {v}")
+    print(f"bench: wrote {path}")
+    return 0
