@@ -201,6 +201,7 @@ class Manifest:
         versions: Python, platform and library versions.
         duration_s: Wall time of the stage in seconds.
         command: The command line that ran the stage.
+        code_hash: sha256 over the pipeline's own source files (:func:`code_hash`); a change makes outputs stale.
     """
 
     stage: str
@@ -216,6 +217,7 @@ class Manifest:
     versions: dict[str, str] = field(default_factory=dict)
     duration_s: float = 0.0
     command: list[str] = field(default_factory=list)
+    code_hash: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         """Returns the manifest as a JSON-able dict."""
@@ -248,7 +250,7 @@ class Manifest:
         """
         _expect(isinstance(data, dict), path, f"expected a JSON object, got {type(data).__name__}")
         names = [f.name for f in dataclasses.fields(cls)]
-        missing = [n for n in names if n not in data]
+        missing = [n for n in names if n not in data and n != "code_hash"]
         _expect(not missing, path, f"missing field(s) {', '.join(missing)}")
 
         def typed(key: str, types: type | tuple[type, ...], desc: str) -> Any:
@@ -291,6 +293,7 @@ class Manifest:
             versions={str(k): str(v) for k, v in versions.items()},
             duration_s=float(typed("duration_s", (int, float), "a number")),
             command=list(command),
+            code_hash=str(data.get("code_hash", "")),
         )
 
     @classmethod
@@ -320,3 +323,27 @@ class Manifest:
                 f"corrupt manifest {path}: invalid JSON at line {e.lineno} column {e.colno} ({e.msg})"
             ) from None
         return cls.from_dict(data, path)
+
+
+CODE_PACKAGES = ("pipeline", "sim", "recorder", "pretrain", "rl")
+
+
+@functools.lru_cache(maxsize=1)
+def code_hash(root: Path | None = None) -> str:
+    """sha256 over the sources of the pipeline's packages (``*.py`` and ``*.yaml``, sorted by path).
+
+    A stage output made by other code is stale, like a DVC stage whose code dependency changed.
+    """
+    base = Path(root) if root is not None else Path(__file__).resolve().parent.parent
+    h = hashlib.sha256()
+    for pkg in CODE_PACKAGES:
+        d = base / pkg
+        if not d.is_dir():
+            continue
+        for p in sorted(list(d.rglob("*.py")) + list(d.rglob("*.yaml"))):
+            if "__pycache__" in p.parts:
+                continue
+            h.update(p.relative_to(base).as_posix().encode())
+            h.update(b"\0")
+            h.update(p.read_bytes())
+    return h.hexdigest()

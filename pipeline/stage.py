@@ -30,6 +30,7 @@ from pipeline.manifest import (
     MANIFEST_NAME,
     FileRecord,
     Manifest,
+    code_hash,
     collect_versions,
     git_info,
     hash_file,
@@ -161,6 +162,8 @@ def staleness(stage: Stage, cfg: Any, out_dir: Path, inputs: list[FileRecord]) -
         return str(e)
     if old.stage != stage.name:
         return f"it was made by stage '{old.stage}', not '{stage.name}'"
+    if old.code_hash != code_hash():
+        return "the pipeline's code changed since it was made"
     new_hash = config_hash(cfg)
     if old.config_hash != new_hash:
         return f"the config changed: config_hash {old.config_hash[:12]} there, {new_hash[:12]} now"
@@ -238,6 +241,7 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
             versions=collect_versions(),
             duration_s=round(time.monotonic() - t0, 3),
             command=command,
+            code_hash=code_hash(),
         )
         manifest.write(od.path / MANIFEST_NAME)
     log.info("%s: done in %.1f s -> %s", stage.name, manifest.duration_s, out)

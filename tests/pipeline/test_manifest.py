@@ -67,7 +67,7 @@ def test_manifest_round_trip(tmp_path: Path) -> None:
     path = m.write(tmp_path / "manifest.json")
     assert Manifest.read(path) == m
     text = path.read_text()
-    assert text.startswith('{\n  "command"')  # indent 2, sorted keys
+    assert text.startswith('{\n  "code_hash"')  # indent 2, sorted keys
     assert json.loads(text)["inputs"] == [{"bytes": 10, "path": "in/x.bin", "sha256": "cd" * 32}]
 
 
