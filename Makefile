@@ -1,10 +1,12 @@
-# iCrowdNav pipeline. Every stage target takes PROFILE=smoke|default|paper and DATA_DIR=<dir>.
+# iCrowdNav pipeline. Every stage target takes PROFILE=smoke|default|paper, DATA_DIR=<dir> and ARGS="..."
+# (extra CLI options, e.g. ARGS=--overwrite to replace an output made by an older config or older code).
 #   make all      install (if needed), then run the pipeline end to end on the default profile
 #   make test     install (if needed), then run the test suite
 SHELL := /bin/bash
 PROFILE ?= default
 DATA_DIR ?= data
 VENV ?= .venv
+ARGS ?=
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export HF_HUB_OFFLINE := 1
@@ -28,7 +30,7 @@ $(STAMP): requirements.lock pyproject.toml
 
 # Stages of the pipeline that exist so far (record / pretrain / train / eval arrive with their issues).
 rollout: install
-	$(PY) -m pipeline rollout --profile $(PROFILE) --data-dir $(DATA_DIR)
+	$(PY) -m pipeline rollout --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS)
 
 all: install rollout
 

@@ -15,7 +15,9 @@ are kept, ours are replaced) and prints every figure. Figures (single process, t
 * ``sfm_vectorized_speedup`` — :meth:`sim.crowd.Crowd.social_forces` vs the per-agent loop
   :func:`sim.crowd.social_force_reference` on the same state (and ``..._n40`` for a 40-person crowd);
 * ``static_distance_speedup`` — vectorised obstacle distances vs the plain loop, 1,000 points;
-* ``expert_ms_per_step`` — one decision of the privileged expert.
+* ``expert_ms_per_step`` — one decision of the privileged expert;
+* ``intention_head_lead_*`` — how long head turns precede walking turns in a free crowd
+  (:mod:`sim.intention`; median, 10th and 90th percentile, share of decisions where the head turns first).
 """
 
 from __future__ import annotations
@@ -141,6 +143,15 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
     expert.reset(env.unwrapped)
     out["expert_ms_per_step"] = 1000 * _time_call(lambda: expert.command(env.unwrapped), s / 2)
     env.close()
+    # the premise: heads turn before the walking direction does (free crowd, 120 s simulated)
+    from sim.intention import head_leads, simulate
+
+    leads = head_leads(simulate(cfg.scene, cfg.density, 120.0, cfg.seed))
+    out["intention_decisions"] = len(leads)
+    out["intention_head_lead_median_s"] = float(np.median(leads))
+    out["intention_head_lead_p10_s"] = float(np.percentile(leads, 10))
+    out["intention_head_lead_p90_s"] = float(np.percentile(leads, 90))
+    out["intention_head_first_share"] = float(np.mean(leads > 0))
     return {k: round(float(v), 3) for k, v in out.items()}
 
 
