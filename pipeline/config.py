@@ -26,8 +26,10 @@ import dataclasses
 import enum
 import functools
 import hashlib
+import inspect
 import json
 import os
+import re
 import types
 import typing
 from collections.abc import Mapping
@@ -764,5 +766,25 @@ def describe_fields(cls: type, prefix: str = "", instance: Any = None) -> list[t
         if isinstance(tp, type) and dataclasses.is_dataclass(tp):
             rows.extend(describe_fields(tp, key, default if isinstance(default, tp) else None))
             continue
-        rows.append((key, type_name(tp), _format_default(default), str(f.metadata.get("help", ""))))
+        help_ = str(f.metadata.get("help", "")) or _field_comments(cls).get(f.name, "")
+        rows.append((key, type_name(tp), _format_default(default), help_))
     return rows
+
+
+@functools.cache
+def _field_comments(cls: type) -> dict[str, str]:
+    """``{field: comment}`` from trailing ``# comments`` on field lines of a dataclass's source (as draccus does).
+
+    Config dataclasses document each field with a comment on its line; ``--help`` shows it.
+    """
+    out: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        try:
+            src = inspect.getsource(klass)
+        except (OSError, TypeError):
+            continue
+        for m in re.finditer(r"^\s+(\w+)\s*:[^#\n]*#\s*(.+)$", src, re.MULTILINE):
+            out[m.group(1)] = m.group(2).strip()
+    return out

@@ -62,6 +62,28 @@ class CrowdConfig:
     turn_rate_hz: float = 0.05  # rate of spontaneous changes of mind while walking (per second)
     stuck_s: float = 3.0  # walking slower than 0.15 m/s for this long draws a new goal
 
+    def validate(self) -> None:
+        from pipeline.errors import ConfigError
+
+        positive = ("speed_mean_mps", "tau_s", "ped_b_m", "wall_b_m", "robot_b_m", "interaction_range_m",
+                    "goal_reached_m", "stuck_s")
+        for k in positive:
+            if not getattr(self, k) > 0:
+                raise ConfigError(f"crowd.{k}: expected > 0, got {getattr(self, k)}")
+        for k in ("speed_std_mps", "ped_a_mps2", "wall_a_mps2", "robot_a_mps2", "turn_rate_hz"):
+            if getattr(self, k) < 0:
+                raise ConfigError(f"crowd.{k}: expected >= 0, got {getattr(self, k)}")
+        if not 0 <= self.anisotropy <= 1 or not 0 <= self.idle_prob <= 1:
+            raise ConfigError(f"crowd.anisotropy / idle_prob: expected values in [0, 1], got "
+                              f"{self.anisotropy} / {self.idle_prob}")
+        if not 0 <= self.lead_min_s <= self.lead_max_s:
+            raise ConfigError(f"crowd lead time: expected 0 <= lead_min_s <= lead_max_s, got "
+                              f"[{self.lead_min_s}, {self.lead_max_s}]")
+        for k in ("goal_distance_m", "idle_s"):
+            lo, hi = getattr(self, k)
+            if not 0 <= lo <= hi:
+                raise ConfigError(f"crowd.{k}: expected 0 <= min <= max, got [{lo}, {hi}]")
+
 
 class Crowd:
     """State and dynamics of ``n`` pedestrians in one scene layout (all arrays world frame, SI units).

@@ -98,8 +98,8 @@ class SimConfig:
     substeps: int = 1  # social-force integration steps per control step
     max_episode_s: float = 40.0  # timeout
     goal_radius_m: float = 0.3  # success when the robot centre is this close to the goal (paper: ρ_robot)
-    obs_mode: Literal["visual", "state", "privileged"] = "visual"
-    action_type: Literal["continuous", "discrete"] = "continuous"
+    obs_mode: Literal["visual", "state", "privileged"] = "visual"  # what observations hold (module doc)
+    action_type: Literal["continuous", "discrete"] = "continuous"  # Box([-1, 1]²) or the 5 × 21 grid
     privileged_peds: int = 10  # pedestrians in the privileged observation
     scan_rays: int = 72  # rays of the static-map range scan (360°)
     scan_range_m: float = 10.0  # range of the scan
@@ -129,7 +129,7 @@ class SimConfig:
             raise ConfigError(f"action_type: expected continuous or discrete, got {self.action_type!r}")
         if self.goal_radius_m <= 0 or self.scan_rays < 4 or self.privileged_peds < 1:
             raise ConfigError("goal_radius_m must be > 0, scan_rays >= 4 and privileged_peds >= 1")
-        for sub in (self.robot, self.camera, self.detector):
+        for sub in (self.robot, self.camera, self.detector, self.crowd, self.body):
             sub.validate()
 
 
@@ -304,7 +304,9 @@ class CrowdNavEnv(gym.Env):
     def _clearance(self) -> tuple[float, float]:
         """(d_o, d_static): robot centre to the nearest pedestrian-or-obstacle surface, and to obstacles only."""
         p = self.robot[:2]
-        d_static = float(self.layout.geometry.signed_distance(p)[0])
+        d_static = float(self.layout.clearance_fast(p)[0])
+        if d_static < 1.0:  # near obstacles: exact geometry (the grid is only used as a far-field shortcut)
+            d_static = float(self.layout.geometry.signed_distance(p)[0])
         if self.crowd.n:
             d_ped = float(np.min(np.hypot(*(self.crowd.pos - p).T) - self.crowd.radius))
         else:

@@ -47,6 +47,17 @@ class BodyConfig:
     head_limit_deg: float = 75.0  # head yaw relative to the torso
     torso_limit_deg: float = 40.0  # torso yaw relative to the pelvis
 
+    def validate(self) -> None:
+        from pipeline.errors import ConfigError
+
+        for k in ("height_m", "width_scale"):
+            lo, hi = getattr(self, k)
+            if not 0 < lo <= hi:
+                raise ConfigError(f"body.{k}: expected 0 < min <= max, got [{lo}, {hi}]")
+        for k in ("head_rate_radps", "torso_rate_radps", "body_rate_radps", "head_limit_deg", "torso_limit_deg"):
+            if not getattr(self, k) > 0:
+                raise ConfigError(f"body.{k}: expected > 0, got {getattr(self, k)}")
+
 
 SKIN = np.array([[0.96, 0.8, 0.69], [0.87, 0.67, 0.5], [0.66, 0.46, 0.33], [0.45, 0.3, 0.2], [0.95, 0.76, 0.6]])
 HAIR = np.array([[0.1, 0.07, 0.05], [0.35, 0.22, 0.1], [0.75, 0.6, 0.3], [0.5, 0.5, 0.5], [0.2, 0.12, 0.08]])
