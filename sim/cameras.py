@@ -117,9 +117,11 @@ def opengl_projection(spec: CameraSpec) -> list[float]:
     n, f = spec.near_m, spec.far_m
     w, h = spec.width_px, spec.height_px
     fx = spec.fx
+    # the off-centre terms shift TinyRenderer's sampling grid onto pixel centres (col + 0.5, row + 0.5); without
+    # them rendered images sit half a pixel off the intrinsics used for projection (tested)
     p = np.array([
-        [2 * fx / w, 0, 0, 0],
-        [0, 2 * fx / h, 0, 0],
+        [2 * fx / w, 0, 1.0 / w, 0],
+        [0, 2 * fx / h, 1.0 / h, 0],
         [0, 0, -(f + n) / (f - n), -2 * f * n / (f - n)],
         [0, 0, -1, 0],
     ])

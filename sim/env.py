@@ -231,7 +231,7 @@ class CrowdNavEnv(gym.Env):
         self.d_o, self.d_static = self._clearance()
         obs = self._obs()
         info = self._info(None, None)
-        info["occupancy"] = {"grid": self.layout.occupancy, "origin_xy": self.layout.grid_origin,
+        info["occupancy"] = {"grid": self.layout.occupancy.copy(), "origin_xy": self.layout.grid_origin,
                              "resolution_m": 0.05}
         info["shortest_path_m"] = geo
         info["episode_seed"] = ep_seed
@@ -430,13 +430,14 @@ class CrowdNavEnv(gym.Env):
         """The episode so far as an :class:`sim.trace.EpisodeTrace` (for metrics and figures)."""
         tr = self._tr
         n = self.crowd.n
+        t1 = len(tr["pose"])
         return EpisodeTrace(
             dt_s=self.cfg.dt_s, robot_radius_m=self.cfg.robot.radius_m, goal_radius_m=self.cfg.goal_radius_m,
             robot_pose=np.array(tr["pose"]), robot_cmd=np.array(tr["cmd"]).reshape(-1, 2),
             goal_xy=self.goal.copy(), start_xy=self.start.copy(),
-            ped_xy=np.array(tr["ped_xy"]).reshape(-1, n, 2), ped_vel=np.array(tr["ped_vel"]).reshape(-1, n, 2),
-            ped_radius=self.crowd.radius.copy(), ped_yaw=np.array(tr["ped_yaw"]).reshape(-1, n),
-            ped_head_yaw=np.array(tr["ped_head"]).reshape(-1, n), static_clearance_m=np.array(tr["static"]),
+            ped_xy=np.array(tr["ped_xy"]).reshape(t1, n, 2), ped_vel=np.array(tr["ped_vel"]).reshape(t1, n, 2),
+            ped_radius=self.crowd.radius.copy(), ped_yaw=np.array(tr["ped_yaw"]).reshape(t1, n),
+            ped_head_yaw=np.array(tr["ped_head"]).reshape(t1, n), static_clearance_m=np.array(tr["static"]),
             outcome=self._outcome or "timeout", shortest_path_m=self.shortest_path_m, scene=self.spec_scene.name,
             density=float(self.cfg.density), seed=int(self.reset_seed if self.reset_seed is not None else self.episode_seed),
             method=method,

@@ -6,7 +6,7 @@ not marked optional is required)::
     name: office_lobby                 # must equal the file stem
     split: test                        # train | test | long_horizon
     description: "..."                 # optional, free text
-    bounds: [x_min, x_max, y_min, y_max]   # m; the four outer walls are added on these lines
+    bounds: [x_min, x_max, y_min, y_max]   # m, the free interior; the four outer walls are added just outside
     wall_height_m: 2.5                 # optional (2.5)
     wall_thickness_m: 0.2              # optional (0.2)
     wall_color: [r, g, b]              # optional, 0..1
@@ -112,15 +112,15 @@ class SceneSpec:
     path: str = ""
 
     def outer_walls(self) -> list[Box]:
-        """The four boundary walls, centred on the bounds lines."""
+        """The four boundary walls, just outside the bounds (the bounds are the free interior, wall to wall)."""
         x0, x1, y0, y1 = self.bounds
         t, h, c = self.wall_thickness_m, self.wall_height_m, self.wall_color
         w, d = x1 - x0, y1 - y0
         return [
-            Box(((x0 + x1) / 2, y0), (w + t, t), 0.0, h, c),
-            Box(((x0 + x1) / 2, y1), (w + t, t), 0.0, h, c),
-            Box((x0, (y0 + y1) / 2), (t, d + t), 0.0, h, c),
-            Box((x1, (y0 + y1) / 2), (t, d + t), 0.0, h, c),
+            Box(((x0 + x1) / 2, y0 - t / 2), (w + 2 * t, t), 0.0, h, c),
+            Box(((x0 + x1) / 2, y1 + t / 2), (w + 2 * t, t), 0.0, h, c),
+            Box((x0 - t / 2, (y0 + y1) / 2), (t, d + 2 * t), 0.0, h, c),
+            Box((x1 + t / 2, (y0 + y1) / 2), (t, d + 2 * t), 0.0, h, c),
         ]
 
     def layout(self, rng: np.random.Generator | None = None) -> SceneLayout:
@@ -165,17 +165,20 @@ class SceneLayout:
         grid_origin: world (x, y) of the centre of cell ``[0, 0]``; cell ``[i, j]`` is row ``i`` along +y and
             column ``j`` along +x, both at ``GRID_RES_M``.
         clearance: ``H x W`` signed distance of each cell centre to the nearest obstacle surface, m.
-        occupancy: ``H x W`` bool, True where the cell centre is inside an obstacle or outside the bounds.
-        free_area_m2: area of free cells inside the bounds.
+        occupancy: ``H x W`` bool, True where the cell centre is inside an obstacle (the grid spans the bounds
+            plus the outer walls).
+        free_area_m2: area of free cells (all of them lie inside the bounds).
     """
 
     def __init__(self, spec: SceneSpec, obstacles: list[Obstacle]):
         self.spec = spec
         self.obstacles = obstacles
         self.geometry = StaticGeometry(obstacles)
+        # the grid covers the bounds plus the outer walls, so lookups near the walls need no clipping
+        m = spec.wall_thickness_m
         x0, x1, y0, y1 = spec.bounds
-        xs = np.arange(x0 + GRID_RES_M / 2, x1, GRID_RES_M)
-        ys = np.arange(y0 + GRID_RES_M / 2, y1, GRID_RES_M)
+        xs = np.arange(x0 - m + GRID_RES_M / 2, x1 + m, GRID_RES_M)
+        ys = np.arange(y0 - m + GRID_RES_M / 2, y1 + m, GRID_RES_M)
         self.grid_origin = (float(xs[0]), float(ys[0]))
         gx, gy = np.meshgrid(xs, ys)
         clear, _ = self.geometry.signed_distance(np.stack([gx, gy], -1))
@@ -273,7 +276,8 @@ class SceneLayout:
         """Draw a connected start and goal per the scene's ``start_goal`` spec.
 
         Returns:
-            ``(start_xy, goal_xy, geodesic_m)``: world positions (m) and the shortest-path length between them.
+            ``(start_xy, goal_xy, geodesic_m)``: world positions (m) and the length of the any-angle shortest path
+            between them that keeps the robot radius + 5 cm from obstacles (:meth:`_NavGraph.shortest_path`).
         """
         sg = self.spec.start_goal
         nav = self.nav(robot_radius_m + 0.05)
@@ -284,11 +288,21 @@ class SceneLayout:
             cand = self._cells_with_clearance(max(sg.clearance_m, robot_radius_m + 0.1) + GRID_RES_M, sg.region)
             geo = nav.lookup(dist_field, cand)
             eu = np.hypot(*(cand - start).T)
+            # grid lengths exceed any-angle lengths by up to ~3 %: pre-select generously, then measure exactly
             metric = geo if sg.metric == "geodesic" else eu
-            ok = np.isfinite(geo) & (metric >= lo) & (metric <= hi)
-            if ok.any():
-                k = rng.choice(np.nonzero(ok)[0])
-                return start, cand[k] + rng.uniform(-GRID_RES_M / 2, GRID_RES_M / 2, 2), float(geo[k])
+            upper = hi * 1.04 if sg.metric == "geodesic" else hi
+            ok = np.isfinite(geo) & (metric >= lo) & (metric <= upper)
+            if not ok.any():
+                continue
+            k = rng.choice(np.nonzero(ok)[0])
+            goal = cand[k] + rng.uniform(-GRID_RES_M / 2, GRID_RES_M / 2, 2)
+            path = nav.shortest_path(self, start, goal)
+            if len(path) == 0:
+                continue
+            length = float(np.sum(np.hypot(*np.diff(path, axis=0).T)))
+            if sg.metric == "geodesic" and not lo <= length <= hi:
+                continue
+            return start, goal, length
         raise ConfigError(
             f"scene {self.spec.name!r}: found no connected start/goal pair with {sg.metric} distance in "
             f"[{lo}, {hi}] m after {max_tries} tries"
@@ -296,13 +310,14 @@ class SceneLayout:
 
 
 class _NavGraph:
-    """8-connected grid graph over cells with clearance >= ``inflation_m`` (``NAV_RES_M`` cells).
+    """16-connected grid graph over cells with clearance >= ``inflation_m`` (``NAV_RES_M`` cells).
 
     Edge weights are metric lengths; with ``wall_penalty`` they are multiplied by ``1 + 2·(0.5 − e)/0.5`` where
     ``e = clip(clearance − inflation, 0, 0.5)`` m, so planned paths keep a margin from walls where there is room.
     """
 
     def __init__(self, layout: SceneLayout, inflation_m: float, wall_penalty: bool = False):
+        self.inflation_m = inflation_m
         x0, x1, y0, y1 = layout.spec.bounds
         xs = np.arange(x0 + NAV_RES_M / 2, x1, NAV_RES_M)
         ys = np.arange(y0 + NAV_RES_M / 2, y1, NAV_RES_M)
@@ -318,10 +333,23 @@ class _NavGraph:
         extra = np.clip(clear - inflation_m, 0.0, 0.5)
         penalty = 1.0 + 2.0 * (0.5 - extra) / 0.5 if wall_penalty else np.ones_like(extra)
         rows, cols, wts = [], [], []
-        for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        def shifted(a: np.ndarray, di: int, dj: int) -> np.ndarray:
+            """``a[i + di, j + dj]`` for every cell (False beyond the border)."""
+            out = np.zeros_like(a)
+            out[max(0, -di):h - max(0, di), max(0, -dj):w - max(0, dj)] = \
+                a[max(0, di):h - max(0, -di), max(0, dj):w - max(0, -dj)]
+            return out
+
+        # 16-connected: straight, diagonal and knight moves (path lengths within ~3 % of any-angle paths); a move
+        # needs every cell it sweeps to be free
+        for di, dj, via in ((0, 1, ()), (1, 0, ()), (1, 1, ((0, 1), (1, 0))), (1, -1, ((0, -1), (1, 0))),
+                            (1, 2, ((0, 1), (1, 1))), (2, 1, ((1, 0), (1, 1))),
+                            (1, -2, ((0, -1), (1, -1))), (2, -1, ((1, 0), (1, -1)))):
             ra, rb = slice(0, h - di), slice(di, h)
             ca, cb = (slice(0, w - dj), slice(dj, w)) if dj >= 0 else (slice(-dj, w), slice(0, w + dj))
             ok = free[ra, ca] & free[rb, cb]
+            for vi, vj in via:
+                ok &= shifted(free, vi, vj)[ra, ca]
             length = NAV_RES_M * math.hypot(di, dj)
             rows.append(idx[ra, ca][ok])
             cols.append(idx[rb, cb][ok])
@@ -355,6 +383,36 @@ class _NavGraph:
         d = d.reshape(self.shape)
         d[~self.free] = np.inf
         return d
+
+    def shortest_path(self, layout: SceneLayout, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Any-angle shortest path from ``a`` to ``b`` (``K x 2`` world points, m), or an empty array if unreachable.
+
+        The grid path from Dijkstra is shortened by line-of-sight string pulling: from each kept vertex, jump to
+        the farthest later vertex whose straight segment keeps the graph's clearance.
+        """
+        src = self._nearest_free(np.asarray(a, dtype=np.float64))
+        dst = self._nearest_free(np.asarray(b, dtype=np.float64))
+        _, pred = dijkstra(self.graph, directed=False, indices=src, return_predecessors=True)
+        if src != dst and pred[dst] < 0:
+            return np.zeros((0, 2))
+        cells = [dst]
+        while cells[-1] != src:
+            cells.append(int(pred[cells[-1]]))
+        cells.reverse()
+        ij = np.array([divmod(c, self.shape[1]) for c in cells])
+        pts = np.concatenate([np.asarray(a, dtype=np.float64)[None], self.origin + ij[:, ::-1] * NAV_RES_M,
+                              np.asarray(b, dtype=np.float64)[None]])
+        margin = self.inflation_m - 0.5 * NAV_RES_M  # the grid's own tolerance
+        out = [pts[0]]
+        i = 0
+        while i < len(pts) - 1:
+            later = pts[i + 1:]
+            ok = layout.segments_clear(np.repeat(pts[i][None], len(later), 0), later, margin, step=0.05)
+            ok[0] = True  # neighbours on the grid path are always connected
+            j = i + 1 + int(np.nonzero(ok)[0].max())
+            out.append(pts[j])
+            i = j
+        return np.array(out)
 
     def lookup(self, field_: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """Values of a grid field at the cells of ``... x 2`` world points."""
@@ -509,7 +567,6 @@ def parse_scene(data: Any, src: str, stem: str | None = None) -> SceneSpec:
     )
 
 
-@functools.lru_cache(maxsize=64)
 def load_scene(name_or_path: str) -> SceneSpec:
     """Load and validate a scene by shipped name (``office_lobby``) or by path to a YAML file.
 
@@ -526,6 +583,13 @@ def load_scene(name_or_path: str) -> SceneSpec:
         if not p.exists():
             raise ConfigError(f"unknown scene {name_or_path!r}; known scenes: {', '.join(available_scenes())} "
                               "(or pass a path to a scene YAML file)")
+    return _load_scene_file(str(p.resolve()), p.stat().st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=64)
+def _load_scene_file(path: str, mtime_ns: int) -> SceneSpec:
+    """Parse one scene file (cached per path and modification time, so edits are picked up)."""
+    p = Path(path)
     try:
         data = yaml.safe_load(p.read_text())
     except yaml.YAMLError as e:
