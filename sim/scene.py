@@ -247,7 +247,10 @@ class SceneLayout:
         return cells[idx] + jitter
 
     def _cells_with_clearance(self, clearance_m: float, region) -> np.ndarray:
-        key = (round(clearance_m, 3), region)
+        # quantise up to 1 cm *before* computing, so the cached result never depends on which nearby value came
+        # first (determinism) and the cache stays small
+        clearance_m = math.ceil(round(clearance_m * 100.0, 6)) / 100.0
+        key = (clearance_m, region)
         if key in self._free_cells:
             return self._free_cells[key]
         mask = self.clearance >= clearance_m
@@ -268,7 +271,7 @@ class SceneLayout:
         """
         key = (round(inflation_m, 3), wall_penalty)
         if key not in self._nav:
-            self._nav[key] = _NavGraph(self, inflation_m, wall_penalty)
+            self._nav[key] = _NavGraph(self, key[0], wall_penalty)
         return self._nav[key]
 
     def sample_start_goal(self, rng: np.random.Generator, robot_radius_m: float,

@@ -160,17 +160,7 @@ class EpisodeTrace:
             got = getattr(self, name).shape
             if got != shape:
                 raise ValueError(f"{name} must have shape {shape} (T={t}, N={n}), got {got}")
-        for name in (
-            "robot_pose",
-            "robot_cmd",
-            "goal_xy",
-            "start_xy",
-            "ped_xy",
-            "ped_vel",
-            "ped_radius",
-            "ped_yaw",
-            "ped_head_yaw",
-        ):
+        for name in (a for a in self._ARRAYS if a != "static_clearance_m"):  # clearance may be +inf
             arr = getattr(self, name)
             if not np.all(np.isfinite(arr)):
                 raise ValueError(f"{name} contains non-finite values")

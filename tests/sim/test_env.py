@@ -405,3 +405,22 @@ def test_bad_input_raises_config_error(kwargs, words):
 def test_bad_input_through_gymnasium_make():
     with pytest.raises(ConfigError, match="unknown scene 'nowhere'"):
         gymnasium.make("icrowdnav/CrowdNav-v0", scene="nowhere")
+
+
+def test_same_seed_same_episode_whatever_ran_before_in_the_process():
+    """Caches (free cells, graphs, layouts) must not make an episode depend on the process's history."""
+
+    def run(seed):
+        env = state_env("warehouse", 0.2, info_level="basic")
+        env.reset(seed=seed)
+        for _ in range(30):
+            env.step(np.array([0.5, 0.1], np.float32))
+        return env.trace()
+
+    first = run(11)
+    for s in range(3):  # other episodes with other crowds (other pedestrian radii hit the caches)
+        run(100 + s)
+        state_env("office_lobby", 0.3).reset(seed=s)
+    again = run(11)
+    np.testing.assert_array_equal(first.ped_xy, again.ped_xy)
+    np.testing.assert_array_equal(first.robot_pose, again.robot_pose)

@@ -16,6 +16,7 @@ from sim.geometry import Box, Cylinder, StaticGeometry
 from sim.scene import (
     NAV_RES_M,
     SPLITS,
+    SceneLayout,
     available_scenes,
     load_scene,
     parse_scene,
@@ -399,3 +400,16 @@ pedestrians: {max_count: 3}
         obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
     assert obs["scan"].shape == (72,) and np.all(obs["scan"] <= 8.0 * 1.5)
     env.close()
+
+
+def test_free_points_do_not_depend_on_earlier_queries():
+    """The free-cell cache must not hand a query the cells of a nearby, earlier clearance (determinism)."""
+    spec = load_scene("warehouse")
+    obstacles = spec.layout(np.random.default_rng(0)).obstacles
+    fresh = SceneLayout(spec, obstacles)
+    used = SceneLayout(spec, obstacles)
+    for c in (0.3401, 0.3408, 0.3419):  # earlier queries with nearby clearances
+        used.free_points(np.random.default_rng(1), 5, c)
+    for c in (0.3404, 0.3412, 0.3499):
+        np.testing.assert_array_equal(fresh.free_points(np.random.default_rng(7), 200, c),
+                                      used.free_points(np.random.default_rng(7), 200, c))
