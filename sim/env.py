@@ -42,7 +42,7 @@ from gymnasium import spaces
 
 from pipeline.errors import ConfigError
 from sim.cameras import CameraSpec, pose_matrix
-from sim.crowd import Crowd, CrowdConfig
+from sim.crowd import Crowd, CrowdConfig, norm2d
 from sim.detector import CameraFrame, DetectorConfig, OracleDetector, PoseDetector
 from sim.humans import Bodies, BodyConfig
 from sim.reward import RewardConfig, reward_terms
@@ -278,7 +278,7 @@ class CrowdNavEnv(gym.Env):
         prev = self.crowd.pos.copy()
         for _ in range(c.substeps):
             self.crowd.step(sub, self.robot[:2], c.robot.radius_m)
-        walked = np.linalg.norm(self.crowd.pos - prev, axis=1)
+        walked = norm2d(self.crowd.pos - prev)
         self.bodies.update(c.dt_s, self.crowd.pos, self.crowd.vel, self.crowd.attention_xy(), walked)
         self._skel = None
         self.t += 1

@@ -109,12 +109,12 @@ class Bodies:
             walked_m: ``N`` distance walked during the step, m (drives the gait phase).
         """
         c = self.cfg
-        speed = np.linalg.norm(vel, axis=1)
+        speed = np.hypot(vel[:, 0], vel[:, 1])
         moving = speed > 0.1
         vel_yaw = np.arctan2(vel[:, 1], vel[:, 0])
         self.body_yaw = _approach(self.body_yaw, np.where(moving, vel_yaw, self.body_yaw), c.body_rate_radps * dt)
         to = attention_xy - pos
-        far = np.linalg.norm(to, axis=1) > 0.3
+        far = np.hypot(to[:, 0], to[:, 1]) > 0.3
         att_yaw = np.where(far, np.arctan2(to[:, 1], to[:, 0]), self.head_yaw)
         torso_target = self.body_yaw + np.clip(wrap_angle(att_yaw - self.body_yaw) * 0.5,
                                                -np.radians(c.torso_limit_deg), np.radians(c.torso_limit_deg))
