@@ -145,19 +145,26 @@ class Crowd:
         return pts
 
     def _draw_goals(self, idx: np.ndarray, k: int = 24) -> np.ndarray:
-        """Random goals in line of sight of each pedestrian in ``idx`` (``len(idx) x 2``)."""
-        out = np.empty((len(idx), 2))
+        """Random goals in line of sight of each pedestrian in ``idx`` (``len(idx) x 2``), all drawn at once.
+
+        Each pedestrian gets ``k`` free candidates; the first at a distance in ``goal_distance_m`` whose straight
+        segment keeps the body clear of obstacles wins; failing that, any visible candidate; failing that, it
+        stays where it is.
+        """
+        m = len(idx)
         lo, hi = self.cfg.goal_distance_m
-        for m, i in enumerate(idx):
-            cand = self.layout.free_points(self.rng, k, self.radius[i] + 0.15, self._region())
-            d = np.hypot(*(cand - self.pos[i]).T)
-            ok = (d >= lo) & (d <= hi)
-            ok &= self.layout.segments_clear(np.repeat(self.pos[i][None], k, 0), cand, self.radius[i] + 0.05)
-            if ok.any():
-                out[m] = cand[np.argmax(ok)]
-            else:  # nothing in sight at that range: any visible free point, else stay
-                vis = self.layout.segments_clear(np.repeat(self.pos[i][None], k, 0), cand, self.radius[i])
-                out[m] = cand[np.argmax(vis)] if vis.any() else self.pos[i]
+        r = self.radius[idx]
+        cand = self.layout.free_points(self.rng, m * k, float(r.max(initial=0.25)) + 0.15,
+                                       self._region()).reshape(m, k, 2)
+        start = np.repeat(self.pos[idx][:, None, :], k, axis=1)
+        d = norm2d(cand - start)
+        clear = self.layout.segments_min_clearance(start.reshape(-1, 2), cand.reshape(-1, 2)).reshape(m, k)
+        vis = clear >= r[:, None]
+        ok = (d >= lo) & (d <= hi) & (clear >= r[:, None] + 0.05)
+        choice = np.where(ok.any(1), np.argmax(ok, 1), np.argmax(vis, 1))
+        out = cand[np.arange(m), choice]
+        stay = ~ok.any(1) & ~vis.any(1)
+        out[stay] = self.pos[idx][stay]
         return out
 
     # ---------------------------------------------------------------------------------------------- dynamics

@@ -208,8 +208,9 @@ class CrowdNavEnv(gym.Env):
         self.episode_seed = ep_seed
         self.reset_seed = seed
         self.layout = self.spec_scene.layout(r_layout)
-        start, goal, geo = self.layout.sample_start_goal(r_sg, c.robot.radius_m)
-        self.start, self.goal, self.shortest_path_m = start, goal, geo
+        start, goal, geo = self.layout.sample_start_goal(r_sg, c.robot.radius_m, exact_length=False)
+        self.start, self.goal = start, goal
+        self._shortest = geo if math.isfinite(geo) else None  # exact length, computed on first use if not known
         to_goal = math.atan2(goal[1] - start[1], goal[0] - start[0])
         self.robot = np.array([start[0], start[1], to_goal + r_sg.uniform(-0.5, 0.5)])
         self.robot_v = np.zeros(2)  # [v, omega] last command
@@ -233,9 +234,15 @@ class CrowdNavEnv(gym.Env):
         info = self._info(None, None)
         info["occupancy"] = {"grid": self.layout.occupancy.copy(), "origin_xy": self.layout.grid_origin,
                              "resolution_m": 0.05}
-        info["shortest_path_m"] = geo
         info["episode_seed"] = ep_seed
         return obs, info
+
+    @property
+    def shortest_path_m(self) -> float:
+        """Length of the any-angle shortest path from start to goal (m), computed on first use."""
+        if self._shortest is None:
+            self._shortest = self.layout.path_length(self.start, self.goal, self.cfg.robot.radius_m)
+        return self._shortest
 
     def _build_renderer(self) -> None:
         from sim.renderer import WorldRenderer

@@ -215,14 +215,20 @@ class SceneLayout:
         gy = (top - bottom) / GRID_RES_M
         return d, np.stack([gx, gy], -1)
 
-    def segments_clear(self, a: np.ndarray, b: np.ndarray, margin: float, step: float = 0.1) -> np.ndarray:
-        """Whether straight segments ``K x 2 -> K x 2`` keep ``margin`` (m) from every obstacle (grid lookup)."""
+    def segments_min_clearance(self, a: np.ndarray, b: np.ndarray, step: float = 0.1) -> np.ndarray:
+        """Smallest obstacle clearance (m) along straight segments ``K x 2 -> K x 2``, sampled every ``step`` m
+        on the clearance grid."""
         a = np.asarray(a, dtype=np.float64).reshape(-1, 2)
         b = np.asarray(b, dtype=np.float64).reshape(-1, 2)
         n = max(2, int(math.ceil(np.max(np.hypot(*(b - a).T), initial=0.0) / step)) + 1)
         t = np.linspace(0.0, 1.0, n)[None, :, None]
         d, _ = self.clearance_fast(a[:, None, :] * (1 - t) + b[:, None, :] * t)
-        return d.min(axis=1) >= margin
+        return d.min(axis=1)
+
+    def segments_clear(self, a: np.ndarray, b: np.ndarray, margin: float | np.ndarray,
+                       step: float = 0.1) -> np.ndarray:
+        """Whether straight segments keep ``margin`` (m, scalar or ``K``) from every obstacle (grid lookup)."""
+        return self.segments_min_clearance(a, b, step) >= margin
 
     # ----------------------------------------------------------------------------------------------- queries
     def clearance_at(self, xy: np.ndarray) -> np.ndarray:
@@ -263,6 +269,10 @@ class SceneLayout:
         self._free_cells[key] = pts
         return pts
 
+    def path_length(self, a: np.ndarray, b: np.ndarray, robot_radius_m: float) -> float:
+        """Any-angle shortest path length (m) from ``a`` to ``b`` keeping the robot radius + 5 cm; inf if none."""
+        return _polyline_length(self.nav(robot_radius_m + 0.05).shortest_path(self, a, b))
+
     def nav(self, inflation_m: float, wall_penalty: bool = False) -> _NavGraph:
         """The shortest-path graph for a disc robot of radius ``inflation_m`` (cached per radius).
 
@@ -274,13 +284,15 @@ class SceneLayout:
             self._nav[key] = _NavGraph(self, key[0], wall_penalty)
         return self._nav[key]
 
-    def sample_start_goal(self, rng: np.random.Generator, robot_radius_m: float,
-                          max_tries: int = 200) -> tuple[np.ndarray, np.ndarray, float]:
+    def sample_start_goal(self, rng: np.random.Generator, robot_radius_m: float, max_tries: int = 200,
+                          exact_length: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
         """Draw a connected start and goal per the scene's ``start_goal`` spec.
 
         Returns:
             ``(start_xy, goal_xy, geodesic_m)``: world positions (m) and the length of the any-angle shortest path
-            between them that keeps the robot radius + 5 cm from obstacles (:meth:`_NavGraph.shortest_path`).
+            between them that keeps the robot radius + 5 cm from obstacles (:meth:`_NavGraph.shortest_path`);
+            nan when ``exact_length`` is False and the scene's metric is euclidean (it is then not needed to
+            accept the pair; :meth:`path_length` computes it later).
         """
         sg = self.spec.start_goal
         nav = self.nav(robot_radius_m + 0.05)
@@ -299,17 +311,20 @@ class SceneLayout:
                 continue
             k = rng.choice(np.nonzero(ok)[0])
             goal = cand[k] + rng.uniform(-GRID_RES_M / 2, GRID_RES_M / 2, 2)
-            path = nav.shortest_path(self, start, goal)
-            if len(path) == 0:
-                continue
-            length = float(np.sum(np.hypot(*np.diff(path, axis=0).T)))
-            if sg.metric == "geodesic" and not lo <= length <= hi:
+            if sg.metric == "euclidean" and not exact_length:
+                return start, goal, math.nan
+            length = self.path_length(start, goal, robot_radius_m)
+            if not math.isfinite(length) or (sg.metric == "geodesic" and not lo <= length <= hi):
                 continue
             return start, goal, length
         raise ConfigError(
             f"scene {self.spec.name!r}: found no connected start/goal pair with {sg.metric} distance in "
             f"[{lo}, {hi}] m after {max_tries} tries"
         )
+
+
+def _polyline_length(path: np.ndarray) -> float:
+    return float(np.sum(np.hypot(*np.diff(path, axis=0).T))) if len(path) else math.inf
 
 
 class _NavGraph:
