@@ -1,0 +1,57 @@
+"""Drive an episode and yield what the recorder logs: :class:`recorder.schema.EpisodeMeta` then frames."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import replace
+
+import numpy as np
+
+from recorder.schema import EpisodeMeta, Frame, episode_meta_from_env, frame_from_env
+from sim.env import CrowdNavEnv, SimConfig
+from sim.expert import PrivilegedExpert
+
+DRIVERS = ("expert",)
+
+
+def drive_episode(sim_cfg: SimConfig, seed: int, driver: str = "expert") -> tuple[EpisodeMeta, Iterator[Frame]]:
+    """Reset a visual-mode env with ``seed`` and return the episode's metadata and a lazy frame iterator.
+
+    The iterator yields the reset frame (step 0) and one frame per step until the episode ends; the env is
+    closed when it is exhausted. Only the privileged ``expert`` driver exists so far (policies come with train).
+    """
+    if driver not in DRIVERS:
+        from pipeline.errors import ConfigError
+
+        raise ConfigError(f"driver: expected one of {list(DRIVERS)}, got {driver!r}")
+    env = CrowdNavEnv(config=replace(sim_cfg, obs_mode="visual", info_level="full"))
+    obs, info = env.reset(seed=seed)
+    meta = episode_meta_from_env(env, seed, driver)
+    expert = PrivilegedExpert()
+    expert.reset(env)
+
+    def frames() -> Iterator[Frame]:
+        try:
+            yield frame_from_env(env, obs, info, 0)
+            step = 0
+            while True:
+                v, w = expert.command(env)
+                o, r, term, trunc, inf = env.step(env.encode_command(v, w))
+                step += 1
+                done = term or trunc
+                yield frame_from_env(env, o, inf, step, command=tuple(env.robot_v), reward=r, done=done)
+                if done:
+                    return
+        finally:
+            env.close()
+
+    return meta, frames()
+
+
+def occupancy_of(sim_cfg: SimConfig, seed: int) -> np.ndarray:
+    """The static occupancy grid (bool, rows along +y) of the episode ``seed`` would produce."""
+    env = CrowdNavEnv(config=replace(sim_cfg, obs_mode="state", info_level="basic"))
+    env.reset(seed=seed)
+    grid = env.layout.occupancy.copy()
+    env.close()
+    return grid
