@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -14,8 +14,21 @@ from sim.expert import PrivilegedExpert
 DRIVERS = ("expert",)
 
 
-def drive_episode(sim_cfg: SimConfig, seed: int, driver: str = "expert") -> tuple[EpisodeMeta, Iterator[Frame]]:
-    """Reset a visual-mode env with ``seed`` and return the episode's metadata and a lazy frame iterator.
+@dataclass
+class Episode:
+    """A driven episode: its metadata, its static occupancy grid and a lazy iterator of its frames.
+
+    ``occupancy`` is ``H x W`` bool (True = obstacle), row ``i`` along +y and column ``j`` along +x from
+    ``meta.occupancy_origin_xy`` at ``meta.occupancy_resolution_m``.
+    """
+
+    meta: EpisodeMeta
+    occupancy: np.ndarray
+    frames: Iterator[Frame]
+
+
+def drive_episode(sim_cfg: SimConfig, seed: int, driver: str = "expert") -> Episode:
+    """Reset a visual-mode env with ``seed`` and return the :class:`Episode` (frames are produced lazily).
 
     The iterator yields the reset frame (step 0) and one frame per step until the episode ends; the env is
     closed when it is exhausted. Only the privileged ``expert`` driver exists so far (policies come with train).
@@ -45,13 +58,4 @@ def drive_episode(sim_cfg: SimConfig, seed: int, driver: str = "expert") -> tupl
         finally:
             env.close()
 
-    return meta, frames()
-
-
-def occupancy_of(sim_cfg: SimConfig, seed: int) -> np.ndarray:
-    """The static occupancy grid (bool, rows along +y) of the episode ``seed`` would produce."""
-    env = CrowdNavEnv(config=replace(sim_cfg, obs_mode="state", info_level="basic"))
-    env.reset(seed=seed)
-    grid = env.layout.occupancy.copy()
-    env.close()
-    return grid
+    return Episode(meta, env.layout.occupancy.copy(), frames())
