@@ -1,5 +1,6 @@
-# iCrowdNav pipeline. Every stage target takes PROFILE=smoke|default|paper, DATA_DIR=<dir> and ARGS="..."
-# (extra CLI options, e.g. ARGS=--overwrite to replace an output made by an older config or older code).
+# iCrowdNav pipeline. Every stage target takes PROFILE=smoke|default|paper, DATA_DIR=<dir>, ARGS="..." (extra CLI
+# options for every stage it runs, e.g. ARGS=--overwrite to replace outputs made by an older config or code) and
+# <STAGE>_ARGS="..." for one stage only (RECORD_ARGS, EXPORT_ARGS, ROLLOUT_ARGS).
 #   make all      install (if needed), then run the pipeline end to end on the default profile
 #   make test     install (if needed), then run the test suite
 SHELL := /bin/bash
@@ -7,15 +8,18 @@ PROFILE ?= default
 DATA_DIR ?= data
 VENV ?= .venv
 ARGS ?=
+RECORD_ARGS ?=
+EXPORT_ARGS ?=
+ROLLOUT_ARGS ?=
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export HF_HUB_OFFLINE := 1
 export PYTHONHASHSEED := 0
 
-.PHONY: install all rollout smoke test bench lint help
+.PHONY: install all record rollout smoke test bench lint help
 
 help:
-	@echo "targets: install all rollout smoke test bench lint   (PROFILE=$(PROFILE) DATA_DIR=$(DATA_DIR))"
+	@echo "targets: install all record rollout smoke test bench lint   (PROFILE=$(PROFILE) DATA_DIR=$(DATA_DIR))"
 
 # The venv is rebuilt only when the lock file or pyproject.toml change (the stamp is newer otherwise).
 # uv installs the exact pins of requirements.lock; its cache (~/.cache/uv) makes a re-install fast.
@@ -28,15 +32,21 @@ $(STAMP): requirements.lock pyproject.toml
 	$(VENV)/bin/uv pip install -q --python $(PY) --no-deps -e . --config-settings editable_mode=compat
 	@touch $(STAMP)
 
-# Stages of the pipeline that exist so far (record / pretrain / train / eval arrive with their issues).
-rollout: install
-	$(PY) -m pipeline rollout --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS)
+# Stages of the pipeline that exist so far (pretrain / train / eval arrive with their issues).
+# record: expert episodes -> DATA_DIR/raw/<run>/*.mcap, then export -> DATA_DIR/datasets/<repo_id>/ (LeRobot v3.0)
+record: install
+	$(PY) -m pipeline record --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(RECORD_ARGS)
+	$(PY) -m pipeline export --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(EXPORT_ARGS)
 
-all: install rollout
+# the expert's acceptance run on the test scenes: metrics, figures, videos -> DATA_DIR/rollouts/<run>/
+rollout: install
+	$(PY) -m pipeline rollout --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(ROLLOUT_ARGS)
+
+all: install record rollout
 
 # Every stage on tiny sizes through real files, into its own data dir (replaced on each run).
 smoke: install
-	$(PY) -m pipeline rollout --profile smoke --data-dir $(DATA_DIR)/smoke --overwrite
+	$(MAKE) --no-print-directory record rollout PROFILE=smoke DATA_DIR=$(DATA_DIR)/smoke ARGS=--overwrite
 
 test: install
 	$(PY) -m pytest -q -p no:cacheprovider

@@ -43,6 +43,8 @@ PROG = "icrowdnav"
 VERBS: dict[str, str] = {
     "rollout": "sim.rollout:STAGE",
     "bench": "pipeline.bench:main",
+    "record": "recorder.record:STAGE",
+    "export": "recorder.export_stage:STAGE",
 }
 
 _LOG_FORMAT = "%(asctime)s %(levelname).1s %(message)s"

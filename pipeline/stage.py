@@ -56,6 +56,9 @@ class Stage:
         body: ``body(cfg, out_dir) -> counts``: writes every output into ``out_dir`` and returns summary
             numbers (int, float or str values).
         resumable: Whether the body can continue a partially written output (``--resume``).
+        in_place: The body writes straight into the output directory instead of a staging copy, so a killed
+            run keeps what it finished (recording); a new run into a missing directory then runs as
+            ``resume``. Requires ``resumable``.
     """
 
     name: str
@@ -65,6 +68,7 @@ class Stage:
     inputs: Callable[[Any], list[Path]]
     body: Callable[[Any, Path], dict[str, Any]]
     resumable: bool = False
+    in_place: bool = False
 
 
 def mode_of(cfg: Any) -> OutputMode:
@@ -202,6 +206,8 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
     for p in input_paths:
         require_input(p, f"input of stage '{stage.name}'")
     out = Path(stage.output_dir(cfg))
+    if stage.in_place and mode == "new" and not out.exists():
+        mode = "resume"  # write in place from the start: a kill keeps every finished piece
     data_dir = getattr(cfg, "data_dir", None)
     inputs = hash_inputs(input_paths, data_dir)
 

@@ -1,0 +1,88 @@
+"""``icrowdnav export``: turn a finished recording (``DATA_DIR/raw/<run_name>/``) into a LeRobot v3.0 dataset.
+
+::
+
+    icrowdnav export --run-name expert --repo-id icrowdnav/expert        # make record runs it after recording
+
+Input: a recording whose ``manifest.json`` exists (the record stage writes it only when every episode is
+finished, so only complete MCAPs are exported). Output: ``DATA_DIR/datasets/<repo_id>/`` — a stock LeRobot
+dataset (see :mod:`recorder.export` for its features and side files) plus this stage's ``config.yaml`` and
+``manifest.json``. It is written in a staging directory, validated by the dataset doctor, then renamed into
+place; a killed export leaves no dataset (or the previous one). Load it with::
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    ds = LeRobotDataset("icrowdnav/expert", root="data/datasets/icrowdnav/expert", video_backend="pyav")
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipeline.config import BaseStageConfig
+from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.manifest import MANIFEST_NAME
+from pipeline.stage import Stage, run_stage
+
+_REPO_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[A-Za-z0-9][\w.-]*$")
+
+
+@dataclass
+class ExportConfig(BaseStageConfig):
+    """Config of the ``export`` stage."""
+
+    run_name: str = field(default="expert", metadata={"help": "recording to export: DATA_DIR/raw/<run_name>/"})
+    repo_id: str = field(default="icrowdnav/expert",
+                         metadata={"help": "LeRobot repo id (owner/name); output DATA_DIR/datasets/<repo_id>/"})
+
+    def validate(self) -> None:
+        super().validate()
+        if not _REPO_ID.match(self.repo_id):
+            raise ConfigError(f"repo_id: expected 'owner/name' (letters, digits, ._-), got {self.repo_id!r}")
+
+
+def raw_dir(cfg: ExportConfig) -> Path:
+    return Path(cfg.data_dir) / "raw" / cfg.run_name
+
+
+def dataset_dir(cfg: ExportConfig) -> Path:
+    return Path(cfg.data_dir) / "datasets" / cfg.repo_id
+
+
+def _inputs(cfg: ExportConfig) -> list[Path]:
+    src = raw_dir(cfg)
+    if src.is_dir() and not (src / MANIFEST_NAME).is_file():
+        raise InputMissingError(f"recording {src} is unfinished (no {MANIFEST_NAME}); finish it with "
+                                "`icrowdnav record --resume` first")
+    return [src]
+
+
+def _body(cfg: ExportConfig, out: Path) -> dict:
+    from recorder.doctor_dataset import check_dataset
+    from recorder.export import write_dataset
+
+    files = sorted(raw_dir(cfg).glob("*.mcap"))
+    if not files:
+        raise InputMissingError(f"no *.mcap episode in {raw_dir(cfg)}")
+    counts = write_dataset(files, out, cfg.repo_id)
+    problems = check_dataset(out)
+    if problems:
+        raise CorruptArtifactError(f"exported dataset failed validation, nothing published: {problems[0]}"
+                                   + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""))
+    return counts
+
+
+STAGE = Stage(
+    name="export",
+    config_cls=ExportConfig,
+    help="export a finished recording (MCAP) to a LeRobot v3.0 dataset under DATA_DIR/datasets/<repo_id>/",
+    output_dir=dataset_dir,
+    inputs=_inputs,
+    body=_body,
+)
+
+
+def run(cfg: ExportConfig):
+    """Run the stage (library entry point); returns its :class:`pipeline.manifest.Manifest`."""
+    return run_stage(STAGE, cfg)

@@ -1,0 +1,245 @@
+"""``icrowdnav record``: drive episodes in the crowd world and log each one to its own MCAP file.
+
+::
+
+    icrowdnav record --profile default --workers 2              # or: make record
+    icrowdnav record --scenes hallway,corner --densities 0.1 --episodes 5 --resume
+
+Output tree (``DATA_DIR/raw/<run_name>/``)::
+
+    config.yaml, manifest.json        written when every episode is finished
+    seeds.json                        the (scene, density, seed) of every episode
+    episodes.jsonl                    one row per finished episode: file, frames, outcome, sha256
+    <scene>_d<density>_s<seed>.mcap   one MCAP per episode (recorder.mcap_io); ``*.mcap.partial`` while open
+
+Recording writes in place, never in a staging copy: a killed run keeps every finished episode (and leaves the
+open one as ``*.mcap.partial``, which ``icrowdnav recover`` salvages). ``--resume`` continues such a run:
+finished episodes are kept, partial ones are re-recorded from their seed (episodes are deterministic).
+SIGTERM/SIGINT stop the run cleanly: workers finish or abandon their current episode, a log line says what is
+complete, and the exit status is non-zero.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import multiprocessing as mp
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from tqdm import tqdm
+
+from pipeline.artifacts import atomic_write_json, atomic_write_text
+from pipeline.config import BaseStageConfig
+from pipeline.errors import ConfigError, ICrowdNavError
+from pipeline.stage import Stage, run_stage
+from recorder.drive import DRIVERS
+from sim.env import SimConfig
+from sim.scene import load_scene, scenes_of_split
+
+log = logging.getLogger("icrowdnav")
+
+
+class Interrupted(ICrowdNavError):
+    """The run was stopped by SIGTERM/SIGINT; finished episodes are kept."""
+
+
+@dataclass
+class RecordConfig(BaseStageConfig):
+    """Config of the ``record`` stage."""
+
+    run_name: str = field(default="expert", metadata={"help": "output folder name under DATA_DIR/raw/"})
+    scenes: list[str] = field(default_factory=lambda: scenes_of_split("train"),
+                              metadata={"help": "scene names or YAML paths (default: the training scenes)"})
+    densities: list[float] = field(default_factory=lambda: [0.1, 0.2], metadata={"help": "pedestrians per m²"})
+    episodes: int = field(default=4, metadata={"help": "episodes per (scene, density); seeds seed..seed+N-1"})
+    driver: str = field(default="expert", metadata={"help": f"who drives: one of {list(DRIVERS)}"})
+    workers: int = field(default=2, metadata={"help": "parallel episode processes"})
+    sim: SimConfig = field(default_factory=SimConfig, metadata={"help": "the crowd world"})
+
+    def validate(self) -> None:
+        super().validate()
+        if not self.scenes:
+            raise ConfigError("scenes: expected at least one scene, got an empty list")
+        for s in self.scenes:
+            load_scene(s)
+        if not self.densities:
+            raise ConfigError("densities: expected at least one density, got an empty list")
+        for d in self.densities:
+            if not math.isfinite(d) or d < 0 or d > 2.0:
+                raise ConfigError(f"densities: expected values in [0, 2] ped/m², got {d}")
+        if self.episodes < 1:
+            raise ConfigError(f"episodes: expected >= 1, got {self.episodes}")
+        if self.workers < 1:
+            raise ConfigError(f"workers: expected >= 1, got {self.workers}")
+        if self.driver not in DRIVERS:
+            raise ConfigError(f"driver: expected one of {list(DRIVERS)}, got {self.driver!r}")
+
+
+@dataclass(frozen=True)
+class Job:
+    """One episode to record."""
+
+    scene: str
+    density: float
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{Path(self.scene).stem}_d{self.density:g}_s{self.seed}"
+
+
+def jobs_of(cfg: RecordConfig) -> list[Job]:
+    return [Job(s, d, cfg.seed + k) for s in cfg.scenes for d in cfg.densities for k in range(cfg.episodes)]
+
+
+def record_one(sim_cfg: SimConfig, job: Job, out: Path, driver: str) -> dict:
+    """Record one episode to ``out/<job.name>.mcap``; returns its row for ``episodes.jsonl``."""
+    from pipeline.manifest import hash_file
+    from recorder.drive import drive_episode
+    from recorder.mcap_io import EpisodeWriter
+
+    t0 = time.perf_counter()
+    ep = drive_episode(replace(sim_cfg, scene=job.scene, density=job.density), job.seed, driver)
+    path = out / f"{job.name}.mcap"
+    n = 0
+    outcome = ""
+    with EpisodeWriter(path, ep.meta, ep.occupancy) as w:
+        for fr in ep.frames:
+            w.add(fr)
+            n += 1
+            outcome = fr.outcome
+        mcap_s = w.write_seconds
+    return {"file": path.name, "scene": Path(job.scene).stem, "density": job.density, "seed": job.seed,
+            "frames": n, "outcome": outcome, "bytes": path.stat().st_size, "sha256": hash_file(path),
+            "seconds": round(time.perf_counter() - t0, 3), "mcap_seconds": round(mcap_s, 3)}
+
+
+def _worker(args: tuple) -> dict:
+    from recorder.mcap_io import graceful_signals
+
+    with graceful_signals():
+        return record_one(*args)
+
+
+def _body(cfg: RecordConfig, out: Path) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = jobs_of(cfg)
+    done_rows = _finished_rows(out, jobs)
+    for p in out.glob("*.mcap.partial"):  # resumed run: the open episodes of the killed one are re-recorded
+        log.info("record: re-recording unfinished episode %s", p.name)
+        p.unlink()
+    todo = [j for j in jobs if f"{j.name}.mcap" not in done_rows]
+    if len(todo) < len(jobs):
+        log.info("record: resuming, %d of %d episodes already finished", len(jobs) - len(todo), len(jobs))
+    atomic_write_json(out / "seeds.json", {"episodes": [j.__dict__ for j in jobs]})
+    rows = dict(done_rows)
+    t0 = time.perf_counter()
+    try:
+        _run_jobs(cfg, todo, out, rows, jobs)
+    finally:
+        _write_rows(out, rows, jobs)
+    wall = time.perf_counter() - t0
+    new = [rows[f"{j.name}.mcap"] for j in todo]
+    frames = sum(r["frames"] for r in rows.values())
+    new_frames = sum(r["frames"] for r in new)
+    mcap_share = sum(r["mcap_seconds"] for r in new) / max(sum(r["seconds"] for r in new), 1e-9)
+    return {"episodes": len(rows), "frames": frames, "recorded_now": len(new),
+            "frames_per_s": round(new_frames / wall, 2) if new else 0.0, "mcap_share": round(mcap_share, 4),
+            "success_rate": round(sum(r["outcome"] == "success" for r in rows.values()) / len(rows), 4)}
+
+
+def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: list[Job]) -> None:
+    from recorder.mcap_io import graceful_signals
+
+    bar = tqdm(total=len(todo), desc=f"record {cfg.driver}", unit="ep")
+    try:
+        with graceful_signals():
+            if cfg.workers == 1:
+                for j in todo:
+                    r = record_one(cfg.sim, j, out, cfg.driver)
+                    rows[r["file"]] = r
+                    _write_rows(out, rows, jobs)
+                    bar.update()
+                return
+            ctx = mp.get_context("fork")
+            with ProcessPoolExecutor(cfg.workers, mp_context=ctx) as pool:
+                pending = {pool.submit(_worker, (cfg.sim, j, out, cfg.driver)) for j in todo}
+                try:
+                    while pending:
+                        finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                        for f in finished:
+                            r = f.result()
+                            rows[r["file"]] = r
+                            _write_rows(out, rows, jobs)
+                            bar.update()
+                except BaseException:
+                    for f in pending:
+                        f.cancel()
+                    raise
+    except KeyboardInterrupt as e:
+        partial = sorted(p.name for p in out.glob("*.mcap.partial"))
+        raise Interrupted(f"record interrupted: {len(rows)} episodes finished in {out}, {len(partial)} left "
+                          f"unfinished ({', '.join(partial[:3])}); rerun with --resume to continue") from e
+    finally:
+        bar.close()
+
+
+def _finished_rows(out: Path, jobs: list[Job]) -> dict[str, dict]:
+    """Rows of the episodes already finished in ``out``: every ``<name>.mcap`` of a job (a final name only exists
+    once its writer finished). Rows come from ``episodes.jsonl`` when it has them, else from the file itself."""
+    from pipeline.manifest import hash_file
+    from recorder.mcap_io import episode_summary
+
+    known: dict[str, dict] = {}
+    p = out / "episodes.jsonl"
+    if p.exists():
+        for line in p.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                known[r["file"]] = r
+    rows: dict[str, dict] = {}
+    for j in jobs:
+        name = f"{j.name}.mcap"
+        f = out / name
+        if not f.is_file():
+            continue
+        if name in known and known[name].get("bytes") == f.stat().st_size:
+            rows[name] = known[name]
+            continue
+        summ = episode_summary(f)  # raises a named error if the file is damaged
+        rows[name] = {"file": name, "scene": Path(j.scene).stem, "density": j.density, "seed": j.seed,
+                      "frames": summ["n_frames"], "outcome": summ["outcome"], "bytes": f.stat().st_size,
+                      "sha256": hash_file(f), "seconds": 0.0, "mcap_seconds": 0.0}
+    return rows
+
+
+def _write_rows(out: Path, rows: dict[str, dict], jobs: list[Job]) -> None:
+    order = {f"{j.name}.mcap": i for i, j in enumerate(jobs)}
+    lines = [json.dumps(rows[k]) for k in sorted(rows, key=lambda k: order.get(k, 1 << 30))]
+    atomic_write_text(out / "episodes.jsonl", "".join(line + "\n" for line in lines))
+
+
+def raw_dir(cfg) -> Path:
+    return Path(cfg.data_dir) / "raw" / cfg.run_name
+
+
+STAGE = Stage(
+    name="record",
+    config_cls=RecordConfig,
+    help="drive episodes (expert) and log each to an MCAP file under DATA_DIR/raw/<run_name>/",
+    output_dir=raw_dir,
+    inputs=lambda cfg: [],
+    body=_body,
+    resumable=True,
+    in_place=True,
+)
+
+
+def run(cfg: RecordConfig):
+    """Run the stage (library entry point); returns its :class:`pipeline.manifest.Manifest`."""
+    return run_stage(STAGE, cfg)
+
