@@ -45,6 +45,8 @@ VERBS: dict[str, str] = {
     "bench": "pipeline.bench:main",
     "record": "recorder.record:STAGE",
     "export": "recorder.export_stage:STAGE",
+    "doctor": "recorder.doctor:main",
+    "recover": "recorder.doctor:recover_main",
 }
 
 _LOG_FORMAT = "%(asctime)s %(levelname).1s %(message)s"

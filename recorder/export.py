@@ -1,0 +1,467 @@
+"""Export recorded episodes (complete MCAP logs) into a LeRobot v3.0 dataset, crash-safely.
+
+::
+
+    from recorder.export import export_run
+    export_run(Path("data/raw/run"), Path("data/datasets/run"), repo_id="icrowdnav/run")
+
+    python -m recorder.export data/raw/run data/datasets/run --repo-id icrowdnav/run [--overwrite]
+
+The per-episode MCAP files are the durable log; the LeRobot dataset is derived from complete ones only
+(``*.partial`` recordings are refused, or skipped with a warning by :func:`export_run`). LeRobot 0.4.4 keeps
+parquet writers open across episodes and rewrites ``meta/info.json`` per episode, so a killed export could
+leave a dataset with footer-less parquet files or an episode-index gap. Hence the export:
+
+1. writes into a staging directory ``.<name>.staging-<pid>`` next to ``out_dir``
+   (:class:`pipeline.artifacts.OutputDir`; staging dirs of dead processes are removed by the next export);
+2. ``LeRobotDataset.create`` → ``add_frame`` per frame (task :data:`recorder.features.TASK`) →
+   ``save_episode`` per episode → ``finalize()``;
+3. writes ``meta/icrowdnav.json`` (cameras' intrinsics/extrinsics, feature docs, the local-map layout,
+   sources) and ``meta/icrowdnav_episodes.jsonl`` (one row per episode: the episode's metadata, source file,
+   outcome, length, return);
+4. runs the dataset doctor (:func:`recorder.doctor_dataset.check_dataset`) on the staging directory — any
+   problem is an error and the staging directory is removed;
+5. renames the staging directory into place (with ``overwrite``, the old dataset stays until the new one is
+   complete).
+
+Why the episode facts are in a side file: lerobot 0.4.4 keeps its ``meta/info.json`` (rewritten on every
+``save_episode``) and its ``meta/episodes`` parquet (written from an internal dict; ``LeRobotDataset.save_episode``
+takes no extra per-episode columns) to itself, so our facts live in ``meta/icrowdnav*.json*``, which stock
+lerobot ignores and copies along.
+
+Reading the dataset back with stock lerobot needs ``video_backend="pyav"`` on these machines (torchcodec is
+installed but cannot load without system FFmpeg libraries)::
+
+    LeRobotDataset("icrowdnav/run", root="data/datasets/run", video_backend="pyav")
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import itertools
+import json
+import logging
+import math
+import os
+import sys
+import time
+import warnings
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from pipeline.artifacts import OutputDir, atomic_write_json, atomic_write_text
+from pipeline.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
+from recorder.features import (
+    DEFAULT_MAX_PEOPLE,
+    N_MAX_PEDESTRIANS,
+    ROBOT_TYPE,
+    TASK,
+    ExportSpec,
+    FeatureError,
+    LocalMapSpec,
+    cameras_of,
+    check_features,
+    frame_to_features,
+    meta_facts,
+)
+from recorder.schema import CAMERA_NAMES, EpisodeMeta, Frame
+
+log = logging.getLogger("icrowdnav")
+
+ICROWDNAV_META = "meta/icrowdnav.json"
+ICROWDNAV_EPISODES = "meta/icrowdnav_episodes.jsonl"
+FORMAT_VERSION = 1
+PARTIAL_SUFFIX = ".partial"
+
+
+@dataclass
+class _Source:
+    """One episode to export: where it came from and how to open it (lazily)."""
+
+    name: str
+    open: Callable[[], tuple[EpisodeMeta, np.ndarray, Iterator[Frame]]]
+    path: Path | None = None
+
+
+def is_partial(path: Path) -> bool:
+    """Whether ``path`` is an unfinished recording (``*.partial``, e.g. ``ep_0001.mcap.partial``)."""
+    return Path(path).name.endswith(PARTIAL_SUFFIX)
+
+
+def _unpack(obj: Any, name: str) -> tuple[EpisodeMeta, np.ndarray, Iterator[Frame]]:
+    """``(meta, occupancy, frames)`` from a ``read_episode`` result or an Episode-like object."""
+    if isinstance(obj, tuple) and len(obj) == 3:
+        meta, occ, frames = obj
+    elif hasattr(obj, "meta") and hasattr(obj, "occupancy") and hasattr(obj, "frames"):
+        meta, occ, frames = obj.meta, obj.occupancy, obj.frames
+    else:
+        raise TypeError(f"{name}: expected (meta, occupancy, frames) or an object with .meta, .occupancy and "
+                        f".frames, got {type(obj).__name__}")
+    if callable(frames):
+        frames = frames()
+    if not isinstance(meta, EpisodeMeta):
+        raise FeatureError(f"{name}: episode metadata: expected an EpisodeMeta, got {type(meta).__name__}")
+    occ = np.asarray(occ)
+    if occ.ndim != 2 or occ.dtype != bool:
+        raise FeatureError(f"{name}: field 'occupancy': expected a 2-D bool grid of shape "
+                           f"{tuple(meta.occupancy_shape)}, got shape {occ.shape} {occ.dtype}")
+    if list(occ.shape) != [int(v) for v in meta.occupancy_shape]:
+        raise FeatureError(f"{name}: field 'occupancy': expected shape {tuple(meta.occupancy_shape)} "
+                           f"(meta.occupancy_shape), got {occ.shape}")
+    return meta, occ, iter(frames)
+
+
+def _read_mcap(path: Path) -> tuple[EpisodeMeta, np.ndarray, Iterator[Frame]]:
+    """Opens one complete MCAP episode with :func:`recorder.mcap_io.read_episode`."""
+    from recorder.mcap_io import read_episode  # imported late: the reader is optional for in-memory exports
+
+    try:
+        result = read_episode(path)
+    except ICrowdNavError:
+        raise
+    except Exception as e:  # a damaged file must be named, never a bare struct.error
+        raise CorruptArtifactError(f"{path}: cannot read the episode: {type(e).__name__}: {e}") from e
+    return _unpack(result, str(path))
+
+
+def _sources(inputs: Iterable[Any]) -> Iterator[_Source]:
+    """Normalises paths and Episode-like objects into :class:`_Source` items (lazily)."""
+    for k, item in enumerate(inputs):
+        if isinstance(item, str | os.PathLike):
+            path = check_inputs([Path(item)])[0]
+            yield _Source(str(path), lambda p=path: _read_mcap(p), path)
+        else:
+            name = str(getattr(item, "source", None) or getattr(item, "path", None) or f"<episode {k} (in memory)>")
+            yield _Source(name, lambda it=item, n=name: _unpack(it, n))
+
+
+def check_inputs(paths: Iterable[Path]) -> list[Path]:
+    """Checks that every MCAP input exists and is complete (before anything is written).
+
+    Raises:
+        InputMissingError: a file does not exist.
+        CorruptArtifactError: a file is an unfinished ``*.partial`` recording.
+    """
+    out = []
+    for p in paths:
+        p = Path(p)
+        if is_partial(p):
+            raise CorruptArtifactError(
+                f"{p}: unfinished recording (*{PARTIAL_SUFFIX}); the export reads complete MCAP episodes only — "
+                "recover it first (recorder.mcap_io.recover) or leave it out")
+        if not p.is_file():
+            raise InputMissingError(f"missing MCAP episode: {p}")
+        out.append(p)
+    return out
+
+
+def _guarded(frames: Iterator[Frame], source: _Source) -> Iterator[Frame]:
+    """Iterates a reader's frames, naming the file when reading fails mid-episode."""
+    while True:
+        try:
+            fr = next(frames)
+        except StopIteration:
+            return
+        except ICrowdNavError:
+            raise
+        except Exception as e:
+            if source.path is None:
+                raise
+            raise CorruptArtifactError(f"{source.name}: cannot read a frame: {type(e).__name__}: {e}") from e
+        yield fr
+
+
+def _peek_max_people(frames: Iterator[Frame], source: _Source) -> tuple[Iterator[Frame], int]:
+    """``K`` = the number of detection rows of the first frame (frames are given back unconsumed)."""
+    frames = _guarded(frames, source)
+    first = next(frames, None)
+    if first is None:
+        return iter(()), DEFAULT_MAX_PEOPLE
+    poses = getattr(first, "poses", None)
+    k = poses.shape[0] if isinstance(poses, np.ndarray) and poses.ndim == 3 else DEFAULT_MAX_PEOPLE
+    return itertools.chain([first], frames), int(k)
+
+
+def _resolve_fps(fps: int | None, meta: EpisodeMeta, source: str) -> int:
+    """The dataset fps: ``fps`` if it equals ``1 / meta.dt_s``, else an error; ``1 / dt_s`` when None."""
+    dt = float(meta.dt_s)
+    if not (dt > 0 and math.isfinite(dt)):
+        raise FeatureError(f"{source}: episode metadata field 'dt_s': expected a positive period, got {dt}")
+    want = 1.0 / dt
+    if fps is None:
+        if abs(want - round(want)) > 1e-6:
+            raise ConfigError(f"fps: LeRobot needs an integer fps, but {source} has dt_s = {dt} s "
+                              f"(1/dt_s = {want:g})")
+        return int(round(want))
+    if isinstance(fps, bool) or not isinstance(fps, int) or fps <= 0:
+        raise ConfigError(f"fps: expected a positive int, got {fps!r}")
+    if abs(fps * dt - 1.0) > 1e-6:
+        raise ConfigError(f"fps: expected {want:g} (1 / dt_s of {source}, dt_s = {dt} s), got {fps}; "
+                          "timestamps are frame_index / fps and must equal the recorded times")
+    return fps
+
+
+def _check_same_spec(meta: EpisodeMeta, first: EpisodeMeta, spec: ExportSpec, fps: int, source: str) -> None:
+    """Every episode of a dataset must have the first one's cameras (sizes, intrinsics, extrinsics) and period."""
+    other = ExportSpec.from_meta(meta, spec.max_people, spec.n_max, spec.local_map, source)
+    for cam in CAMERA_NAMES:
+        if other.camera_sizes[cam] != spec.camera_sizes[cam]:
+            raise FeatureError(f"{source}: episode metadata field 'cameras[{cam}]' (height, width): expected "
+                               f"{spec.camera_sizes[cam]} like the dataset's first episode, "
+                               f"got {other.camera_sizes[cam]}")
+        mine, theirs = cameras_of(meta).get(cam, {}), cameras_of(first).get(cam, {})
+        for key in sorted(set(mine) | set(theirs)):
+            if mine.get(key) != theirs.get(key):
+                raise FeatureError(f"{source}: episode metadata field 'cameras[{cam}][{key}]': expected "
+                                   f"{theirs.get(key)!r} like the dataset's first episode (one camera model per "
+                                   f"dataset), got {mine.get(key)!r}")
+    if abs(fps * float(meta.dt_s) - 1.0) > 1e-6:
+        raise FeatureError(f"{source}: episode metadata field 'dt_s': expected {1.0 / fps:g} s "
+                           f"(the dataset's {fps} fps), got {meta.dt_s}")
+
+
+@contextlib.contextmanager
+def _quiet_datasets() -> Iterator[None]:
+    """Hides the HF ``datasets`` "Map" bars lerobot triggers per episode (our own bar counts frames)."""
+    import datasets
+
+    was = datasets.is_progress_bar_enabled()
+    datasets.disable_progress_bars()
+    try:
+        yield
+    finally:
+        if was:
+            datasets.enable_progress_bars()
+
+
+def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | None = None, *,
+                  max_people: int | None = None, n_max: int = N_MAX_PEDESTRIANS,
+                  local_map: LocalMapSpec | None = None, progress: bool = True,
+                  vcodec: str = "libsvtav1") -> dict[str, Any]:
+    """Writes episodes into a new LeRobot dataset at ``root`` (no staging, no validation: the caller's job).
+
+    Use :func:`export_dataset` unless the caller already provides a crash-safe directory (e.g. a stage body
+    writing into its :class:`pipeline.artifacts.OutputDir`).
+
+    Args:
+        inputs: MCAP paths and/or Episode-like objects (``.meta``, ``.occupancy``, ``.frames``), in order.
+        root: the dataset directory; must not exist or be an empty directory.
+        repo_id: the LeRobot repo id (``owner/name``) stored in the metadata.
+        fps: frames per second; must equal ``1 / dt_s`` of the episodes (default: taken from the first).
+        max_people: ``K``, detections per frame (default: the first frame's, i.e. the detector's setting).
+        n_max, local_map: sizes of the padded arrays (:class:`recorder.features.ExportSpec`).
+        progress: show a tqdm bar (frames).
+        vcodec: the video codec lerobot encodes with.
+
+    Returns:
+        ``{"episodes", "frames", "seconds", "frames_per_s"}``.
+
+    Raises:
+        FeatureError: a frame or episode does not fit the spec (names file, field, expected, actual).
+        CorruptArtifactError: an input cannot be read.
+        InputMissingError: there is no episode at all.
+    """
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    root = Path(root)
+    if root.is_dir() and not any(root.iterdir()):
+        root.rmdir()  # lerobot creates the root itself and refuses an existing one
+    t0 = time.monotonic()
+    ds = None
+    spec: ExportSpec | None = None
+    features: dict[str, dict] = {}
+    scalar_keys: list[str] = []
+    first_meta: EpisodeMeta | None = None
+    rows: list[dict[str, Any]] = []
+    n_frames = 0
+    bar = tqdm(desc=f"export {Path(root).name}", unit="frame", disable=not progress, dynamic_ncols=True)
+    try:
+        for ep_index, src in enumerate(_sources(inputs)):
+            meta, occ, frames = src.open()
+            if ds is None:
+                fps = _resolve_fps(fps, meta, src.name)
+                if max_people is None:
+                    frames, max_people = _peek_max_people(frames, src)
+                spec = ExportSpec.from_meta(meta, max_people, n_max, local_map, src.name)
+                features = spec.features()
+                scalar_keys = [k for k, ft in features.items() if tuple(ft["shape"]) == (1,)]
+                first_meta = meta
+                ds = LeRobotDataset.create(repo_id, fps, features, root=root, robot_type=ROBOT_TYPE,
+                                           use_videos=True, vcodec=vcodec)
+            else:
+                _check_same_spec(meta, first_meta, spec, fps, src.name)
+            length, ret, outcome, done = 0, 0.0, "", False
+            for i, fr in enumerate(_guarded(frames, src)):
+                values = frame_to_features(fr, meta, occ, spec, src.name, i)
+                check_features(values, features, src.name, i)
+                values["task"] = TASK
+                ds.add_frame(values)
+                for key in scalar_keys:  # lerobot 0.4.4 + numpy >= 2.3: float() of a (1,) array raises later
+                    ds.episode_buffer[key][-1] = ds.episode_buffer[key][-1].reshape(())
+                length += 1
+                ret += float(values["next.reward"][0])
+                outcome = str(getattr(fr, "outcome", "") or outcome)
+                done = bool(values["next.done"][0])
+                bar.update(1)
+            if length == 0:
+                raise FeatureError(f"{src.name}: frames: expected at least one frame, got none")
+            with warnings.catch_warnings(), _quiet_datasets():
+                # lerobot's stats histogram of bool features warns (harmlessly) about a uint8 conversion
+                warnings.filterwarnings("ignore", "Converting input from bool", RuntimeWarning)
+                ds.save_episode(parallel_encoding=False)
+            n_frames += length
+            bar.set_postfix(episodes=ep_index + 1)
+            rows.append({"episode_index": ep_index, "source": src.name,
+                         "source_bytes": src.path.stat().st_size if src.path is not None else None,
+                         "length": length, "duration_s": round(length / fps, 6), "outcome": outcome,
+                         "done": done, "return": ret, "scene": meta.scene, "density": meta.density,
+                         "seed": meta.seed, "episode_seed": meta.episode_seed, "driver": meta.driver,
+                         "meta": meta_facts(meta)})
+        if ds is None:
+            raise InputMissingError("no episodes to export: the input list is empty")
+        ds.finalize()
+    except BaseException:
+        if ds is not None:
+            with contextlib.suppress(Exception):
+                ds.finalize()  # close lerobot's parquet writers; the caller discards the failed root
+        raise
+    finally:
+        bar.close()
+    images = root / "images"
+    if images.is_dir() and not any(p.is_file() for p in images.rglob("*")):
+        import shutil
+
+        shutil.rmtree(images)
+    seconds = time.monotonic() - t0
+    assert spec is not None and first_meta is not None
+    info = {
+        "format_version": FORMAT_VERSION, "repo_id": repo_id, "fps": fps, "dt_s": 1.0 / fps, "task": TASK,
+        "robot_type": ROBOT_TYPE, "total_episodes": len(rows), "total_frames": n_frames,
+        "cameras": cameras_of(first_meta), "spec": spec.describe(),
+        "sources": [r["source"] for r in rows],
+        "episode_facts": f"{ICROWDNAV_EPISODES}: one JSON row per episode_index",
+        "lerobot_load": "LeRobotDataset(repo_id, root=..., video_backend='pyav')",
+    }
+    atomic_write_json(root / ICROWDNAV_META, info)
+    atomic_write_text(root / ICROWDNAV_EPISODES, "".join(json.dumps(_json_safe(r)) + "\n" for r in rows))
+    return {"episodes": len(rows), "frames": n_frames, "seconds": round(seconds, 3),
+            "frames_per_s": round(n_frames / seconds, 2) if seconds > 0 else 0.0}
+
+
+def _json_safe(obj: Any) -> Any:
+    """A JSON-safe copy: NaN/inf become None, numpy values plain Python."""
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_json_safe(v) for v in obj]
+    if hasattr(obj, "item") and not isinstance(obj, str):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def export_dataset(inputs: Iterable[Any], out_dir: Path, repo_id: str, fps: int | None = None,
+                   overwrite: bool = False, *, max_people: int | None = None,
+                   n_max: int = N_MAX_PEDESTRIANS, local_map: LocalMapSpec | None = None,
+                   progress: bool = True, vcodec: str = "libsvtav1") -> dict[str, Any]:
+    """Exports episodes into a validated LeRobot dataset at ``out_dir``, atomically.
+
+    Args:
+        inputs: complete MCAP episode paths (``*.partial`` refused) and/or Episode-like objects, in order;
+            a list of paths is checked before anything is written.
+        out_dir: the dataset directory to publish.
+        repo_id: LeRobot repo id (``owner/name``).
+        fps: frames per second; must equal ``1 / dt_s`` (default: from the first episode).
+        overwrite: replace an existing ``out_dir`` (kept until the new dataset is complete and valid).
+        max_people, n_max, local_map, progress, vcodec: see :func:`write_dataset`.
+
+    Returns:
+        ``{"episodes", "frames", "seconds", "frames_per_s", "doctor_seconds"}``.
+
+    Raises:
+        OutputExistsError: ``out_dir`` exists (and is not an empty directory) and ``overwrite`` is false.
+        InputMissingError / CorruptArtifactError / FeatureError: see :func:`write_dataset`; also when the
+            doctor finds a problem in the written dataset. Nothing is published then.
+    """
+    from recorder.doctor_dataset import check_dataset
+
+    if isinstance(inputs, list | tuple):
+        check_inputs([p for p in inputs if isinstance(p, str | os.PathLike)])
+    out_dir = Path(out_dir)
+    with OutputDir(out_dir, "overwrite" if overwrite else "new") as od:
+        counts = write_dataset(inputs, od.path, repo_id, fps, max_people=max_people, n_max=n_max,
+                               local_map=local_map, progress=progress, vcodec=vcodec)
+        t0 = time.monotonic()
+        problems = check_dataset(od.path)
+        counts["doctor_seconds"] = round(time.monotonic() - t0, 3)
+        if problems:
+            more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
+            raise CorruptArtifactError(f"exported dataset failed validation, nothing published to {out_dir}: "
+                                       f"{problems[0]}{more}")
+    log.info("exported %d episodes, %d frames (%.1f frames/s) -> %s", counts["episodes"], counts["frames"],
+             counts["frames_per_s"], out_dir)
+    return counts
+
+
+def export_run(raw_dir: Path, out_dir: Path, repo_id: str, fps: int | None = None, overwrite: bool = False,
+               **kwargs: Any) -> dict[str, Any]:
+    """Exports every complete ``*.mcap`` of a recording directory, in sorted order.
+
+    ``*.partial`` files (unfinished recordings) are skipped with one warning line naming them.
+
+    Args:
+        raw_dir: the directory of per-episode MCAP files.
+        out_dir, repo_id, fps, overwrite, kwargs: see :func:`export_dataset`.
+
+    Returns:
+        :func:`export_dataset`'s counts plus ``skipped_partial``.
+
+    Raises:
+        InputMissingError: ``raw_dir`` does not exist or holds no complete ``*.mcap``.
+    """
+    raw_dir = Path(raw_dir)
+    if not raw_dir.is_dir():
+        raise InputMissingError(f"missing recording directory: {raw_dir}")
+    files = sorted(p for p in raw_dir.glob("*.mcap") if p.is_file())
+    partial = sorted(p for p in raw_dir.glob(f"*{PARTIAL_SUFFIX}") if p.is_file())
+    if partial:
+        log.warning("export: skipping %d unfinished recording(s) (*%s): %s", len(partial), PARTIAL_SUFFIX,
+                    ", ".join(p.name for p in partial))
+    if not files:
+        raise InputMissingError(f"no complete *.mcap episode in {raw_dir}"
+                                + (f" ({len(partial)} *{PARTIAL_SUFFIX} skipped)" if partial else ""))
+    counts = export_dataset(files, out_dir, repo_id, fps, overwrite, **kwargs)
+    counts["skipped_partial"] = len(partial)
+    return counts
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m recorder.export RAW_DIR OUT_DIR --repo-id ID [--fps N] [--overwrite]``."""
+    ap = argparse.ArgumentParser(prog="python -m recorder.export", description=__doc__.split("\n")[0])
+    ap.add_argument("raw_dir", type=Path, help="directory of per-episode *.mcap files")
+    ap.add_argument("out_dir", type=Path, help="the LeRobot dataset directory to create")
+    ap.add_argument("--repo-id", required=True, help="LeRobot repo id, owner/name")
+    ap.add_argument("--fps", type=int, default=None, help="frames per second (default: 1 / dt_s)")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    try:
+        counts = export_run(args.raw_dir, args.out_dir, args.repo_id, args.fps, args.overwrite,
+                            progress=not args.no_progress)
+    except ICrowdNavError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps(counts))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

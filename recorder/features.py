@@ -1,0 +1,484 @@
+"""The LeRobot feature spec of an exported iCrowdNav dataset, and the conversion of a recorded frame into it.
+
+:class:`ExportSpec` fixes every size an exported dataset has (camera images, the number of detected people
+``K``, the pedestrian padding ``N_MAX``, the local occupancy crop); :meth:`ExportSpec.features` is the
+``features`` dict handed to ``LeRobotDataset.create`` and :func:`frame_to_features` turns one
+:class:`recorder.schema.Frame` into the ``add_frame`` dict, checking every field on the way: a wrong shape,
+dtype, a missing field or a non-finite value raises :class:`FeatureError` naming the file, the field, what was
+expected and what was found.
+
+Features (``T`` frames; shapes per frame; frames: *world* = the scene's, *robot* = x forward, y left, z up):
+
+===============================  ==============  =======  =========================================================
+feature                          shape           dtype    meaning
+===============================  ==============  =======  =========================================================
+observation.images.{left,right}  H x W x 3       video    RGB camera image (AV1 mp4; decoded as 3 x H x W float)
+observation.depth.{left,right}   H x W           float32  z-depth along the optical axis, m, 0 = invalid
+observation.state                5               float32  [g_x, g_y, d_g, v_x, v_y], robot frame
+observation.odom                 3               float32  robot pose [x, y, yaw], world frame
+observation.goal                 2               float32  goal [x, y], world frame
+observation.poses                K x 17 x 3      float32  detected COCO-17 joints [x, y, z], robot frame, m
+observation.pose_mask            K x 17          bool     detected joints (False rows/joints are zeros)
+observation.pose_conf            K x 17          float32  detector confidence of each joint
+action                           2               float32  the command that led to this frame [v m/s, ω rad/s]
+next.reward                      1               float32  the paper's reward for the step into this frame
+next.reward_terms                6               float32  success, collision, near, progress, spin, total
+next.done                        1               bool     the episode ended at this frame
+privileged.ped_state             N_MAX x 8       float32  x, y, vx, vy (world), radius, body yaw, head yaw
+                                                          (world, rad), present (1/0); row n = pedestrian n
+privileged.ped_keypoints         N_MAX x 17 x 3  float32  true COCO-17 keypoints, world frame, m
+privileged.ped_intent            N_MAX x 2       float32  where each pedestrian is heading in mind, world, m
+privileged.pose_track            K               int64    true pedestrian row of each detection, -1 = padding
+privileged.d_o                   1               float32  robot centre to the nearest pedestrian/obstacle surface
+privileged.local_occupancy       R x C           bool     static map around the robot (see :class:`LocalMapSpec`)
+===============================  ==============  =======  =========================================================
+
+Rows of the ``privileged.ped_*`` arrays beyond the episode's crowd size are zeros (``present`` = 0).
+
+Why depth is float32 metres and not uint16 millimetres: lerobot 0.4.4 stores a uint16 array feature but its
+torch formatting hands it back as an **int64** tensor (4x the memory of the uint16, 2x float32), in the wrong
+unit for the policy, so every consumer would have to convert; float32 metres comes back as float32 metres, the
+env's own observation format. The MCAP log keeps millimetres, so a float32 value holds the millimetre value
+exactly up to float32 rounding. The cost is disk: about 2x the uint16 parquet size (depth compresses poorly).
+Masks and the occupancy crop are ``bool`` because that round-trips as ``torch.bool`` (uint8 comes back int64).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import CorruptArtifactError
+from recorder.schema import CAMERA_NAMES, EpisodeMeta, Frame
+
+TASK = "navigate to the goal through the crowd"
+ROBOT_TYPE = "icrowdnav_diffdrive"
+N_MAX_PEDESTRIANS = 64
+DEFAULT_MAX_PEOPLE = 6  # sim.detector.DetectorConfig.max_people
+N_JOINTS = 17
+COCO_KEYPOINTS = (
+    "nose", "left_eye", "right_eye", "left_ear", "right_ear", "left_shoulder", "right_shoulder", "left_elbow",
+    "right_elbow", "left_wrist", "right_wrist", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle",
+    "right_ankle",
+)
+REWARD_TERMS = ("success", "collision", "near", "progress", "spin", "total")
+PED_STATE_COLUMNS = ("x", "y", "vx", "vy", "radius", "body_yaw", "head_yaw", "present")
+
+
+class FeatureError(CorruptArtifactError):
+    """A recorded frame or episode does not fit the dataset's feature spec (names file, field, expected, actual)."""
+
+
+def image_key(cam: str) -> str:
+    """The video feature of camera ``cam``."""
+    return f"observation.images.{cam}"
+
+
+def depth_key(cam: str) -> str:
+    """The depth feature of camera ``cam``."""
+    return f"observation.depth.{cam}"
+
+
+@dataclass(frozen=True)
+class LocalMapSpec:
+    """A robot-centred crop of the static occupancy grid (``privileged.local_occupancy``).
+
+    The crop covers ``x ∈ [x_min_m, x_max_m)`` forward and ``y ∈ [y_min_m, y_max_m)`` lateral in the robot
+    frame (x forward, y left) with square cells of ``resolution_m``. It is laid out like a top-down image with
+    the robot heading up:
+
+    * row ``r`` holds forward ``x = x_max_m - (r + 0.5) * resolution_m`` — row 0 is the farthest ahead;
+    * column ``c`` holds lateral ``y = y_max_m - (c + 0.5) * resolution_m`` — column 0 is the farthest to the
+      robot's left, so columns run left → right as the robot sees them.
+
+    With the defaults (100 x 100 cells, 0.1 m) the robot centre lies at (row 79.5, col 49.5). Each cell takes
+    the value of the world-grid cell whose centre is nearest to the cell's centre; ``True`` = static obstacle,
+    or outside the world grid (outside the scene bounds).
+    """
+
+    resolution_m: float = 0.1
+    x_min_m: float = -2.0
+    x_max_m: float = 8.0
+    y_min_m: float = -5.0
+    y_max_m: float = 5.0
+
+    def __post_init__(self) -> None:
+        rows = (self.x_max_m - self.x_min_m) / self.resolution_m
+        cols = (self.y_max_m - self.y_min_m) / self.resolution_m
+        if not (self.resolution_m > 0 and rows >= 1 and cols >= 1):
+            raise ValueError(f"LocalMapSpec: expected resolution > 0 and non-empty extents, got {self}")
+        if abs(rows - round(rows)) > 1e-6 or abs(cols - round(cols)) > 1e-6:
+            raise ValueError(f"LocalMapSpec: extents must be whole multiples of the resolution, got {self}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(rows, cols)`` of the crop."""
+        return (round((self.x_max_m - self.x_min_m) / self.resolution_m),
+                round((self.y_max_m - self.y_min_m) / self.resolution_m))
+
+    def cell_centres(self) -> np.ndarray:
+        """``rows x cols x 2`` robot-frame ``(x, y)`` of every cell centre (float64, read-only)."""
+        return _cell_centres(self)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for the dataset metadata, with the layout spelled out."""
+        return {**asdict(self), "shape": list(self.shape), "dtype": "bool",
+                "frame": "robot (x forward, y left), centred on the robot centre",
+                "rows": "forward x, row 0 farthest ahead: x = x_max_m - (row + 0.5) * resolution_m",
+                "cols": "lateral y, col 0 farthest left: y = y_max_m - (col + 0.5) * resolution_m",
+                "values": "True = static obstacle or outside the scene's grid; nearest world cell"}
+
+
+@functools.cache
+def _cell_centres(spec: LocalMapSpec) -> np.ndarray:
+    rows, cols = spec.shape
+    x = spec.x_max_m - (np.arange(rows) + 0.5) * spec.resolution_m
+    y = spec.y_max_m - (np.arange(cols) + 0.5) * spec.resolution_m
+    out = np.stack(np.meshgrid(x, y, indexing="ij"), -1)
+    out.setflags(write=False)
+    return out
+
+
+def local_occupancy(grid: np.ndarray, origin_xy: tuple[float, float] | list[float], resolution_m: float,
+                    pose: np.ndarray, spec: LocalMapSpec) -> np.ndarray:
+    """Samples the static world grid around a robot pose (vectorised nearest-cell lookup).
+
+    Args:
+        grid: ``H x W`` bool world occupancy; cell ``[i, j]`` has its centre at
+            ``(origin_x + j * resolution_m, origin_y + i * resolution_m)`` (see :class:`recorder.drive.Episode`).
+        origin_xy: world ``(x, y)`` of the centre of cell ``[0, 0]``.
+        resolution_m: world cell size.
+        pose: robot pose ``[x, y, yaw]`` in the world frame.
+        spec: the crop's geometry.
+
+    Returns:
+        ``spec.shape`` bool array laid out as :class:`LocalMapSpec` describes.
+    """
+    pts = spec.cell_centres()
+    x, y, yaw = (float(v) for v in np.asarray(pose, dtype=np.float64)[:3])
+    c, s = math.cos(yaw), math.sin(yaw)
+    wx = x + c * pts[..., 0] - s * pts[..., 1]
+    wy = y + s * pts[..., 0] + c * pts[..., 1]
+    j = np.rint((wx - origin_xy[0]) / resolution_m).astype(np.int64)
+    i = np.rint((wy - origin_xy[1]) / resolution_m).astype(np.int64)
+    h, w = grid.shape
+    inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+    out = np.ones(spec.shape, dtype=bool)
+    out[inside] = grid[i[inside], j[inside]]
+    return out
+
+
+@dataclass(frozen=True)
+class ExportSpec:
+    """Every size of an exported dataset.
+
+    Attributes:
+        camera_sizes: per camera name, ``(height, width)`` in pixels.
+        max_people: ``K``, detections per frame (``sim.detector.DetectorConfig.max_people``).
+        n_max: ``N_MAX``, rows of the padded pedestrian arrays; a bigger crowd is an error.
+        local_map: geometry of ``privileged.local_occupancy``.
+    """
+
+    camera_sizes: dict[str, tuple[int, int]]
+    max_people: int = DEFAULT_MAX_PEOPLE
+    n_max: int = N_MAX_PEDESTRIANS
+    local_map: LocalMapSpec = field(default_factory=LocalMapSpec)
+
+    @staticmethod
+    def from_meta(meta: EpisodeMeta, max_people: int = DEFAULT_MAX_PEOPLE, n_max: int = N_MAX_PEDESTRIANS,
+                  local_map: LocalMapSpec | None = None, source: str = "episode") -> ExportSpec:
+        """The spec of a dataset whose cameras are those of ``meta``.
+
+        Raises:
+            FeatureError: ``meta.cameras`` lacks a camera of :data:`recorder.schema.CAMERA_NAMES` or its size.
+        """
+        sizes = {}
+        for cam in CAMERA_NAMES:
+            c = (meta.cameras or {}).get(cam)
+            if not isinstance(c, dict) or "height" not in c or "width" not in c:
+                raise FeatureError(f"{source}: episode metadata field 'cameras[{cam}]': expected a camera dict "
+                                   f"with 'height' and 'width', got {c!r}")
+            sizes[cam] = (int(c["height"]), int(c["width"]))
+        return ExportSpec(sizes, max_people, n_max, local_map or LocalMapSpec())
+
+    def features(self) -> dict[str, dict[str, Any]]:
+        """The LeRobot ``features`` dict (without lerobot's own index/timestamp features)."""
+        k, n = self.max_people, self.n_max
+        feats: dict[str, dict[str, Any]] = {}
+        for cam in CAMERA_NAMES:
+            h, w = self.camera_sizes[cam]
+            feats[image_key(cam)] = {"dtype": "video", "shape": (h, w, 3), "names": ["height", "width", "channels"]}
+        for cam in CAMERA_NAMES:
+            h, w = self.camera_sizes[cam]
+            feats[depth_key(cam)] = {"dtype": "float32", "shape": (h, w), "names": ["height", "width"]}
+        feats.update({
+            "observation.state": {"dtype": "float32", "shape": (5,), "names": ["g_x", "g_y", "d_g", "v_x", "v_y"]},
+            "observation.odom": {"dtype": "float32", "shape": (3,), "names": ["x", "y", "yaw"]},
+            "observation.goal": {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
+            "observation.poses": {"dtype": "float32", "shape": (k, N_JOINTS, 3), "names": ["person", "joint", "xyz"]},
+            "observation.pose_mask": {"dtype": "bool", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
+            "observation.pose_conf": {"dtype": "float32", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
+            "action": {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]},
+            "next.reward": {"dtype": "float32", "shape": (1,), "names": ["reward"]},
+            "next.reward_terms": {"dtype": "float32", "shape": (len(REWARD_TERMS),), "names": list(REWARD_TERMS)},
+            "next.done": {"dtype": "bool", "shape": (1,), "names": ["done"]},
+            "privileged.ped_state": {"dtype": "float32", "shape": (n, len(PED_STATE_COLUMNS)),
+                                     "names": ["pedestrian", "state"]},
+            "privileged.ped_keypoints": {"dtype": "float32", "shape": (n, N_JOINTS, 3),
+                                         "names": ["pedestrian", "joint", "xyz"]},
+            "privileged.ped_intent": {"dtype": "float32", "shape": (n, 2), "names": ["pedestrian", "xy"]},
+            "privileged.pose_track": {"dtype": "int64", "shape": (k,), "names": ["person"]},
+            "privileged.d_o": {"dtype": "float32", "shape": (1,), "names": ["d_o"]},
+            "privileged.local_occupancy": {"dtype": "bool", "shape": self.local_map.shape,
+                                           "names": ["forward", "lateral"]},
+        })
+        return feats
+
+    def describe(self) -> dict[str, Any]:
+        """What each feature's axes and values mean (for ``meta/icrowdnav.json``)."""
+        k, n = self.max_people, self.n_max
+        return {
+            "camera_sizes": {c: list(hw) for c, hw in self.camera_sizes.items()},
+            "max_people": k, "n_max": n, "local_map": self.local_map.to_dict(),
+            "coco_keypoints": list(COCO_KEYPOINTS), "reward_terms": list(REWARD_TERMS),
+            "ped_state_columns": list(PED_STATE_COLUMNS),
+            "frames": {"world": "the scene's frame, z up", "robot": "x forward, y left, z up, origin under the "
+                       "robot centre", "camera": "OpenCV: x right, y down, z forward"},
+            "features": {
+                "observation.images.*": "RGB, video (AV1 mp4 via PyAV/SVT-AV1, yuv420p): lossy",
+                "observation.depth.*": "z-depth along the optical axis, m, 0 = invalid (float32)",
+                "observation.state": "[g_x, g_y, d_g, v_x, v_y]: goal in the robot frame (m), its distance (m), "
+                                     "robot velocity in the robot frame (m/s)",
+                "observation.odom": "robot pose [x, y, yaw] in the world frame (m, rad)",
+                "observation.goal": "goal [x, y] in the world frame (m)",
+                "observation.poses": f"{k} detected people x COCO-17 joints x [x, y, z], robot frame (m), "
+                                     "nearest first, zeros where not detected",
+                "observation.pose_mask": "True where the joint was detected",
+                "observation.pose_conf": "detector confidence of each joint",
+                "action": "the physical command [v m/s, omega rad/s] that led to this frame (zeros at frame 0)",
+                "next.reward": "the paper's reward of the step that led to this frame (0 at frame 0)",
+                "next.reward_terms": "the reward's terms in reward_terms order",
+                "next.done": "True at the episode's last frame (terminated or truncated)",
+                "privileged.ped_state": f"{n} rows (row n = pedestrian n, zeros beyond the crowd) of "
+                                        "[x, y, vx, vy] world (m, m/s), radius (m), body yaw, head yaw "
+                                        "(world, rad), present (1 = a real pedestrian)",
+                "privileged.ped_keypoints": "true COCO-17 keypoints of each pedestrian row, world frame (m)",
+                "privileged.ped_intent": "each pedestrian row's pending goal [x, y], world frame (m)",
+                "privileged.pose_track": "row of privileged.ped_state each detection belongs to, -1 = padding",
+                "privileged.d_o": "robot centre to the nearest pedestrian/obstacle surface (m)",
+                "privileged.local_occupancy": "see local_map",
+            },
+        }
+
+
+def _describe(a: Any) -> str:
+    """``shape (48, 64) float32`` for arrays, the type name otherwise."""
+    if isinstance(a, np.ndarray):
+        return f"shape {tuple(a.shape)} {a.dtype}"
+    if a is None:
+        return "nothing (missing)"
+    return f"a {type(a).__name__} ({a!r:.60})"
+
+
+_KIND_TEXT = {"f": "a float dtype", "u1": "uint8", "b": "bool (or 0/1 integers)", "i": "an integer dtype"}
+
+
+def _dtype_ok(a: np.ndarray, kind: str) -> bool:
+    if kind == "f":
+        return a.dtype.kind == "f"
+    if kind == "u1":
+        return a.dtype == np.uint8
+    if kind == "b":
+        return a.dtype.kind == "b" or (a.dtype.kind in "iu" and bool(np.all((a == 0) | (a == 1))))
+    if kind == "i":
+        return a.dtype.kind in "iu"
+    raise ValueError(kind)
+
+
+class _FrameChecker:
+    """Checks the fields of one recorded frame, raising :class:`FeatureError` with file/field/expected/actual."""
+
+    def __init__(self, source: str, step: Any):
+        self.where = f"{source}: frame {step}"
+
+    def fail(self, name: str, expected: str, actual: str, feature: str | None = None) -> None:
+        feat = f" (feature '{feature}')" if feature else ""
+        raise FeatureError(f"{self.where}: field '{name}'{feat}: expected {expected}, got {actual}")
+
+    def array(self, name: str, value: Any, shape: tuple[int | None, ...], kind: str,
+              feature: str | None = None) -> np.ndarray:
+        """``value`` as an ndarray of ``shape`` (``None`` = any size) and dtype ``kind``, all finite if float."""
+        shown = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+        expected = f"shape {shown} {_KIND_TEXT[kind]}"
+        if not isinstance(value, np.ndarray):
+            if not isinstance(value, list | tuple | np.generic):
+                self.fail(name, expected, _describe(value), feature)
+            value = np.asarray(value)
+            if value.dtype == object:
+                self.fail(name, expected, "a ragged sequence", feature)
+        if value.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, value.shape, strict=True)):
+            self.fail(name, expected, _describe(value), feature)
+        if not _dtype_ok(value, kind):
+            self.fail(name, expected, _describe(value), feature)
+        if kind == "f" and not np.all(np.isfinite(value)):
+            bad = int(np.size(value) - np.count_nonzero(np.isfinite(value)))
+            self.fail(name, f"finite values ({expected})", f"{bad} NaN/inf value(s)", feature)
+        return value
+
+    def scalar(self, name: str, value: Any, feature: str | None = None) -> float:
+        if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+            self.fail(name, "a finite number", _describe(value), feature)
+        if not math.isfinite(float(value)):
+            self.fail(name, "a finite number", repr(float(value)), feature)
+        return float(value)
+
+
+_MISSING = object()
+
+
+def _field(frame: Any, name: str, chk: _FrameChecker) -> Any:
+    value = getattr(frame, name, _MISSING)
+    if value is _MISSING or value is None:
+        chk.fail(name, f"a value (Frame.{name})", "nothing (missing)")
+    return value
+
+
+def frame_to_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray, spec: ExportSpec,
+                      source: str, frame_index: int) -> dict[str, np.ndarray]:
+    """Converts one recorded frame into the ``add_frame`` dict of :meth:`ExportSpec.features` (without ``task``).
+
+    Args:
+        frame: the recorded frame (:class:`recorder.schema.Frame` or anything with its attributes).
+        meta: its episode's metadata (crowd size, occupancy geometry).
+        occupancy: the episode's static world grid (``H x W`` bool).
+        spec: the dataset's sizes.
+        source: the file (or in-memory episode) it came from, for error messages.
+        frame_index: the position of the frame in its episode; ``frame.step`` must equal it.
+
+    Returns:
+        feature name → array of exactly the feature's shape and dtype.
+
+    Raises:
+        FeatureError: a field is missing, has the wrong shape or dtype, holds NaN/inf, or exceeds a max size.
+    """
+    chk = _FrameChecker(source, getattr(frame, "step", f"#{frame_index}"))
+    step = _field(frame, "step", chk)
+    if isinstance(step, bool) or not isinstance(step, int | np.integer) or int(step) != frame_index:
+        chk.fail("step", f"{frame_index} (frames numbered 0, 1, 2, ... without gaps)", repr(step))
+    out: dict[str, np.ndarray] = {}
+    rgb, depth = _field(frame, "rgb", chk), _field(frame, "depth", chk)
+    for cam in CAMERA_NAMES:
+        h, w = spec.camera_sizes[cam]
+        out[image_key(cam)] = chk.array(f"rgb[{cam}]", rgb.get(cam) if isinstance(rgb, dict) else None,
+                                        (h, w, 3), "u1", image_key(cam))
+        d = chk.array(f"depth[{cam}]", depth.get(cam) if isinstance(depth, dict) else None, (h, w), "f",
+                      depth_key(cam))
+        out[depth_key(cam)] = np.ascontiguousarray(d, dtype=np.float32)
+
+    def f32(name: str, shape: tuple[int | None, ...], feature: str) -> np.ndarray:
+        return chk.array(name, _field(frame, name, chk), shape, "f", feature).astype(np.float32, copy=False)
+
+    out["observation.state"] = f32("state", (5,), "observation.state")
+    odom = f32("odom", (3,), "observation.odom")
+    out["observation.odom"] = odom
+    out["observation.goal"] = f32("goal_xy", (2,), "observation.goal")
+    out["action"] = f32("action", (2,), "action")
+
+    k = spec.max_people
+    poses = chk.array("poses", _field(frame, "poses", chk), (None, N_JOINTS, 3), "f", "observation.poses")
+    kf = poses.shape[0]
+    if kf > k:
+        chk.fail("poses", f"at most {k} detected people (max_people)", f"{kf}", "observation.poses")
+    mask = chk.array("pose_mask", _field(frame, "pose_mask", chk), (kf, N_JOINTS), "b", "observation.pose_mask")
+    conf = chk.array("pose_conf", _field(frame, "pose_conf", chk), (kf, N_JOINTS), "f", "observation.pose_conf")
+    track = chk.array("pose_track", _field(frame, "pose_track", chk), (kf,), "i", "privileged.pose_track")
+    out["observation.poses"] = _pad(poses.astype(np.float32, copy=False), k, 0.0)
+    out["observation.pose_mask"] = _pad(mask.astype(bool, copy=False), k, False)
+    out["observation.pose_conf"] = _pad(conf.astype(np.float32, copy=False), k, 0.0)
+    out["privileged.pose_track"] = _pad(track.astype(np.int64, copy=False), k, -1)
+
+    n = int(meta.n_pedestrians)
+    if n > spec.n_max:
+        chk.fail("ped_pos", f"at most {spec.n_max} pedestrians (n_max; raise it)", f"{n} (meta.n_pedestrians)",
+                 "privileged.ped_state")
+    pos = f32("ped_pos", (n, 2), "privileged.ped_state")
+    vel = f32("ped_vel", (n, 2), "privileged.ped_state")
+    radius = f32("ped_radius", (n,), "privileged.ped_state")
+    yaw = f32("ped_yaw", (n, 3), "privileged.ped_state")
+    intent = f32("ped_intent_xy", (n, 2), "privileged.ped_intent")
+    kp = f32("ped_keypoints", (n, N_JOINTS, 3), "privileged.ped_keypoints")
+    state = np.zeros((spec.n_max, len(PED_STATE_COLUMNS)), np.float32)
+    state[:n, 0:2], state[:n, 2:4], state[:n, 4] = pos, vel, radius
+    state[:n, 5], state[:n, 6], state[:n, 7] = yaw[:, 0], yaw[:, 2], 1.0
+    out["privileged.ped_state"] = state
+    out["privileged.ped_keypoints"] = _pad(kp, spec.n_max, 0.0)
+    out["privileged.ped_intent"] = _pad(intent, spec.n_max, 0.0)
+    out["privileged.d_o"] = np.array([chk.scalar("d_o", _field(frame, "d_o", chk), "privileged.d_o")], np.float32)
+
+    out["next.reward"] = np.array([chk.scalar("reward", _field(frame, "reward", chk), "next.reward")], np.float32)
+    terms = _field(frame, "reward_terms", chk)
+    if not isinstance(terms, dict) or set(terms) - set(REWARD_TERMS):
+        chk.fail("reward_terms", f"a dict with keys from {list(REWARD_TERMS)}",
+                 _describe(terms) if not isinstance(terms, dict) else f"keys {sorted(terms)}", "next.reward_terms")
+    out["next.reward_terms"] = np.array(
+        [chk.scalar(f"reward_terms[{t}]", terms.get(t, 0.0), "next.reward_terms") for t in REWARD_TERMS], np.float32)
+    done = _field(frame, "done", chk)
+    if not isinstance(done, bool | np.bool_):
+        chk.fail("done", "a bool", _describe(done), "next.done")
+    out["next.done"] = np.array([bool(done)], dtype=bool)
+
+    out["privileged.local_occupancy"] = local_occupancy(
+        occupancy, meta.occupancy_origin_xy, meta.occupancy_resolution_m, odom, spec.local_map)
+    return out
+
+
+def _pad(a: np.ndarray, rows: int, fill: Any) -> np.ndarray:
+    """``a`` padded with ``fill`` rows up to ``rows`` along axis 0 (a contiguous copy-free view when full)."""
+    if a.shape[0] == rows:
+        return np.ascontiguousarray(a)
+    out = np.full((rows, *a.shape[1:]), fill, dtype=a.dtype)
+    out[: a.shape[0]] = a
+    return out
+
+
+def check_features(values: dict[str, Any], features: dict[str, dict[str, Any]], source: str,
+                   frame_index: int) -> None:
+    """Checks an ``add_frame`` dict against a feature spec before it reaches lerobot.
+
+    Args:
+        values: feature name → value (``task`` is ignored).
+        features: the spec (:meth:`ExportSpec.features`).
+        source: file the frame came from, for messages.
+        frame_index: the frame's index in its episode, for messages.
+
+    Raises:
+        FeatureError: a feature is missing or extra, or has the wrong shape or dtype.
+    """
+    where = f"{source}: frame {frame_index}"
+    for name, ft in features.items():
+        if name not in values:
+            raise FeatureError(f"{where}: feature '{name}': expected {ft['dtype']} of shape {tuple(ft['shape'])}, "
+                               "got nothing (missing)")
+        v = values[name]
+        dtype = np.dtype("uint8") if ft["dtype"] == "video" else np.dtype(ft["dtype"])
+        if not isinstance(v, np.ndarray) or v.shape != tuple(ft["shape"]) or v.dtype != dtype:
+            raise FeatureError(f"{where}: feature '{name}': expected shape {tuple(ft['shape'])} {dtype}, "
+                               f"got {_describe(v)}")
+    extra = sorted(set(values) - set(features) - {"task"})
+    if extra:
+        raise FeatureError(f"{where}: feature '{extra[0]}': expected only the spec's features "
+                           f"({len(features)}), got extra feature(s) {extra}")
+
+
+def meta_facts(meta: EpisodeMeta) -> dict[str, Any]:
+    """The episode metadata as plain JSON data."""
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(meta).items()}
+
+
+def cameras_of(meta: EpisodeMeta) -> dict[str, dict[str, Any]]:
+    """Intrinsics/extrinsics of the episode's cameras (``CameraSpec.to_dict`` of each)."""
+    return {c: dict(meta.cameras[c]) for c in CAMERA_NAMES if c in (meta.cameras or {})}

@@ -1,0 +1,154 @@
+"""The dataset doctor: silent on a good export, one line naming the file for each kind of damage."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from recorder.doctor_dataset import check_dataset, main
+
+DATA = "data/chunk-000/file-000.parquet"
+EPISODES = "meta/episodes/chunk-000/file-000.parquet"
+VIDEO = "videos/observation.images.right/chunk-000/file-000.mp4"
+
+
+def _lines_naming(problems: list[str], root: Path, rel: str) -> list[str]:
+    return [p for p in problems if p.startswith(f"{root / rel}: ")]
+
+
+def test_good_dataset_passes(tiny_dataset, capsys):
+    assert check_dataset(tiny_dataset.root) == []
+    assert main([str(tiny_dataset.root)]) == 0
+    assert "ok:" in capsys.readouterr().out
+
+
+def test_missing_directory_is_one_problem(tmp_path):
+    assert check_dataset(tmp_path / "nope") == [f"{tmp_path / 'nope'}: dataset directory does not exist"]
+
+
+@pytest.mark.parametrize("rel", [DATA, EPISODES])
+def test_truncated_parquet_footer_is_named(dataset_copy, rel, capsys):
+    p = dataset_copy / rel
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) - 200])  # cut into the footer, as a killed writer leaves it
+    problems = check_dataset(dataset_copy)
+    named = _lines_naming(problems, dataset_copy, rel)
+    assert named and "footer" in named[0], problems
+    assert main([str(dataset_copy)]) == 1
+    out = capsys.readouterr().out
+    assert str(p) in out
+
+
+def test_episode_index_gap_is_named(dataset_copy):
+    p = dataset_copy / EPISODES
+    table = pq.read_table(p)
+    table = table.set_column(table.column_names.index("episode_index"), "episode_index", pa.array([0, 2]))
+    pq.write_table(table, p)
+    problems = check_dataset(dataset_copy)
+    gap = _lines_naming(problems, dataset_copy, EPISODES)
+    assert gap and "episode index gap: expected episode_index 1 next, got 2" in gap[0], problems
+
+
+def test_removed_episode_metadata_row_is_found(dataset_copy):
+    p = dataset_copy / EPISODES
+    table = pq.read_table(p)
+    pq.write_table(table.slice(0, 1), p)  # the last episode's metadata row is gone
+    problems = check_dataset(dataset_copy)
+    assert any("total_episodes 2 but meta/episodes holds 1" in line for line in
+               _lines_naming(problems, dataset_copy, "meta/info.json")), problems
+    assert any("rows of episode 1, which meta/episodes does not list" in line for line in
+               _lines_naming(problems, dataset_copy, DATA)), problems
+
+
+def test_removed_data_rows_are_found(dataset_copy, tiny_dataset):
+    p = dataset_copy / DATA
+    table = pq.read_table(p)
+    ep = table["episode_index"].to_numpy()
+    pq.write_table(table.filter(pa.array(ep == 0)), p)  # the rows of episode 1 are gone
+    problems = check_dataset(dataset_copy)
+    named = _lines_naming(problems, dataset_copy, DATA)
+    assert any("episode 1: no rows" in line for line in named), problems
+    n0 = len(tiny_dataset.episodes[0].frame_list)
+    assert any(f"data files hold {n0} rows" in line for line in problems), problems
+
+
+def test_wrong_timestamps_are_found(dataset_copy, tiny_dataset):
+    p = dataset_copy / DATA
+    table = pq.read_table(p)
+    ts = table["timestamp"].to_numpy().copy()
+    n0 = len(tiny_dataset.episodes[0].frame_list)
+    ts[n0 + 4] += 0.05
+    table = table.set_column(table.column_names.index("timestamp"), "timestamp", pa.array(ts, pa.float32()))
+    pq.write_table(table, p)
+    problems = check_dataset(dataset_copy, videos=False, stats=False)
+    assert any("timestamp" in line and "frame_index 4" in line for line in
+               _lines_naming(problems, dataset_copy, DATA)), problems
+
+
+def test_truncated_video_is_named(dataset_copy):
+    p = dataset_copy / VIDEO
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) * 2 // 3])
+    problems = check_dataset(dataset_copy, stats=False)
+    named = _lines_naming(problems, dataset_copy, VIDEO)
+    assert named, problems
+    assert any("not decodable" in line or "does not decode" in line for line in named), problems
+
+
+def test_garbage_and_missing_videos_are_named(dataset_copy):
+    p = dataset_copy / VIDEO
+    p.write_bytes(b"\x00" * 4096)
+    other = dataset_copy / VIDEO.replace("right", "left")
+    other.unlink()
+    problems = check_dataset(dataset_copy, stats=False)
+    assert _lines_naming(problems, dataset_copy, VIDEO), problems
+    assert any("is missing" in line for line in _lines_naming(problems, dataset_copy, VIDEO.replace("right", "left")))
+
+
+def test_stats_that_do_not_match_are_named(dataset_copy):
+    p = dataset_copy / "meta/stats.json"
+    stats = json.loads(p.read_text())
+    stats["observation.state"]["max"][2] += 0.25
+    stats["privileged.ped_state"]["mean"][0] *= 1.5
+    stats["action"]["count"] = [7]
+    p.write_text(json.dumps(stats))
+    problems = check_dataset(dataset_copy, videos=False)
+    named = _lines_naming(problems, dataset_copy, "meta/stats.json")
+    assert any("'observation.state' max does not match the data" in line for line in named), problems
+    assert any("'privileged.ped_state' mean does not match the data" in line for line in named), problems
+    assert any("'action' count [7]" in line for line in named), problems
+    assert len(problems) == 3
+
+
+def test_recomputed_stats_follow_lerobots_axes(tiny_dataset):
+    stats = json.loads((tiny_dataset.root / "meta/stats.json").read_text())
+    depth = np.stack([f.depth["left"] for e in tiny_dataset.episodes for f in e.frame_list])
+    # lerobot reduces every axis but the last: one value per image column
+    assert len(stats["observation.depth.left"]["min"]) == depth.shape[-1]
+    np.testing.assert_allclose(stats["observation.depth.left"]["max"], depth.reshape(-1, 64).max(0), atol=1e-3)
+
+
+def test_icrowdnav_meta_files_are_checked(dataset_copy):
+    p = dataset_copy / "meta/icrowdnav_episodes.jsonl"
+    p.write_text(p.read_text().splitlines()[0] + "\n")
+    (dataset_copy / "meta/icrowdnav.json").unlink()
+    problems = check_dataset(dataset_copy, videos=False, stats=False)
+    assert any("1 row(s), expected 2" in line for line in
+               _lines_naming(problems, dataset_copy, "meta/icrowdnav_episodes.jsonl")), problems
+    assert _lines_naming(problems, dataset_copy, "meta/icrowdnav.json"), problems
+    assert check_dataset(dataset_copy, videos=False, stats=False, icrowdnav=False) == []
+
+
+def test_info_totals_must_match(dataset_copy, tiny_dataset):
+    p = dataset_copy / "meta/info.json"
+    info = json.loads(p.read_text())
+    info["total_frames"] += 5
+    p.write_text(json.dumps(info))
+    problems = check_dataset(dataset_copy, videos=False, stats=False)
+    want = f"total_frames {tiny_dataset.counts['frames'] + 5}"
+    assert any(want in line for line in _lines_naming(problems, dataset_copy, "meta/info.json")), problems
