@@ -17,7 +17,11 @@ are kept, ours are replaced) and prints every figure. Figures (single process, t
 * ``static_distance_speedup`` — vectorised obstacle distances vs the plain loop, 1,000 points;
 * ``expert_ms_per_step`` — one decision of the privileged expert;
 * ``intention_head_lead_*`` — how long head turns precede walking turns in a free crowd
-  (:mod:`sim.intention`; median, 10th and 90th percentile, share of decisions where the head turns first).
+  (:mod:`sim.intention`; median, 10th and 90th percentile, share of decisions where the head turns first);
+* ``record_frames_per_s_1worker`` / ``_2workers`` — the record stage (expert driving, both cameras rendered,
+  MCAP written) on ``record_episodes`` episodes of the bench scene, and ``record_mcap_share``, the share of
+  recording time spent writing MCAP; ``export_frames_per_s`` — the LeRobot export of that recording
+  (reading MCAP, lerobot's writer incl. AV1 video and stats; the dataset doctor excluded).
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ class BenchConfig(BaseStageConfig):
     """Config of the benchmark."""
 
     seconds_per_figure: float = field(default=5.0, metadata={"help": "measuring time per throughput figure, s"})
+    record_episodes: int = field(default=4, metadata={"help": "episodes recorded for the recorder figures (0: skip)"})
     scene: str = field(default="office_lobby", metadata={"help": "scene of the env figures"})
     density: float = field(default=0.2, metadata={"help": "crowd density of the env figures, ped/m²"})
     sim: SimConfig = field(default_factory=SimConfig, metadata={"help": "the crowd world (camera resolution)"})
@@ -152,7 +157,37 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
     out["intention_head_lead_p10_s"] = float(np.percentile(leads, 10))
     out["intention_head_lead_p90_s"] = float(np.percentile(leads, 90))
     out["intention_head_first_share"] = float(np.mean(leads > 0))
+    if cfg.record_episodes > 0:
+        out.update(measure_recorder(cfg))
     return {k: round(float(v), 3) for k, v in out.items()}
+
+
+def measure_recorder(cfg: BenchConfig) -> dict[str, float]:
+    """Record the same seeded episodes with 1 and 2 workers (fresh temp dirs), then export one recording."""
+    import os
+    import tempfile
+
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    from recorder.export import write_dataset
+    from recorder.record import RecordConfig
+    from recorder.record import _body as record_body
+
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="icrowdnav-bench-") as tmp:
+        for workers in (1, 2):
+            rc = RecordConfig(data_dir=Path(tmp), scenes=[cfg.scene], densities=[cfg.density],
+                              episodes=cfg.record_episodes, workers=workers, sim=cfg.sim, seed=cfg.seed)
+            counts = record_body(rc, Path(tmp) / f"raw{workers}")
+            out[f"record_frames_per_s_{workers}worker{'s' if workers > 1 else ''}"] = counts["frames_per_s"]
+            if workers == 1:
+                out["record_mcap_share"] = counts["mcap_share"]
+                out["record_frames"] = counts["frames"]
+        import lerobot.datasets.lerobot_dataset  # noqa: F401  (import cost is not export cost)
+
+        files = sorted((Path(tmp) / "raw1").glob("*.mcap"))
+        counts = write_dataset(files, Path(tmp) / "dataset", "bench/export", progress=False)
+        out["export_frames_per_s"] = counts["frames_per_s"]
+    return out
 
 
 def main(argv: list[str]) -> int:

@@ -188,6 +188,18 @@ def staleness(stage: Stage, cfg: Any, out_dir: Path, inputs: list[FileRecord]) -
     return None
 
 
+def _check_writable(directory: Path) -> None:
+    """Fail fast, before any work, when the output's parent directory cannot be created or written."""
+    import os
+
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"data directory not writable: cannot create {directory} ({e.strerror or e})") from None
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise ConfigError(f"data directory not writable: {directory}")
+
+
 def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tuple[Manifest, bool]:
     """Runs a stage like :func:`run_stage` and also says whether any work was done.
 
@@ -206,6 +218,7 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
     for p in input_paths:
         require_input(p, f"input of stage '{stage.name}'")
     out = Path(stage.output_dir(cfg))
+    _check_writable(out.parent)
     if stage.in_place and mode == "new" and not out.exists():
         mode = "resume"  # write in place from the start: a kill keeps every finished piece
     data_dir = getattr(cfg, "data_dir", None)
