@@ -30,7 +30,7 @@ OUTPUT_MODES: tuple[str, ...] = ("new", "overwrite", "resume")
 _FILE_MODE = 0o644
 
 
-def _fsync_dir(directory: Path) -> None:
+def fsync_dir(directory: Path) -> None:
     """Flushes a directory entry to disk (no-op where directories cannot be opened, e.g. Windows)."""
     try:
         fd = os.open(directory, os.O_RDONLY)
@@ -73,7 +73,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> Path:
         with contextlib.suppress(OSError):
             tmp.unlink()
         raise
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
     return path
 
 
@@ -311,8 +311,8 @@ class OutputDir:
                 except BaseException:
                     os.rename(self.old, final)  # put the previous output back
                     raise
-                _fsync_dir(final.parent)
+                fsync_dir(final.parent)
                 _remove(self.old)
         else:
             os.rename(self.staging, final)
-        _fsync_dir(final.parent)
+        fsync_dir(final.parent)

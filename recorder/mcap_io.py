@@ -127,6 +127,7 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import register_schema
 
+from pipeline.artifacts import fsync_dir
 from pipeline.errors import CorruptArtifactError, InputMissingError, OutputExistsError
 from recorder.schema import (
     CAMERA_NAMES,
@@ -716,19 +717,6 @@ class _FdStream:
         pass
 
 
-def _fsync_dir(directory: Path) -> None:
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def _publish_no_clobber(src: Path, dst: Path) -> None:
     """Atomically gives ``src`` the name ``dst``, failing (OutputExistsError) rather than replacing ``dst``.
 
@@ -748,7 +736,7 @@ def _publish_no_clobber(src: Path, dst: Path) -> None:
         os.rename(src, dst)
     else:
         os.unlink(src)
-    _fsync_dir(dst.parent)
+    fsync_dir(dst.parent)
 
 
 WriterState = Literal["new", "open", "finished", "aborted"]

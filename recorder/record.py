@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import multiprocessing as mp
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -38,7 +37,7 @@ from pipeline.errors import ConfigError, ICrowdNavError
 from pipeline.stage import Stage, run_stage
 from recorder.drive import DRIVERS
 from sim.env import SimConfig
-from sim.scene import load_scene, scenes_of_split
+from sim.scene import check_episode_grid, scenes_of_split
 
 log = logging.getLogger("icrowdnav")
 
@@ -62,19 +61,7 @@ class RecordConfig(BaseStageConfig):
 
     def validate(self) -> None:
         super().validate()
-        if not self.scenes:
-            raise ConfigError("scenes: expected at least one scene, got an empty list")
-        for s in self.scenes:
-            load_scene(s)
-        if not self.densities:
-            raise ConfigError("densities: expected at least one density, got an empty list")
-        for d in self.densities:
-            if not math.isfinite(d) or d < 0 or d > 2.0:
-                raise ConfigError(f"densities: expected values in [0, 2] ped/m², got {d}")
-        if self.episodes < 1:
-            raise ConfigError(f"episodes: expected >= 1, got {self.episodes}")
-        if self.workers < 1:
-            raise ConfigError(f"workers: expected >= 1, got {self.workers}")
+        check_episode_grid(self.scenes, self.densities, self.episodes, self.workers)
         if self.driver not in DRIVERS:
             raise ConfigError(f"driver: expected one of {list(DRIVERS)}, got {self.driver!r}")
 

@@ -38,7 +38,7 @@ from pipeline.config import BaseStageConfig
 from pipeline.errors import ConfigError
 from pipeline.stage import Stage, run_stage
 from sim.env import SimConfig
-from sim.scene import load_scene
+from sim.scene import check_episode_grid
 
 log = logging.getLogger("icrowdnav")
 
@@ -60,19 +60,7 @@ class RolloutConfig(BaseStageConfig):
 
     def validate(self) -> None:
         super().validate()
-        if not self.scenes:
-            raise ConfigError("scenes: expected at least one scene, got an empty list")
-        for s in self.scenes:
-            load_scene(s)
-        for d in self.densities:
-            if not math.isfinite(d) or d < 0 or d > 2.0:
-                raise ConfigError(f"densities: expected values in [0, 2] ped/m², got {d}")
-        if not self.densities:
-            raise ConfigError("densities: expected at least one density, got an empty list")
-        if self.episodes < 1:
-            raise ConfigError(f"episodes: expected >= 1, got {self.episodes}")
-        if self.workers < 1:
-            raise ConfigError(f"workers: expected >= 1, got {self.workers}")
+        check_episode_grid(self.scenes, self.densities, self.episodes, self.workers)
         if self.figures < 0 or self.videos < 0:
             raise ConfigError(f"figures/videos: expected >= 0, got {self.figures}/{self.videos}")
 

@@ -61,6 +61,27 @@ _TOP_KEYS = {
 }
 
 
+def check_episode_grid(scenes: list[str], densities: list[float], episodes: int, workers: int) -> None:
+    """Validate the (scenes × densities × episodes) grid of a stage that runs episodes, and its worker count.
+
+    Raises:
+        ConfigError: naming the field, the expected and the actual value.
+    """
+    if not scenes:
+        raise ConfigError("scenes: expected at least one scene, got an empty list")
+    for s in scenes:
+        load_scene(s)
+    if not densities:
+        raise ConfigError("densities: expected at least one density, got an empty list")
+    for d in densities:
+        if not math.isfinite(d) or d < 0 or d > 2.0:
+            raise ConfigError(f"densities: expected values in [0, 2] ped/m², got {d}")
+    if episodes < 1:
+        raise ConfigError(f"episodes: expected >= 1, got {episodes}")
+    if workers < 1:
+        raise ConfigError(f"workers: expected >= 1, got {workers}")
+
+
 def available_scenes() -> list[str]:
     """Names of the scenes shipped in ``sim/scenes/``."""
     return sorted(p.stem for p in SCENES_DIR.glob("*.yaml"))
