@@ -296,6 +296,7 @@ def setup_logging(level: int = logging.INFO) -> None:
     """
     logger = logging.getLogger("icrowdnav")
     logger.setLevel(level)
+    logger.propagate = False  # lerobot configures the root logger on import; print each line once
     if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
         handler = _StderrHandler()
         handler.setFormatter(logging.Formatter(_LOG_FORMAT, _LOG_DATEFMT))

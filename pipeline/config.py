@@ -47,7 +47,7 @@ T = TypeVar("T")
 PROFILES_ENV = "ICROWDNAV_PROFILES_DIR"
 COMMON_SECTION = "common"
 CLI_SOURCE = "command line"
-HASH_EXCLUDED_FIELDS: frozenset[str] = frozenset({"overwrite", "resume"})
+HASH_EXCLUDED_FIELDS: frozenset[str] = frozenset({"overwrite", "resume", "data_dir", "profile"})
 
 _TRUE_WORDS = frozenset({"true", "1", "yes", "y", "on"})
 _FALSE_WORDS = frozenset({"false", "0", "no", "n", "off"})
@@ -710,8 +710,9 @@ def to_dict(cfg: Any) -> dict[str, Any]:
 def config_hash(cfg: Any) -> str:
     """Returns the sha256 hex of the canonical JSON of ``to_dict(cfg)``.
 
-    The top-level fields ``overwrite`` and ``resume`` are left out: they say how to treat an existing
-    output, not what the output is.
+    The top-level fields ``overwrite`` and ``resume`` (how to treat an existing output), ``data_dir`` (where
+    it lives: manifests record paths relative to it, so a moved data directory stays up to date) and ``profile``
+    (a name; the values it set are in the hash) are left out.
 
     Args:
         cfg: A config dataclass instance.

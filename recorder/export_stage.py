@@ -16,6 +16,7 @@ place; a killed export leaves no dataset (or the previous one). Load it with::
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,7 +39,10 @@ class ExportConfig(BaseStageConfig):
 
     def validate(self) -> None:
         super().validate()
-        if not _REPO_ID.match(self.repo_id):
+        from recorder.record import check_run_name
+
+        check_run_name(self.run_name)
+        if not _REPO_ID.match(self.repo_id) or ".." in self.repo_id.split("/"):
             raise ConfigError(f"repo_id: expected 'owner/name' (letters, digits, ._-), got {self.repo_id!r}")
 
 
@@ -62,9 +66,17 @@ def _body(cfg: ExportConfig, out: Path) -> dict:
     from recorder.doctor_dataset import check_dataset
     from recorder.export import write_dataset
 
-    files = sorted(raw_dir(cfg).glob("*.mcap"))
+    # exactly the episodes the recording lists (not, e.g., *.recovered.mcap salvage copies lying beside them)
+    listing = raw_dir(cfg) / "episodes.jsonl"
+    if not listing.is_file():
+        raise InputMissingError(f"missing episode list {listing} (made by `icrowdnav record`)")
+    names = [json.loads(line)["file"] for line in listing.read_text().splitlines() if line.strip()]
+    files = [raw_dir(cfg) / n for n in names]
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing:
+        raise InputMissingError(f"recording {raw_dir(cfg)} lists missing episode file(s): {', '.join(missing[:3])}")
     if not files:
-        raise InputMissingError(f"no *.mcap episode in {raw_dir(cfg)}")
+        raise InputMissingError(f"no episode in {raw_dir(cfg)}")
     counts = write_dataset(files, out, cfg.repo_id)
     problems = check_dataset(out)
     if problems:

@@ -834,9 +834,12 @@ class EpisodeWriter:
         self.state = "open"
         try:
             self._inside_mcap(self._start_mcap)
-        except BaseException:
-            self._close_fd()
-            self.state = "aborted"
+        except BaseException as e:
+            if self._mcap is not None and not self._broken:
+                self.abort(type(e).__name__)  # a signal deferred past the header: leave a valid aborted file
+            else:
+                self._close_fd()
+                self.state = "aborted"
             raise
         self.write_seconds += time.perf_counter() - t0
         return self

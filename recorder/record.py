@@ -24,8 +24,12 @@ from __future__ import annotations
 import json
 import logging
 import multiprocessing as mp
+import os
+import re
+import signal
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -62,8 +66,18 @@ class RecordConfig(BaseStageConfig):
     def validate(self) -> None:
         super().validate()
         check_episode_grid(self.scenes, self.densities, self.episodes, self.workers)
+        check_run_name(self.run_name)
         if self.driver not in DRIVERS:
             raise ConfigError(f"driver: expected one of {list(DRIVERS)}, got {self.driver!r}")
+
+
+_RUN_NAME = re.compile(r"^[A-Za-z0-9][\w.-]*$")
+
+
+def check_run_name(name: str) -> None:
+    """A run name is one path component (letters, digits, ``_.-``): it may not escape ``DATA_DIR``."""
+    if not _RUN_NAME.match(name) or name in (".", ".."):
+        raise ConfigError(f"run_name: expected one folder name of letters, digits and _.- , got {name!r}")
 
 
 @dataclass(frozen=True)
@@ -139,6 +153,32 @@ def _body(cfg: RecordConfig, out: Path) -> dict:
             "success_rate": round(sum(r["outcome"] == "success" for r in rows.values()) / len(rows), 4)}
 
 
+def _init_worker() -> None:
+    """Pool workers: ignore Ctrl-C while idle (the main process coordinates the stop) and die on SIGTERM.
+
+    While a worker records, :func:`_worker` installs :func:`recorder.mcap_io.graceful_signals`, so SIGTERM or
+    SIGINT then abort the open episode cleanly (a valid ``*.mcap.partial``).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _stop_pool(pool: ProcessPoolExecutor, grace_s: float = 3.0) -> None:
+    """Cancel queued episodes, ask running workers to abort theirs (SIGTERM: a valid ``*.mcap.partial``), and
+    kill whatever is still alive after ``grace_s`` (its open episode stays ``.partial``; ``--resume`` redoes it)."""
+    procs = list(getattr(pool, "_processes", {}).values())  # CPython's executor keeps its workers here
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            os.kill(p.pid, signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    for p in procs:
+        p.join(timeout=max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join(timeout=1.0)
+
+
 def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: list[Job]) -> None:
     from recorder.mcap_io import graceful_signals
 
@@ -152,25 +192,29 @@ def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: l
                     _write_rows(out, rows, jobs)
                     bar.update()
                 return
-            ctx = mp.get_context("fork")
-            with ProcessPoolExecutor(cfg.workers, mp_context=ctx) as pool:
+        # the pool is created outside graceful_signals: forked workers must not inherit its handlers
+        pool = ProcessPoolExecutor(cfg.workers, mp_context=mp.get_context("fork"), initializer=_init_worker)
+        try:
+            with graceful_signals():
                 pending = {pool.submit(_worker, (cfg.sim, j, out, cfg.driver)) for j in todo}
-                try:
-                    while pending:
-                        finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-                        for f in finished:
-                            r = f.result()
-                            rows[r["file"]] = r
-                            _write_rows(out, rows, jobs)
-                            bar.update()
-                except BaseException:
-                    for f in pending:
-                        f.cancel()
-                    raise
-    except KeyboardInterrupt as e:
+                while pending:
+                    finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for f in finished:
+                        r = f.result()
+                        rows[r["file"]] = r
+                        _write_rows(out, rows, jobs)
+                        bar.update()
+        except BaseException:
+            _stop_pool(pool)
+            raise
+        pool.shutdown(wait=True)
+    except (KeyboardInterrupt, BrokenProcessPool) as e:
+        rows.clear()
+        rows.update(_finished_rows(out, jobs))  # what is on disk, including episodes workers finished meanwhile
         partial = sorted(p.name for p in out.glob("*.mcap.partial"))
-        raise Interrupted(f"record interrupted: {len(rows)} episodes finished in {out}, {len(partial)} left "
-                          f"unfinished ({', '.join(partial[:3])}); rerun with --resume to continue") from e
+        names = f" ({', '.join(partial[:3])})" if partial else ""
+        raise Interrupted(f"record interrupted: {len(rows)} episodes finished (of {len(jobs)}) in {out}, "
+                          f"{len(partial)} left unfinished{names}; rerun with --resume to continue") from e
     finally:
         bar.close()
 

@@ -24,9 +24,10 @@ class WorldRenderer:
         self._proj: dict[CameraSpec, list[float]] = {}
 
     def close(self) -> None:
-        if self.client is not None and self.client >= 0:
+        client = getattr(self, "client", None)  # None if __init__ was interrupted before connecting
+        if client is not None and client >= 0:
             try:
-                pb.disconnect(self.client)
+                pb.disconnect(client)
             except pb.error:
                 pass
             self.client = -1

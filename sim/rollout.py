@@ -61,6 +61,9 @@ class RolloutConfig(BaseStageConfig):
     def validate(self) -> None:
         super().validate()
         check_episode_grid(self.scenes, self.densities, self.episodes, self.workers)
+        from recorder.record import check_run_name
+
+        check_run_name(self.run_name)
         if self.figures < 0 or self.videos < 0:
             raise ConfigError(f"figures/videos: expected >= 0, got {self.figures}/{self.videos}")
 

@@ -336,6 +336,8 @@ def _child_export(out: Path, conn) -> None:
     def episodes():
         for k, seed in enumerate((0, 1, 2)):
             conn.send(f"EPISODE {k}")  # asked for episode k: episodes 0..k-1 are saved
+            if k > 0:
+                time.sleep(1.0)  # hold here (longer than any kill delay) so a kill lands before publishing
             yield drive_episode(cfg, seed)
         conn.send("ALL SAVED")  # finalize, meta files, doctor and rename follow
 
