@@ -789,3 +789,17 @@ def _field_comments(cls: type) -> dict[str, str]:
         for m in re.finditer(r"^\s+(\w+)\s*:[^#\n]*#\s*(.+)$", src, re.MULTILINE):
             out[m.group(1)] = m.group(2).strip()
     return out
+
+
+_RUN_NAME = re.compile(r"^[A-Za-z0-9][\w.-]*$")
+
+
+def check_run_name(name: str, key: str = "run_name") -> None:
+    """An output folder name must be one path component (letters, digits, ``_.-``): it may not escape
+    ``DATA_DIR``.
+
+    Raises:
+        ConfigError: naming the key and the value.
+    """
+    if not _RUN_NAME.match(name) or name in (".", ".."):
+        raise ConfigError(f"{key}: expected one folder name of letters, digits and _.- , got {name!r}")

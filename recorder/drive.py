@@ -9,7 +9,7 @@ import numpy as np
 
 from recorder.schema import EpisodeMeta, Frame, episode_meta_from_env, frame_from_env
 from sim.env import CrowdNavEnv, SimConfig
-from sim.expert import PrivilegedExpert
+from sim.expert import expert_steps
 
 DRIVERS = ("expert",)
 
@@ -38,23 +38,15 @@ def drive_episode(sim_cfg: SimConfig, seed: int, driver: str = "expert") -> Epis
 
         raise ConfigError(f"driver: expected one of {list(DRIVERS)}, got {driver!r}")
     env = CrowdNavEnv(config=replace(sim_cfg, obs_mode="visual", info_level="full"))
-    obs, info = env.reset(seed=seed)
+    steps = expert_steps(env, seed)
+    obs, info, _ = next(steps)  # the reset
     meta = episode_meta_from_env(env, seed, driver)
-    expert = PrivilegedExpert()
-    expert.reset(env)
 
     def frames() -> Iterator[Frame]:
         try:
             yield frame_from_env(env, obs, info, 0)
-            step = 0
-            while True:
-                v, w = expert.command(env)
-                o, r, term, trunc, inf = env.step(env.encode_command(v, w))
-                step += 1
-                done = term or trunc
+            for step, (o, inf, (r, done)) in enumerate(steps, start=1):
                 yield frame_from_env(env, o, inf, step, command=tuple(env.robot_v), reward=r, done=done)
-                if done:
-                    return
         finally:
             env.close()
 

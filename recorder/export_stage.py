@@ -21,7 +21,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pipeline.config import BaseStageConfig
+from pipeline.config import BaseStageConfig, check_run_name
 from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import Stage, run_stage
@@ -39,8 +39,6 @@ class ExportConfig(BaseStageConfig):
 
     def validate(self) -> None:
         super().validate()
-        from recorder.record import check_run_name
-
         check_run_name(self.run_name)
         if not _REPO_ID.match(self.repo_id) or ".." in self.repo_id.split("/"):
             raise ConfigError(f"repo_id: expected 'owner/name' (letters, digits, ._-), got {self.repo_id!r}")

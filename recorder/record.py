@@ -25,7 +25,6 @@ import json
 import logging
 import multiprocessing as mp
 import os
-import re
 import signal
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -36,7 +35,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from pipeline.artifacts import atomic_write_json, atomic_write_text
-from pipeline.config import BaseStageConfig
+from pipeline.config import BaseStageConfig, check_run_name
 from pipeline.errors import ConfigError, ICrowdNavError
 from pipeline.stage import Stage, run_stage
 from recorder.drive import DRIVERS
@@ -69,15 +68,6 @@ class RecordConfig(BaseStageConfig):
         check_run_name(self.run_name)
         if self.driver not in DRIVERS:
             raise ConfigError(f"driver: expected one of {list(DRIVERS)}, got {self.driver!r}")
-
-
-_RUN_NAME = re.compile(r"^[A-Za-z0-9][\w.-]*$")
-
-
-def check_run_name(name: str) -> None:
-    """A run name is one path component (letters, digits, ``_.-``): it may not escape ``DATA_DIR``."""
-    if not _RUN_NAME.match(name) or name in (".", ".."):
-        raise ConfigError(f"run_name: expected one folder name of letters, digits and _.- , got {name!r}")
 
 
 @dataclass(frozen=True)

@@ -140,6 +140,24 @@ class PrivilegedExpert:
         return float(vb), float(wb)
 
 
+def expert_steps(env, seed: int, expert: PrivilegedExpert | None = None):
+    """Reset ``env`` with ``seed`` and let the expert drive it to the end of the episode.
+
+    Yields ``(obs, info, None)`` after the reset, then ``(obs, info, (reward, done))`` after every step; the
+    executed command is ``env.unwrapped.robot_v``.
+    """
+    expert = expert or PrivilegedExpert()
+    u = env.unwrapped
+    obs, info = env.reset(seed=seed)
+    expert.reset(u)
+    yield obs, info, None
+    while True:
+        obs, reward, terminated, truncated, info = env.step(u.encode_command(*expert.command(u)))
+        yield obs, info, (reward, terminated or truncated)
+        if terminated or truncated:
+            return
+
+
 def run_expert_episode(env, seed: int, expert: PrivilegedExpert | None = None, on_step=None):
     """Run one episode of the expert on ``env`` (a gymnasium env); returns its :class:`sim.trace.EpisodeTrace`.
 
@@ -149,15 +167,7 @@ def run_expert_episode(env, seed: int, expert: PrivilegedExpert | None = None, o
         expert: the expert (a new one by default).
         on_step: optional ``callback(obs, reward, info)`` after every step (e.g. to collect video frames).
     """
-    expert = expert or PrivilegedExpert()
-    u = env.unwrapped
-    obs, info = env.reset(seed=seed)
-    expert.reset(u)
-    while True:
-        action = u.encode_command(*expert.command(u))
-        obs, reward, terminated, truncated, info = env.step(action)
-        if on_step is not None:
-            on_step(obs, reward, info)
-        if terminated or truncated:
-            break
-    return u.trace(method="expert")
+    for obs, info, result in expert_steps(env, seed, expert):
+        if result is not None and on_step is not None:
+            on_step(obs, result[0], info)
+    return env.unwrapped.trace(method="expert")

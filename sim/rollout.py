@@ -34,7 +34,7 @@ from typing import Literal
 from tqdm import tqdm
 
 from pipeline.artifacts import atomic_write_json, atomic_write_text
-from pipeline.config import BaseStageConfig
+from pipeline.config import BaseStageConfig, check_run_name
 from pipeline.errors import ConfigError
 from pipeline.stage import Stage, run_stage
 from sim.env import SimConfig
@@ -61,8 +61,6 @@ class RolloutConfig(BaseStageConfig):
     def validate(self) -> None:
         super().validate()
         check_episode_grid(self.scenes, self.densities, self.episodes, self.workers)
-        from recorder.record import check_run_name
-
         check_run_name(self.run_name)
         if self.figures < 0 or self.videos < 0:
             raise ConfigError(f"figures/videos: expected >= 0, got {self.figures}/{self.videos}")

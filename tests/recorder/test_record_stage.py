@@ -295,7 +295,7 @@ def test_signal_stops_gracefully_and_resume_completes(tmp_path, capsys, long_ref
     p, stderr = start_record(data, args, tmp_path / "logs")
     try:
         wait_mid_episode(p, out, stderr)
-        time.sleep(0.1)  # into the open episode's frames (see the xfail test below for a signal while opening it)
+        time.sleep(0.1)  # into the open episode's frames (a signal while opening it has its own test below)
         elapsed = stop_and_wait(p, sig)
     finally:
         if p.poll() is None:
