@@ -45,6 +45,7 @@ VERBS: dict[str, str] = {
     "bench": "pipeline.bench:main",
     "record": "recorder.record:STAGE",
     "export": "recorder.export_stage:STAGE",
+    "pretrain": "pretrain.stage:STAGE",
     "doctor": "recorder.doctor:main",
     "recover": "recorder.doctor:recover_main",
 }

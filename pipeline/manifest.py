@@ -328,15 +328,17 @@ class Manifest:
 CODE_PACKAGES = ("pipeline", "sim", "recorder", "pretrain", "rl")
 
 
-@functools.lru_cache(maxsize=1)
-def code_hash(root: Path | None = None) -> str:
-    """sha256 over the sources of the pipeline's packages (``*.py`` and ``*.yaml``, sorted by path).
+@functools.lru_cache(maxsize=16)
+def code_hash(root: Path | None = None, packages: tuple[str, ...] = CODE_PACKAGES) -> str:
+    """sha256 over the sources of some of the pipeline's packages (``*.py`` and ``*.yaml``, sorted by path).
 
-    A stage output made by other code is stale, like a DVC stage whose code dependency changed.
+    A stage output made by other code is stale, like a DVC stage whose code dependency changed. Each stage hashes
+    only the packages it runs (:attr:`pipeline.stage.Stage.code`), so editing ``pretrain/`` does not make a
+    recording stale.
     """
     base = Path(root) if root is not None else Path(__file__).resolve().parent.parent
     h = hashlib.sha256()
-    for pkg in CODE_PACKAGES:
+    for pkg in packages:
         d = base / pkg
         if not d.is_dir():
             continue

@@ -27,6 +27,7 @@ from pipeline.artifacts import OutputDir, OutputMode, require_input
 from pipeline.config import config_hash, dump_yaml, to_dict, validate_tree
 from pipeline.errors import ConfigError, ICrowdNavError, OutputExistsError
 from pipeline.manifest import (
+    CODE_PACKAGES,
     MANIFEST_NAME,
     FileRecord,
     Manifest,
@@ -59,6 +60,7 @@ class Stage:
         in_place: The body writes straight into the output directory instead of a staging copy, so a killed
             run keeps what it finished (recording); a new run into a missing directory then runs as
             ``resume``. Requires ``resumable``.
+        code: The packages whose sources make up the stage's code hash (an output made by other code is stale).
     """
 
     name: str
@@ -69,6 +71,7 @@ class Stage:
     body: Callable[[Any, Path], dict[str, Any]]
     resumable: bool = False
     in_place: bool = False
+    code: tuple[str, ...] = CODE_PACKAGES
 
 
 def mode_of(cfg: Any) -> OutputMode:
@@ -166,7 +169,7 @@ def staleness(stage: Stage, cfg: Any, out_dir: Path, inputs: list[FileRecord]) -
         return str(e)
     if old.stage != stage.name:
         return f"it was made by stage '{old.stage}', not '{stage.name}'"
-    if old.code_hash != code_hash():
+    if old.code_hash != code_hash(None, stage.code):
         return "the pipeline's code changed since it was made"
     new_hash = config_hash(cfg)
     if old.config_hash != new_hash:
@@ -260,7 +263,7 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
             versions=collect_versions(),
             duration_s=round(time.monotonic() - t0, 3),
             command=command,
-            code_hash=code_hash(),
+            code_hash=code_hash(None, stage.code),
         )
         manifest.write(od.path / MANIFEST_NAME)
     log.info("%s: done in %.1f s -> %s", stage.name, manifest.duration_s, out)

@@ -90,6 +90,7 @@ STAGE = Stage(
     output_dir=dataset_dir,
     inputs=_inputs,
     body=_body,
+    code=("pipeline", "sim", "recorder"),
 )
 
 

@@ -257,6 +257,7 @@ STAGE = Stage(
     body=_body,
     resumable=True,
     in_place=True,
+    code=("pipeline", "sim", "recorder"),
 )
 
 

@@ -178,6 +178,7 @@ STAGE = Stage(
     output_dir=lambda cfg: Path(cfg.data_dir) / "rollouts" / cfg.run_name,
     inputs=lambda cfg: [],
     body=_body,
+    code=("pipeline", "sim"),
 )
 
 

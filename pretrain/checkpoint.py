@@ -1,0 +1,136 @@
+"""The BEV encoder checkpoint: what ``icrowdnav pretrain`` publishes and what ``train`` loads.
+
+Tree (``DATA_DIR/checkpoints/<name>/``, default name ``bev``)::
+
+    encoder.safetensors     frozen encoder weights: ResNet-18 trunk, neck, temporal model (BatchNorm buffers too)
+    heads.safetensors       pretext heads (occupancy logits; not needed to use the encoder)
+    encoder.json            everything a consumer needs: encoder config (grid bounds, channels, T, lift stride),
+                            cameras (K, T_base_cam, size, depth range), s_bev shape, targets, dataset, step
+    metrics.json            validation IoU per target in the cameras' field of view (final + per epoch), counts
+    train_log.csv           step, epoch, lr, losses (one row per logged step)
+    tb/                     TensorBoard events
+    figures/                sample_<k>.png (inputs, true and predicted BEV maps), curves.png, fov.png
+    state/last.pt           training state for --resume (weights, optimizer, scheduler, RNG, step)
+    config.yaml, manifest.json   resolved stage config and provenance (written last: a checkpoint without
+                            manifest.json is unfinished and is refused by :func:`load_encoder`)
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from pipeline.artifacts import atomic_write_text
+from pipeline.errors import CorruptArtifactError, InputMissingError
+from pipeline.manifest import MANIFEST_NAME
+from pretrain.geometry import Camera
+from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
+
+ENCODER_WEIGHTS = "encoder.safetensors"
+HEADS_WEIGHTS = "heads.safetensors"
+ENCODER_JSON = "encoder.json"
+METRICS_JSON = "metrics.json"
+STATE_FILE = "state/last.pt"
+FORMAT_VERSION = 1
+
+
+def save_safetensors(module: torch.nn.Module, path: Path, metadata: dict[str, str] | None = None) -> None:
+    """Saves a module's state dict atomically (temporary name, then rename)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    state = {k: v.detach().contiguous().clone() for k, v in module.state_dict().items()}
+    save_file(state, str(tmp), metadata=metadata)
+    tmp.replace(path)
+
+
+def load_safetensors(module: torch.nn.Module, path: Path) -> None:
+    """Loads a state dict into ``module``; any problem names the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputMissingError(f"missing weights file {path}")
+    try:
+        state = load_file(str(path))
+    except (SafetensorError, OSError, ValueError, RuntimeError) as e:
+        raise CorruptArtifactError(f"corrupt weights file {path}: {e}") from None
+    try:
+        module.load_state_dict(state, strict=True)
+    except RuntimeError as e:
+        first = str(e).strip().splitlines()
+        raise CorruptArtifactError(f"weights file {path} does not match the architecture in its encoder.json: "
+                                   f"{' '.join(first[:3])[:400]}") from None
+
+
+def write_encoder_checkpoint(out: Path, encoder: BEVEncoder, heads: PretextHeads, extra: dict[str, Any]) -> None:
+    """Writes ``encoder.safetensors``, ``heads.safetensors`` and ``encoder.json`` into ``out``."""
+    meta = {"format_version": str(FORMAT_VERSION)}
+    save_safetensors(encoder, out / ENCODER_WEIGHTS, meta)
+    save_safetensors(heads, out / HEADS_WEIGHTS, meta)
+    desc = {"format_version": FORMAT_VERSION, **encoder.describe(), **extra}
+    atomic_write_text(out / ENCODER_JSON, json.dumps(desc, indent=2, sort_keys=True) + "\n")
+
+
+def read_encoder_json(ckpt: Path) -> dict[str, Any]:
+    """The ``encoder.json`` of a finished checkpoint directory (errors name the path)."""
+    ckpt = Path(ckpt)
+    if not ckpt.is_dir():
+        raise InputMissingError(f"no BEV encoder checkpoint at {ckpt}; make one with `make pretrain`")
+    if not (ckpt / MANIFEST_NAME).is_file():
+        raise InputMissingError(f"BEV encoder checkpoint {ckpt} is unfinished (no {MANIFEST_NAME}); finish it with "
+                                "`icrowdnav pretrain --resume` or redo it with --overwrite")
+    path = ckpt / ENCODER_JSON
+    if not path.is_file():
+        raise InputMissingError(f"BEV encoder checkpoint {ckpt} has no {ENCODER_JSON}")
+    try:
+        desc = json.loads(path.read_text())
+        enc = desc["encoder"]
+        cams = desc["cameras"]
+    except (json.JSONDecodeError, KeyError, TypeError, UnicodeDecodeError) as e:
+        raise CorruptArtifactError(f"corrupt {path}: {type(e).__name__}: {e}") from None
+    if desc.get("format_version") != FORMAT_VERSION:
+        raise CorruptArtifactError(f"{path}: format_version {desc.get('format_version')!r}, expected {FORMAT_VERSION}")
+    if not isinstance(enc, dict) or not isinstance(cams, list) or not cams:
+        raise CorruptArtifactError(f"{path}: 'encoder' must be a mapping and 'cameras' a non-empty list")
+    return desc
+
+
+def encoder_from_json(desc: dict[str, Any], where: str = "encoder.json") -> BEVEncoder:
+    """An (untrained) encoder built from an ``encoder.json`` description."""
+    fields = EncoderConfig.__dataclass_fields__
+    unknown = sorted(set(desc["encoder"]) - set(fields))
+    if unknown:
+        raise CorruptArtifactError(f"{where}: unknown encoder keys {unknown}")
+    cfg = EncoderConfig(**desc["encoder"])
+    cameras = [Camera.from_dict(c, f"{where} cameras[{k}]") for k, c in enumerate(desc["cameras"])]
+    return BEVEncoder(cfg, cameras)
+
+
+def load_encoder(ckpt: Path, frozen: bool = True) -> BEVEncoder:
+    """Loads the pretrained encoder of a checkpoint directory, ready for ``train``.
+
+    Args:
+        ckpt: ``DATA_DIR/checkpoints/bev`` (or another pretrain output).
+        frozen: eval mode and ``requires_grad=False`` on every parameter (the paper freezes it during RL).
+
+    Raises:
+        InputMissingError: no or unfinished checkpoint. CorruptArtifactError: unreadable or mismatching files.
+    """
+    ckpt = Path(ckpt)
+    desc = read_encoder_json(ckpt)
+    encoder = encoder_from_json(desc, str(ckpt / ENCODER_JSON))
+    load_safetensors(encoder, ckpt / ENCODER_WEIGHTS)
+    if frozen:
+        encoder.eval()
+        encoder.requires_grad_(False)
+    return encoder
+
+
+def load_heads(ckpt: Path, encoder: BEVEncoder) -> PretextHeads:
+    """The pretext heads of a checkpoint (for figures and evaluation of the pretext task)."""
+    heads = PretextHeads(encoder.cfg.bev_channels)
+    load_safetensors(heads, Path(ckpt) / HEADS_WEIGHTS)
+    return heads.eval()

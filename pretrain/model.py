@@ -1,0 +1,271 @@
+"""The spatio-temporal BEV encoder (paper §III-B.1), its streaming form and the pretext heads.
+
+Shapes (B batch, T history frames, N cameras, C BEV channels, X x Y BEV cells, H x W images, h x w lift pixels):
+
+* ``rgb``: ``B x T x N x 3 x H x W`` uint8 (or float in [0, 1]);
+* ``depth``: ``B x T x N x H x W`` float32 z-depth in m (0 = invalid), full resolution;
+* ``poses``: ``B x T x 3`` robot poses ``[x, y, yaw]`` in the world frame (any fixed frame works: only relative
+  poses are used);
+* ``s_bev``: ``B x C x X x Y`` in the base frame of the newest frame (layout in :mod:`pretrain.geometry`).
+
+Pipeline per frame: ResNet-18 trunk (torchvision architecture; the first ``resnet_stages`` stages) → 1x1 neck to C
+channels → bilinear resize to the lift pixels → measured-depth lift + vertical sum pooling (:func:`lift_splat`)
+→ ``x_bev``. Over the window: every past ``x_bev`` is warped into the newest frame by ego-motion
+(:func:`warp_bev`), the T maps are stacked in time and a FIERY-style temporal model (causal 3D convolutions with
+kernel ``2 x 3 x 3``, T−1 of them, plus a 2D skip from the newest map) gives ``s_bev``. The first frames of an
+episode have no history: the earliest available frame is repeated (the same rule in training, batch and
+streaming inference).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+import torchvision
+from torch import nn
+
+from pipeline.errors import ConfigError
+from pretrain.geometry import BEVGrid, Camera, LiftGeometry, lift_splat, relative_pose, sample_depth, warp_bev
+
+_IMAGENET_MEAN = (0.485, 0.456, 0.406)
+_IMAGENET_STD = (0.229, 0.224, 0.225)
+_STAGE_CHANNELS = {1: 64, 2: 128, 3: 256, 4: 512}
+# the pretext targets, in the heads' channel order
+TARGETS = ("static", "ped_t", "ped_t+0.5s", "ped_t+1.0s")
+
+
+@dataclass
+class EncoderConfig:
+    """Architecture and geometry of the BEV encoder (saved with the checkpoint; consumers need nothing else)."""
+
+    x_bound: list[float] = field(default_factory=lambda: [0.0, 6.0, 0.1])  # forward (min, max, step) m
+    y_bound: list[float] = field(default_factory=lambda: [-4.8, 4.8, 0.1])  # lateral, left positive (min, max, step) m
+    z_bound: list[float] = field(default_factory=lambda: [0.1, 2.0])  # kept heights (ground threshold, top) m
+    bev_channels: int = 32  # C of x_bev and s_bev
+    resnet_stages: int = 2  # ResNet-18 stages kept (1-4): feature stride 4, 8, 16, 32 px
+    lift_stride_px: int = 4  # lift one pixel in every lift_stride_px x lift_stride_px block
+    history_frames: int = 3  # T: frames in the temporal window, newest included
+    backbone_weights: str = ""  # optional torchvision resnet18 state dict (.pth/.safetensors) to start from
+
+    def validate(self) -> None:
+        self.grid.validate("encoder")
+        if self.resnet_stages not in _STAGE_CHANNELS:
+            raise ConfigError(f"encoder.resnet_stages: expected 1-4, got {self.resnet_stages}")
+        for k in ("bev_channels", "lift_stride_px", "history_frames"):
+            v = getattr(self, k)
+            if not isinstance(v, int) or v < 1:
+                raise ConfigError(f"encoder.{k}: expected an integer >= 1, got {v!r}")
+
+    @property
+    def grid(self) -> BEVGrid:
+        return BEVGrid(tuple(self.x_bound), tuple(self.y_bound), tuple(self.z_bound))
+
+
+def _resnet18_trunk(stages: int) -> nn.Sequential:
+    m = torchvision.models.resnet18(weights=None)
+    layers: list[nn.Module] = [m.conv1, m.bn1, m.relu, m.maxpool, m.layer1, m.layer2, m.layer3, m.layer4]
+    return nn.Sequential(*layers[: 4 + stages])
+
+
+class TimeConv(nn.Module):
+    """A causal 3D convolution with kernel ``2 x 3 x 3`` over ``B x C x T x X x Y`` → ``B x C x (T-1) x X x Y``.
+
+    The weight is an ordinary ``Conv3d`` weight (``C_out x C_in x 2 x 3 x 3``), but the convolution is computed as
+    one 2D convolution over channel-stacked consecutive frame pairs: mathematically identical (tested against
+    ``F.conv3d``) and ~3.5x faster on a CPU, where PyTorch's Conv3d has no fast kernel (5 ms vs 18 ms at
+    32 x 60 x 96, one thread).
+    """
+
+    def __init__(self, c_in: int, c_out: int) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(c_out, c_in, 2, 3, 3))
+        nn.init.kaiming_uniform_(self.weight, a=5 ** 0.5)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b, c, t = x.shape[:3]
+        w2d = torch.cat([self.weight[:, :, 0], self.weight[:, :, 1]], 1)  # C_out x 2C_in x 3 x 3
+        pairs = torch.cat([x[:, :, :-1], x[:, :, 1:]], 1).transpose(1, 2).flatten(0, 1)  # B(T-1) x 2C x X x Y
+        y = F.conv2d(pairs, w2d, padding=1)
+        return y.view(b, t - 1, *y.shape[1:]).transpose(1, 2)
+
+
+class TemporalModel(nn.Module):
+    """FIERY-style temporal model: ``B x T x C x X x Y`` aligned maps → ``B x C x X x Y``.
+
+    T−1 causal blocks (:class:`TimeConv` + BatchNorm3d + ReLU) shrink the time axis to one step; a 1x1 skip from
+    the newest map is added, then BatchNorm + ReLU.
+    """
+
+    def __init__(self, channels: int, frames: int) -> None:
+        super().__init__()
+        self.blocks = nn.ModuleList(
+            nn.Sequential(TimeConv(channels, channels), nn.BatchNorm3d(channels), nn.ReLU(inplace=True))
+            for _ in range(frames - 1))
+        self.skip = nn.Conv2d(channels, channels, 1, bias=False)
+        self.norm = nn.BatchNorm2d(channels)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        newest = x[:, -1]
+        y = x.transpose(1, 2)  # B C T X Y
+        for block in self.blocks:
+            y = block(y)  # the time axis shrinks by one per causal block
+        out = self.skip(newest)
+        if self.blocks:
+            out = out + y[:, :, -1]
+        return F.relu(self.norm(out))
+
+
+class BEVEncoder(nn.Module):
+    """The spatio-temporal encoder: RGB-D window → ``s_bev`` (see the module docstring for shapes)."""
+
+    def __init__(self, cfg: EncoderConfig, cameras: list[Camera]) -> None:
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        self.cameras = list(cameras)
+        self.grid = cfg.grid
+        self.trunk = _resnet18_trunk(cfg.resnet_stages)
+        self.neck = nn.Sequential(nn.Conv2d(_STAGE_CHANNELS[cfg.resnet_stages], cfg.bev_channels, 1, bias=False),
+                                  nn.BatchNorm2d(cfg.bev_channels), nn.ReLU(inplace=True))
+        self.temporal = TemporalModel(cfg.bev_channels, cfg.history_frames)
+        self.geom = LiftGeometry(self.cameras, cfg.lift_stride_px)
+        self.register_buffer("mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+
+    @property
+    def frames(self) -> int:
+        return self.cfg.history_frames
+
+    @property
+    def out_shape(self) -> tuple[int, int, int]:
+        """``(C, X, Y)`` of ``s_bev``."""
+        return (self.cfg.bev_channels, *self.grid.shape)
+
+    def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
+        """``M x 3 x H x W`` images (uint8 or float in [0, 1]) → ``M x C x h x w`` features at the lift pixels."""
+        x = rgb.float() / 255.0 if rgb.dtype == torch.uint8 else rgb
+        x = (x - self.mean) / self.std
+        f = self.neck(self.trunk(x))
+        if tuple(f.shape[-2:]) != tuple(self.geom.lift_hw):
+            f = F.interpolate(f, size=tuple(self.geom.lift_hw), mode="bilinear", align_corners=False)
+        return f
+
+    def encode_frames(self, rgb: torch.Tensor, depth_lift: torch.Tensor) -> torch.Tensor:
+        """One BEV map per frame.
+
+        Args:
+            rgb: ``M x N x 3 x H x W`` images of M frames.
+            depth_lift: ``M x N x h x w`` depth at the lift pixels (:meth:`lift_depth` of the full image).
+
+        Returns:
+            ``M x C x X x Y`` maps, each in its own frame's base frame.
+        """
+        m, n = rgb.shape[:2]
+        if n != len(self.cameras):
+            raise ValueError(f"expected {len(self.cameras)} cameras, got {n}")
+        feats = self.image_features(rgb.flatten(0, 1))
+        feats = feats.view(m, n, *feats.shape[1:])
+        return lift_splat(feats, depth_lift.float(), self.geom, self.grid)
+
+    def lift_depth(self, depth: torch.Tensor) -> torch.Tensor:
+        """Full-resolution depth ``... x H x W`` → depth at the lift pixels ``... x h x w``."""
+        return sample_depth(depth, self.cfg.lift_stride_px)
+
+    def fuse(self, maps: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        """Warps a window of maps into its newest frame and runs the temporal model.
+
+        Args:
+            maps: ``B x T x C x X x Y``, each in its own frame.
+            poses: ``B x T x 3`` the frames' world poses.
+
+        Returns:
+            ``B x C x X x Y`` = ``s_bev``.
+        """
+        b, t = maps.shape[:2]
+        if t != self.frames:
+            raise ValueError(f"expected a window of {self.frames} frames, got {t}")
+        newest = poses[:, -1:].expand(b, t - 1, 3)
+        rel = relative_pose(poses[:, :-1].double(), newest.double()).float()
+        past = warp_bev(maps[:, :-1].flatten(0, 1), rel.flatten(0, 1), self.grid) if t > 1 else maps[:, :0]
+        aligned = torch.cat([past.view(b, t - 1, *maps.shape[2:]), maps[:, -1:]], 1)
+        return self.temporal(aligned)
+
+    def forward(self, rgb: torch.Tensor, depth: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        """Batch forward: ``B x T`` windows (full-resolution depth) → ``s_bev`` ``B x C x X x Y``."""
+        b, t = rgb.shape[:2]
+        maps = self.encode_frames(rgb.flatten(0, 1), self.lift_depth(depth.flatten(0, 1)))
+        return self.fuse(maps.view(b, t, *maps.shape[1:]), poses)
+
+    def describe(self) -> dict[str, Any]:
+        return {"encoder": {k: getattr(self.cfg, k) for k in self.cfg.__dataclass_fields__},
+                "cameras": [c.to_dict() for c in self.cameras], "s_bev_shape": list(self.out_shape)}
+
+
+class BEVStream:
+    """Step-wise inference: encodes only the newest frame and reuses the cached history.
+
+    The cache holds the last T−1 maps *in their own frames* with their poses; every step warps them into the new
+    frame (one ``grid_sample``), so the result equals :meth:`BEVEncoder.forward` on the same window exactly, and
+    warping errors never accumulate. Works for a batch of B independent streams (vectorised environments).
+    """
+
+    def __init__(self, encoder: BEVEncoder) -> None:
+        self.encoder = encoder
+        self.maps: torch.Tensor | None = None  # B x (T-1) x C x X x Y
+        self.poses: torch.Tensor | None = None  # B x (T-1) x 3
+
+    def reset(self) -> None:
+        """Forgets every stream's history (the next step starts new episodes)."""
+        self.maps = self.poses = None
+
+    @torch.no_grad()
+    def step(self, rgb: torch.Tensor, depth: torch.Tensor, pose: torch.Tensor,
+             first: torch.Tensor | None = None) -> torch.Tensor:
+        """Encodes one new frame per stream.
+
+        Args:
+            rgb: ``B x N x 3 x H x W`` images.
+            depth: ``B x N x H x W`` full-resolution depth (m).
+            pose: ``B x 3`` world poses.
+            first: ``B`` bool, True where this frame starts a new episode (its history is this frame repeated).
+
+        Returns:
+            ``B x C x X x Y`` = ``s_bev`` of the newest frames.
+        """
+        enc = self.encoder
+        pose = pose.to(torch.float64)
+        x = enc.encode_frames(rgb, enc.lift_depth(depth))  # B C X Y
+        b, t = x.shape[0], enc.frames
+        if self.maps is None or self.maps.shape[0] != b:
+            first = torch.ones(b, dtype=torch.bool)
+        rep_maps = x.unsqueeze(1).expand(b, t - 1, *x.shape[1:])
+        rep_poses = pose.unsqueeze(1).expand(b, t - 1, 3)
+        if first is not None and bool(first.any()):
+            if self.maps is None or self.maps.shape[0] != b:
+                self.maps, self.poses = rep_maps.clone(), rep_poses.clone()
+            else:
+                sel = first.view(b, 1, 1, 1, 1)
+                self.maps = torch.where(sel, rep_maps, self.maps)
+                self.poses = torch.where(first.view(b, 1, 1), rep_poses, self.poses)
+        window = torch.cat([self.maps, x.unsqueeze(1)], 1)
+        poses = torch.cat([self.poses, pose.unsqueeze(1)], 1)
+        out = enc.fuse(window, poses)
+        self.maps, self.poses = window[:, 1:], poses[:, 1:]
+        return out
+
+
+class PretextHeads(nn.Module):
+    """Occupancy logits from ``s_bev``: ``B x C x X x Y`` → ``B x len(TARGETS) x X x Y`` (see :data:`TARGETS`)."""
+
+    def __init__(self, channels: int, outputs: int = len(TARGETS)) -> None:
+        super().__init__()
+        self.body = nn.Sequential(nn.Conv2d(channels, channels, 3, padding=1, bias=False), nn.BatchNorm2d(channels),
+                                  nn.ReLU(inplace=True), nn.Conv2d(channels, channels, 3, padding=1, bias=False),
+                                  nn.BatchNorm2d(channels))
+        self.out = nn.Conv2d(channels, outputs, 1)
+
+    def forward(self, s_bev: torch.Tensor) -> torch.Tensor:
+        return self.out(F.relu(s_bev + self.body(s_bev)))

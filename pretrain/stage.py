@@ -1,0 +1,230 @@
+"""``icrowdnav pretrain``: pretrain the spatio-temporal BEV encoder on a recorded LeRobot dataset.
+
+::
+
+    icrowdnav pretrain --profile default                     # make pretrain; reads DATA_DIR/datasets/icrowdnav/expert
+    icrowdnav pretrain --resume                              # continue a killed run from its last saved step
+    icrowdnav pretrain --epochs 1 --encoder.bev_channels 16 --name bev_small
+
+Input: a dataset exported by ``icrowdnav export`` (RGB videos, depth, odometry and the privileged labels
+``privileged.ped_state`` / ``privileged.local_occupancy``). Output: ``DATA_DIR/checkpoints/<name>/`` (tree in
+:mod:`pretrain.checkpoint`); :func:`pretrain.checkpoint.load_encoder` gives the frozen encoder to ``train``.
+
+The output is written in place (like ``record``): a killed run keeps ``state/last.pt`` and ``--resume`` continues
+it; ``manifest.json`` is written last, so consumers refuse an unfinished checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipeline.artifacts import atomic_write_json
+from pipeline.config import BaseStageConfig, check_run_name, config_hash
+from pipeline.errors import ConfigError
+from pipeline.stage import Stage, run_stage
+from pretrain.model import TARGETS, EncoderConfig
+
+log = logging.getLogger("icrowdnav")
+
+
+@dataclass
+class PretrainConfig(BaseStageConfig):
+    """Config of the ``pretrain`` stage."""
+
+    repo_id: str = "icrowdnav/expert"  # dataset to train on: DATA_DIR/datasets/<repo_id>/
+    name: str = "bev"  # output: DATA_DIR/checkpoints/<name>/
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    future_s: list[float] = field(default_factory=lambda: [0.5, 1.0])  # horizons of the future pedestrian targets (s)
+    epochs: int = 4  # passes over the training episodes
+    clip_frames: int = 8  # target frames per clip (each clip adds T-1 frames of context)
+    clips_per_batch: int = 4  # clips per optimisation step
+    lr: float = 2e-3  # AdamW peak learning rate (one-cycle schedule: warm-up, cosine decay)
+    weight_decay: float = 1e-4  # AdamW weight decay
+    warmup_frac: float = 0.1  # fraction of the steps spent warming up
+    val_fraction: float = 0.1  # fraction of the episodes held out for validation (split by episode)
+    max_episodes: int = 0  # use at most this many episodes of the dataset (0 = all)
+    checkpoint_every_steps: int = 100  # save the training state this often (and at every epoch end)
+    log_every_steps: int = 10  # write a train_log.csv / TensorBoard row this often
+    threads: int = 0  # torch CPU threads (0 = every core)
+    figures: int = 4  # validation samples drawn as figures
+    max_ram_gb: float = 16.0  # refuse to load more frames than this (GB, estimated before reading)
+    progress: bool = True  # progress bars
+
+    def validate(self) -> None:
+        super().validate()
+        check_run_name(self.name)
+        for k in ("epochs", "clip_frames", "clips_per_batch", "checkpoint_every_steps", "log_every_steps"):
+            if getattr(self, k) < 1:
+                raise ConfigError(f"pretrain.{k}: expected an integer >= 1, got {getattr(self, k)}")
+        for k in ("max_episodes", "threads", "figures"):
+            if getattr(self, k) < 0:
+                raise ConfigError(f"pretrain.{k}: expected an integer >= 0, got {getattr(self, k)}")
+        if not (self.lr > 0 and self.weight_decay >= 0 and 0 <= self.warmup_frac < 1 and self.max_ram_gb > 0):
+            raise ConfigError(f"pretrain: expected lr > 0, weight_decay >= 0, 0 <= warmup_frac < 1, max_ram_gb > 0, "
+                              f"got {self.lr}, {self.weight_decay}, {self.warmup_frac}, {self.max_ram_gb}")
+        if not 0 < self.val_fraction < 1:
+            raise ConfigError(f"pretrain.val_fraction: expected a fraction in (0, 1), got {self.val_fraction}")
+        if len(self.future_s) != len(TARGETS) - 2 or any(s <= 0 for s in self.future_s):
+            raise ConfigError(f"pretrain.future_s: expected {len(TARGETS) - 2} positive horizons (s) for the targets "
+                              f"{TARGETS[2:]}, got {self.future_s}")
+        if self.encoder.backbone_weights and not Path(self.encoder.backbone_weights).is_file():
+            raise ConfigError(f"pretrain.encoder.backbone_weights: no file {self.encoder.backbone_weights}")
+
+
+def dataset_dir(cfg: PretrainConfig) -> Path:
+    return Path(cfg.data_dir) / "datasets" / cfg.repo_id
+
+
+def checkpoint_dir(cfg: PretrainConfig) -> Path:
+    return Path(cfg.data_dir) / "checkpoints" / cfg.name
+
+
+def _inputs(cfg: PretrainConfig) -> list[Path]:
+    """The dataset; fails here, before any output exists, when it or the grid does not fit."""
+    from pretrain.data import check_dataset, check_grid_in_local_map
+    from pretrain.geometry import cameras_from_dataset, check_grid_fits_cameras
+
+    root = dataset_dir(cfg)
+    cameras = cameras_from_dataset(root) if (root / "meta").is_dir() else []
+    if not cameras:
+        check_dataset(root, [])  # raises the clear "no dataset" error
+    side = check_dataset(root, cameras)
+    check_grid_fits_cameras(cfg.encoder.grid, cameras, "pretrain.encoder")
+    check_grid_in_local_map(cfg.encoder.grid, side["spec"]["local_map"], str(root))
+    # only the dataset's files are inputs (not, e.g., a lock file lerobot may create)
+    return [root / "meta", root / "data", root / "videos"]
+
+
+def load_backbone_weights(encoder, path: str) -> None:
+    """Initialises the ResNet-18 trunk from a user-given torchvision ``resnet18`` state dict (.pth / .safetensors)."""
+    from pipeline.errors import CorruptArtifactError
+
+    p = Path(path)
+    try:
+        if p.suffix == ".safetensors":
+            from safetensors.torch import load_file
+
+            sd = load_file(str(p))
+        else:
+            sd = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise CorruptArtifactError(f"backbone weights {p}: cannot read ({type(e).__name__}: {e})") from None
+    names = ["conv1", "bn1", "relu", "maxpool", "layer1", "layer2", "layer3", "layer4"]
+    mapped = {}
+    for k, v in sd.items():
+        head = k.split(".")[0]
+        if head in names and names.index(head) < len(encoder.trunk):
+            mapped[f"{names.index(head)}.{k.split('.', 1)[1]}"] = v
+    missing, _ = encoder.trunk.load_state_dict(mapped, strict=False)
+    if missing:
+        raise CorruptArtifactError(f"backbone weights {p}: not a torchvision resnet18 state dict "
+                                   f"(missing {missing[:3]}...)")
+    log.info("pretrain: trunk initialised from %s", p)
+
+
+def _body(cfg: PretrainConfig, out: Path) -> dict:
+    from pretrain.checkpoint import METRICS_JSON, write_encoder_checkpoint
+    from pretrain.data import load_frames, split_episodes
+    from pretrain.figures import plot_curves, plot_fov, plot_sample
+    from pretrain.geometry import cameras_from_dataset, check_grid_fits_cameras
+    from pretrain.model import BEVEncoder, PretextHeads
+    from pretrain.train import FitConfig, evaluate, fit, forward_batch
+
+    torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
+    root = dataset_dir(cfg)
+    cameras = cameras_from_dataset(root)
+    grid = cfg.encoder.grid
+    fov = check_grid_fits_cameras(grid, cameras, "pretrain.encoder")
+    info = json.loads((root / "meta" / "info.json").read_text())
+    n_eps = int(info["total_episodes"])
+    if cfg.max_episodes:
+        n_eps = min(n_eps, cfg.max_episodes)
+    train_eps, val_eps = split_episodes(n_eps, cfg.val_fraction, cfg.seed)
+    store = load_frames(root, cameras, grid, cfg.encoder.lift_stride_px, cfg.future_s,
+                        episodes=list(range(n_eps)), max_gb=cfg.max_ram_gb, progress=cfg.progress)
+    sl = store.episode_slices
+    train_slices, val_slices = [sl[e] for e in train_eps], [sl[e] for e in val_eps]
+
+    torch.manual_seed(cfg.seed)
+    encoder = BEVEncoder(cfg.encoder, cameras)
+    if cfg.encoder.backbone_weights:
+        load_backbone_weights(encoder, cfg.encoder.backbone_weights)
+    heads = PretextHeads(cfg.encoder.bev_channels)
+    fc = FitConfig(epochs=cfg.epochs, clip_frames=cfg.clip_frames, clips_per_batch=cfg.clips_per_batch, lr=cfg.lr,
+                   weight_decay=cfg.weight_decay, warmup_frac=cfg.warmup_frac,
+                   checkpoint_every_steps=cfg.checkpoint_every_steps, log_every_steps=cfg.log_every_steps,
+                   seed=cfg.seed, config_hash=config_hash(cfg))
+    result = fit(encoder, heads, store, train_slices, val_slices, fov, fc, out, resume=True, progress=cfg.progress)
+    history = result["history"]
+    final = history[-1] if history else evaluate(encoder, heads, store, val_slices, fov,
+                                                 torch.tensor(result["pos_weight"]), cfg.clip_frames,
+                                                 cfg.clips_per_batch)
+    encoder.eval()
+    heads.eval()
+    n_train = sum(b - a for a, b in train_slices)
+    write_encoder_checkpoint(out, encoder, heads, {
+        "targets": list(TARGETS), "future_s": list(cfg.future_s),
+        "dataset": {"repo_id": cfg.repo_id, "train_episodes": train_eps, "val_episodes": val_eps},
+        "trained_steps": result["step"], "fps": float(json.loads((root / "meta" / "icrowdnav.json").read_text())
+                                                      .get("fps", 10))})
+    atomic_write_json(out / METRICS_JSON, {
+        "final": final, "history": history, "targets": list(TARGETS), "iou": "dataset-level IoU at p > 0.5 over "
+        "validation frames, cells in the cameras' field of view only", "pos_weight": result["pos_weight"],
+        "train_frames": n_train, "val_frames": sum(b - a for a, b in val_slices), "steps": result["step"],
+        "fov_fraction": float(fov.mean())})
+
+    # figures: evenly spaced validation frames
+    fig_dir = out / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    plot_fov(fig_dir / "fov.png", grid, fov)
+    plot_curves(fig_dir / "curves.png", out / "train_log.csv", history)
+    val_idx = np.concatenate([np.arange(a, b) for a, b in val_slices])
+    picks = val_idx[np.linspace(0, len(val_idx) - 1, cfg.figures).astype(int)] if cfg.figures else []
+    from pretrain.data import Batch
+
+    with torch.no_grad():
+        for k, t in enumerate(picks):
+            start = int(store.episode_start[t])
+            frames = np.maximum(np.arange(t - encoder.frames + 1, t + 1), start)
+            batch = Batch(frames, np.arange(encoder.frames)[None], np.array([t]))
+            logits, labels, valid = forward_batch(encoder, heads, store, batch)
+            ep = int(np.searchsorted([a for a, _ in sl], t, side="right") - 1)
+            plot_sample(fig_dir / f"sample_{k}.png", grid, [c.name for c in cameras], store.rgb[t],
+                        store.depth[t], labels[0].numpy(), torch.sigmoid(logits[0]).numpy(), valid[0].numpy(), fov,
+                        f"validation episode {ep}, frame {t - start} — step {result['step']}")
+    counts = {"steps": result["step"], "train_frames": n_train, "val_frames": int(len(val_idx)),
+              "episodes": n_eps}
+    for key, v in final.items():
+        if key.startswith(("iou_", "val_loss")) and not (isinstance(v, float) and math.isnan(v)):
+            counts[key] = round(float(v), 4)
+    log.info("pretrain: validation %s", ", ".join(f"{k} {v}" for k, v in counts.items() if k.startswith("iou_")))
+    return counts
+
+
+STAGE = Stage(
+    name="pretrain",
+    config_cls=PretrainConfig,
+    help="pretrain the spatio-temporal BEV encoder on a LeRobot dataset -> DATA_DIR/checkpoints/<name>/",
+    output_dir=checkpoint_dir,
+    inputs=_inputs,
+    body=_body,
+    resumable=True,
+    in_place=True,
+    code=("pipeline", "pretrain"),
+)
+
+
+def run(cfg: PretrainConfig):
+    """Run the stage (library entry point); returns its :class:`pipeline.manifest.Manifest`."""
+    return run_stage(STAGE, cfg)
+
+
+

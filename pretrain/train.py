@@ -1,0 +1,286 @@
+"""The pretext training loop of the BEV encoder (readable top to bottom, cleanrl-style signposts).
+
+One optimisation step takes a batch of clips (consecutive frames of one episode each, T−1 frames of context
+before the targets), encodes every frame of the clips once with the image backbone and the lift, then fuses the
+window of T frames ending at each target (ego-motion warp + temporal model) and scores the pretext heads against
+the labels with a per-target binary cross-entropy restricted to the cameras' field of view (and, for the future
+targets, to frames whose future lies inside the episode).
+
+Resume: the state (weights, optimizer, scheduler, torch RNG, step) is saved atomically every
+``checkpoint_every_steps`` steps and at every epoch end; the batch order of epoch ``e`` depends only on
+``(seed, e)``, so a resumed run skips the batches it already did and continues exactly where it stopped.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pipeline.artifacts import fsync_dir
+from pipeline.errors import ConfigError, CorruptArtifactError
+from pretrain.data import FrameStore, make_batches, make_clips
+from pretrain.model import TARGETS, BEVEncoder, PretextHeads
+
+log = logging.getLogger("icrowdnav")
+
+LOG_FIELDS = ["step", "epoch", "lr", "loss", *[f"loss_{t}" for t in TARGETS], "frames_per_s"]
+
+
+@dataclass
+class FitConfig:
+    """The optimisation settings :func:`fit` reads (a view of the stage config)."""
+
+    epochs: int
+    clip_frames: int
+    clips_per_batch: int
+    lr: float
+    weight_decay: float
+    warmup_frac: float
+    checkpoint_every_steps: int
+    log_every_steps: int
+    seed: int
+    config_hash: str
+
+
+def positive_weights(store: FrameStore, slices: list[tuple[int, int]], fov: np.ndarray,
+                     cap: float = 10.0) -> torch.Tensor:
+    """Per-target BCE ``pos_weight`` = sqrt(negatives / positives) in the field of view, clipped to [1, cap]."""
+    idx = np.concatenate([np.arange(a, b) for a, b in slices])
+    lab = store.labels[idx][:, :, fov]  # F x K x cells
+    valid = store.valid[idx]
+    out = []
+    for k in range(lab.shape[1]):
+        v = lab[valid[:, k], k]
+        pos = float(v.sum())
+        neg = float(v.size - pos)
+        out.append(min(cap, max(1.0, math.sqrt(neg / pos))) if pos > 0 else 1.0)
+    return torch.tensor(out)
+
+
+def batch_tensors(store: FrameStore, batch) -> tuple[torch.Tensor, ...]:
+    rgb = torch.from_numpy(store.rgb[batch.frames])
+    depth = torch.from_numpy(store.depth[batch.frames])
+    poses = torch.from_numpy(store.pose[batch.frames])
+    labels = torch.from_numpy(store.labels[batch.targets]).float()
+    valid = torch.from_numpy(store.valid[batch.targets])
+    return rgb, depth, poses, labels, valid
+
+
+def forward_batch(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, batch) -> tuple[torch.Tensor, ...]:
+    """Logits ``P x K x X x Y`` of a batch's targets, with their labels and validity."""
+    rgb, depth, poses, labels, valid = batch_tensors(store, batch)
+    maps = encoder.encode_frames(rgb, depth)  # M x C x X x Y, each in its own frame
+    win = torch.from_numpy(batch.windows)
+    s_bev = encoder.fuse(maps[win], poses[win])  # P x C x X x Y in each target's frame
+    return heads(s_bev), labels, valid
+
+
+def masked_bce(logits: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor, fov: torch.Tensor,
+               pos_weight: torch.Tensor) -> torch.Tensor:
+    """Per-target mean BCE over valid frames and field-of-view cells: returns ``K`` losses."""
+    per = F.binary_cross_entropy_with_logits(logits, labels, reduction="none",
+                                             pos_weight=pos_weight.view(1, -1, 1, 1))
+    mask = valid[:, :, None, None].float() * fov[None, None].float()
+    return (per * mask).sum((0, 2, 3)) / mask.sum((0, 2, 3)).clamp_min(1.0)
+
+
+@torch.no_grad()
+def evaluate(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, slices: list[tuple[int, int]],
+             fov: np.ndarray, pos_weight: torch.Tensor, clip_frames: int, clips_per_batch: int) -> dict[str, float]:
+    """Validation: loss and IoU (threshold 0.5, dataset-level, field of view only) per target."""
+    was = encoder.training, heads.training
+    encoder.eval()
+    heads.eval()
+    fov_t = torch.from_numpy(fov)
+    inter = torch.zeros(len(TARGETS), dtype=torch.float64)
+    union = torch.zeros(len(TARGETS), dtype=torch.float64)
+    losses, weights = torch.zeros(len(TARGETS), dtype=torch.float64), 0
+    batches = make_batches(make_clips(store, slices, clip_frames, encoder.frames, None), clips_per_batch,
+                           encoder.frames)
+    for batch in batches:
+        logits, labels, valid = forward_batch(encoder, heads, store, batch)
+        losses += masked_bce(logits, labels, valid, fov_t, pos_weight).double() * len(batch.targets)
+        weights += len(batch.targets)
+        m = valid[:, :, None, None] & fov_t[None, None]
+        pred = (logits > 0) & m
+        true = (labels > 0.5) & m
+        inter += (pred & true).sum((0, 2, 3)).double()
+        union += (pred | true).sum((0, 2, 3)).double()
+    encoder.train(was[0])
+    heads.train(was[1])
+    out = {"val_loss": float((losses / max(weights, 1)).mean())}
+    for k, t in enumerate(TARGETS):
+        out[f"iou_{t}"] = float(inter[k] / union[k]) if union[k] > 0 else float("nan")
+    out["val_frames"] = sum(b - a for a, b in slices)
+    return out
+
+
+def save_state(path: Path, state: dict[str, Any]) -> None:
+    """Atomic ``torch.save`` (temporary file, fsync, rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        torch.save(state, f)
+        f.flush()
+        os.fsync(f.fileno())
+    tmp.replace(path)
+    fsync_dir(path.parent)
+
+
+def load_state(path: Path) -> dict[str, Any]:
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises RuntimeError, UnpicklingError, EOFError, ... for a broken file
+        raise CorruptArtifactError(f"corrupt training state {path}: {type(e).__name__}: {str(e)[:200]}") from None
+    need = {"step", "epoch", "batch_in_epoch", "encoder", "heads", "optimizer", "scheduler", "torch_rng",
+            "config_hash", "history"}
+    if not isinstance(state, dict) or not need <= set(state):
+        raise CorruptArtifactError(f"corrupt training state {path}: expected keys {sorted(need)}")
+    return state
+
+
+def _rewrite_log(path: Path, upto_step: int) -> None:
+    """Drops log rows written after the saved state (they will be redone by the resumed run)."""
+    if not path.is_file():
+        return
+    with open(path, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if int(r["step"]) <= upto_step]
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=LOG_FIELDS)
+        w.writeheader()
+        w.writerows(rows)
+
+
+def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slices: list[tuple[int, int]],
+        val_slices: list[tuple[int, int]], fov: np.ndarray, fc: FitConfig, out: Path, resume: bool,
+        stop_at_step: int | None = None, progress: bool = True,
+        on_epoch: Callable[[int, dict[str, float]], None] | None = None) -> dict[str, Any]:
+    """Trains encoder + heads on the pretext targets; returns ``{"step", "history", "pos_weight", ...}``.
+
+    Args:
+        encoder, heads: the modules (trained in place).
+        store: all frames; ``train_slices`` / ``val_slices``: store ranges of the train / validation episodes.
+        fov: ``X x Y`` bool field-of-view mask (loss and IoU are restricted to it).
+        fc: optimisation settings.
+        out: the checkpoint directory (``state/``, ``train_log.csv``, ``tb/`` are written here).
+        resume: continue from ``out/state/last.pt`` when it exists.
+        stop_at_step: stop (after saving the state) once this many steps are done — simulates a kill in tests.
+        progress: show a progress bar.
+        on_epoch: called with ``(epoch, validation metrics)`` after each epoch's validation.
+    """
+    from torch.utils.tensorboard import SummaryWriter
+    from tqdm import tqdm
+
+    torch.manual_seed(fc.seed)
+    fov_t = torch.from_numpy(fov)
+    pos_weight = positive_weights(store, train_slices, fov)
+    params = list(encoder.parameters()) + list(heads.parameters())
+    optim = torch.optim.AdamW(params, lr=fc.lr, weight_decay=fc.weight_decay)
+    # exact number of steps (the clips of epoch e depend only on (seed, e)), so the schedule ends where training does
+    total = max(1, sum(math.ceil(len(make_clips(store, train_slices, fc.clip_frames, encoder.frames,
+                                                np.random.default_rng([fc.seed, e]))) / fc.clips_per_batch)
+                       for e in range(fc.epochs)))
+    sched = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=fc.lr, total_steps=total,
+                                                pct_start=fc.warmup_frac, anneal_strategy="cos")
+    state_path = out / "state" / "last.pt"
+    log_path = out / "train_log.csv"
+    step, epoch0, skip, history = 0, 0, 0, []
+    if resume and state_path.is_file():
+        st = load_state(state_path)
+        if st["config_hash"] != fc.config_hash:
+            raise ConfigError(f"cannot resume {out}: its training state was made with another config "
+                              f"(config_hash {st['config_hash'][:12]} there, {fc.config_hash[:12]} now); "
+                              "use --overwrite to start again")
+        encoder.load_state_dict(st["encoder"])
+        heads.load_state_dict(st["heads"])
+        optim.load_state_dict(st["optimizer"])
+        sched.load_state_dict(st["scheduler"])
+        torch.set_rng_state(st["torch_rng"])
+        step, epoch0, skip, history = st["step"], st["epoch"], st["batch_in_epoch"], list(st["history"])
+        log.info("pretrain: resuming %s at step %d (epoch %d, batch %d)", out, step, epoch0, skip)
+        _rewrite_log(log_path, step)
+    elif log_path.exists():
+        log_path.unlink()
+    writer = SummaryWriter(str(out / "tb"), purge_step=step + 1 if step else None)
+    new_log = not log_path.is_file()
+    log_file = open(log_path, "a", newline="")
+    csv_w = csv.DictWriter(log_file, fieldnames=LOG_FIELDS)
+    if new_log:
+        csv_w.writeheader()
+
+    def checkpoint(epoch: int, batch_in_epoch: int) -> None:
+        save_state(state_path, {
+            "step": step, "epoch": epoch, "batch_in_epoch": batch_in_epoch, "encoder": encoder.state_dict(),
+            "heads": heads.state_dict(), "optimizer": optim.state_dict(), "scheduler": sched.state_dict(),
+            "torch_rng": torch.get_rng_state(), "config_hash": fc.config_hash, "history": history})
+        log_file.flush()
+
+    try:
+        for epoch in range(epoch0, fc.epochs):
+            # the epoch's clips and their order depend only on (seed, epoch): resuming replays them exactly
+            rng = np.random.default_rng([fc.seed, epoch])
+            clips = make_clips(store, train_slices, fc.clip_frames, encoder.frames, rng)
+            order = rng.permutation(len(clips))
+            batches = make_batches([clips[i] for i in order], fc.clips_per_batch, encoder.frames)
+            start = skip if epoch == epoch0 else 0
+            encoder.train()
+            heads.train()
+            bar = tqdm(total=len(batches), initial=start, desc=f"pretrain epoch {epoch + 1}/{fc.epochs}",
+                       unit="batch", disable=not progress)
+            for bi in range(start, len(batches)):
+                t0 = time.perf_counter()
+                logits, labels, valid = forward_batch(encoder, heads, store, batches[bi])
+                losses = masked_bce(logits, labels, valid, fov_t, pos_weight)
+                loss = losses.mean()
+                optim.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(params, 5.0)
+                optim.step()
+                if sched.last_epoch + 1 < total:
+                    sched.step()
+                step += 1
+                fps = len(batches[bi].targets) / (time.perf_counter() - t0)
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss.item():.3f}")
+                if step % fc.log_every_steps == 0 or bi == len(batches) - 1:
+                    row = {"step": step, "epoch": epoch, "lr": optim.param_groups[0]["lr"], "loss": loss.item(),
+                           "frames_per_s": round(fps, 2)}
+                    row.update({f"loss_{t}": float(losses[k]) for k, t in enumerate(TARGETS)})
+                    csv_w.writerow(row)
+                    for k, v in row.items():
+                        if k not in ("step", "epoch"):
+                            writer.add_scalar(f"train/{k}", v, step)
+                if step % fc.checkpoint_every_steps == 0 and bi + 1 < len(batches):
+                    checkpoint(epoch, bi + 1)
+                if stop_at_step is not None and step >= stop_at_step:
+                    checkpoint(epoch, bi + 1)
+                    bar.close()
+                    return {"step": step, "history": history, "stopped": True, "pos_weight": pos_weight.tolist()}
+            bar.close()
+            metrics = evaluate(encoder, heads, store, val_slices, fov, pos_weight, fc.clip_frames,
+                               fc.clips_per_batch)
+            metrics.update({"epoch": epoch + 1, "step": step})
+            history.append(metrics)
+            for k, v in metrics.items():
+                if k.startswith(("iou_", "val_loss")):
+                    writer.add_scalar(f"val/{k}", v, step)
+            log.info("pretrain: epoch %d/%d, step %d: %s", epoch + 1, fc.epochs, step,
+                     ", ".join(f"{k} {v:.3f}" for k, v in metrics.items() if k.startswith(("iou_", "val_loss"))))
+            if on_epoch is not None:
+                on_epoch(epoch, metrics)
+            checkpoint(epoch + 1, 0)
+    finally:
+        log_file.close()
+        writer.close()
+    return {"step": step, "history": history, "stopped": False, "pos_weight": pos_weight.tolist()}
