@@ -1,6 +1,6 @@
 # iCrowdNav pipeline. Every stage target takes PROFILE=smoke|default|paper, DATA_DIR=<dir>, ARGS="..." (extra CLI
 # options for every stage it runs, e.g. ARGS=--overwrite to replace outputs made by an older config or code) and
-# <STAGE>_ARGS="..." for one stage only (RECORD_ARGS, EXPORT_ARGS, ROLLOUT_ARGS).
+# <STAGE>_ARGS="..." for one stage only (RECORD_ARGS, EXPORT_ARGS, PRETRAIN_ARGS, ROLLOUT_ARGS).
 #   make all      install (if needed), then run the pipeline end to end on the default profile
 #   make test     install (if needed), then run the test suite
 SHELL := /bin/bash
@@ -11,15 +11,16 @@ ARGS ?=
 RECORD_ARGS ?=
 EXPORT_ARGS ?=
 ROLLOUT_ARGS ?=
+PRETRAIN_ARGS ?=
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export HF_HUB_OFFLINE := 1
 export PYTHONHASHSEED := 0
 
-.PHONY: install all record rollout smoke test bench lint help
+.PHONY: install all record pretrain rollout smoke test bench lint help
 
 help:
-	@echo "targets: install all record rollout smoke test bench lint   (PROFILE=$(PROFILE) DATA_DIR=$(DATA_DIR))"
+	@echo "targets: install all record pretrain rollout smoke test bench lint   (PROFILE=$(PROFILE) DATA_DIR=$(DATA_DIR))"
 
 # The venv is rebuilt only when the lock file or pyproject.toml change (the stamp is newer otherwise).
 # uv installs the exact pins of requirements.lock; its cache (~/.cache/uv) makes a re-install fast.
@@ -32,21 +33,26 @@ $(STAMP): requirements.lock pyproject.toml
 	$(VENV)/bin/uv pip install -q --python $(PY) --no-deps -e . --config-settings editable_mode=compat
 	@touch $(STAMP)
 
-# Stages of the pipeline that exist so far (pretrain / train / eval arrive with their issues).
+# Stages of the pipeline that exist so far (train / eval arrive with their issues).
 # record: expert episodes -> DATA_DIR/raw/<run>/*.mcap, then export -> DATA_DIR/datasets/<repo_id>/ (LeRobot v3.0)
 record: install
 	$(PY) -m pipeline record --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(RECORD_ARGS)
 	$(PY) -m pipeline export --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(EXPORT_ARGS)
 
+# pretrain: the spatio-temporal BEV encoder on DATA_DIR/datasets/<repo_id> -> DATA_DIR/checkpoints/bev/
+# (a killed run continues with PRETRAIN_ARGS=--resume)
+pretrain: install
+	$(PY) -m pipeline pretrain --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(PRETRAIN_ARGS)
+
 # the expert's acceptance run on the test scenes: metrics, figures, videos -> DATA_DIR/rollouts/<run>/
 rollout: install
 	$(PY) -m pipeline rollout --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(ROLLOUT_ARGS)
 
-all: install record rollout
+all: install record pretrain rollout
 
 # Every stage on tiny sizes through real files, into its own data dir (replaced on each run).
 smoke: install
-	$(MAKE) --no-print-directory record rollout PROFILE=smoke DATA_DIR=$(DATA_DIR)/smoke ARGS=--overwrite
+	$(MAKE) --no-print-directory record pretrain rollout PROFILE=smoke DATA_DIR=$(DATA_DIR)/smoke ARGS=--overwrite
 
 test: install
 	$(PY) -m pytest -q -p no:cacheprovider
@@ -55,4 +61,4 @@ bench: install
 	$(PY) -m pipeline bench --profile $(PROFILE) --data-dir $(DATA_DIR)
 
 lint: install
-	$(VENV)/bin/ruff check pipeline sim tests
+	$(VENV)/bin/ruff check pipeline sim recorder pretrain tests

@@ -43,7 +43,7 @@ class PretrainConfig(BaseStageConfig):
     name: str = "bev"  # output: DATA_DIR/checkpoints/<name>/
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     future_s: list[float] = field(default_factory=lambda: [0.5, 1.0])  # horizons of the future pedestrian targets (s)
-    epochs: int = 4  # passes over the training episodes
+    epochs: int = 3  # passes over the training episodes
     clip_frames: int = 8  # target frames per clip (each clip adds T-1 frames of context)
     clips_per_batch: int = 4  # clips per optimisation step
     lr: float = 2e-3  # AdamW peak learning rate (one-cycle schedule: warm-up, cosine decay)
