@@ -256,7 +256,7 @@ def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slice
                 if step % fc.log_every_steps == 0 or bi == len(batches) - 1:
                     row = {"step": step, "epoch": epoch, "lr": optim.param_groups[0]["lr"], "loss": loss.item(),
                            "frames_per_s": round(fps, 2)}
-                    row.update({f"loss_{t}": float(losses[k]) for k, t in enumerate(TARGETS)})
+                    row.update({f"loss_{t}": float(losses[k].detach()) for k, t in enumerate(TARGETS)})
                     csv_w.writerow(row)
                     for k, v in row.items():
                         if k not in ("step", "epoch"):

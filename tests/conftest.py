@@ -1,4 +1,4 @@
-"""Shared fixtures of the recorder tests: tiny driven episodes, their MCAP logs and their exported dataset.
+"""Shared fixtures: tiny driven episodes, their MCAP logs and their exported LeRobot dataset (recorder, pretrain).
 
 Everything is session-scoped and small (64 x 48 cameras, 2 s episodes at 10 Hz = 21 frames) so that the whole
 export/doctor suite stays well under a minute and a half on two cores.

@@ -1,0 +1,158 @@
+"""``icrowdnav pretrain`` end to end on the tiny dataset, the checkpoint loader, and bad inputs."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from pipeline.config import load_config
+from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.stage import run_stage_ex
+from pretrain.checkpoint import ENCODER_WEIGHTS, load_encoder, load_heads
+from pretrain.model import BEVStream
+from pretrain.stage import STAGE, PretrainConfig, checkpoint_dir
+
+REPO = "icrowdnav/tiny"
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _data_dir(tmp_path: Path, dataset: Path) -> Path:
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data / "datasets" / REPO)
+    return data
+
+
+def _cfg(data: Path, **over) -> PretrainConfig:
+    base = {"repo_id": REPO, "epochs": 1, "clip_frames": 8, "clips_per_batch": 2, "figures": 1,
+            "progress": False, "encoder.bev_channels": 8, "checkpoint_every_steps": 2}
+    base.update(over)
+    raw = {k: ",".join(map(str, v)) if isinstance(v, list) else str(v).lower() if isinstance(v, bool) else str(v)
+           for k, v in base.items()}
+    return load_config(PretrainConfig, "pretrain", "smoke", overrides={"data_dir": str(data), **raw})
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, tiny_dataset) -> tuple[PretrainConfig, Path]:
+    """One real stage run on the tiny dataset (shared by the tests that read its outputs)."""
+    tmp = tmp_path_factory.mktemp("pretrain")
+    data = _data_dir(tmp, tiny_dataset.root)
+    cfg = _cfg(data)
+    manifest, ran = run_stage_ex(STAGE, cfg, ["test"])
+    assert ran
+    return cfg, checkpoint_dir(cfg)
+
+
+def test_stage_writes_the_documented_tree(trained) -> None:
+    cfg, out = trained
+    for name in ("encoder.safetensors", "heads.safetensors", "encoder.json", "metrics.json", "train_log.csv",
+                 "manifest.json", "config.yaml", "state/last.pt", "figures/curves.png", "figures/fov.png",
+                 "figures/sample_0.png"):
+        assert (out / name).is_file(), name
+    assert any((out / "tb").iterdir())
+    metrics = json.loads((out / "metrics.json").read_text())
+    for t in ("static", "ped_t", "ped_t+0.5s", "ped_t+1.0s"):
+        assert f"iou_{t}" in metrics["final"]
+    desc = json.loads((out / "encoder.json").read_text())
+    assert desc["encoder"]["bev_channels"] == 8 and len(desc["cameras"]) == 2
+    assert desc["dataset"]["repo_id"] == REPO
+    assert set(desc["dataset"]["train_episodes"]).isdisjoint(desc["dataset"]["val_episodes"])
+
+
+def test_second_run_is_up_to_date(trained) -> None:
+    cfg, _ = trained
+    _, ran = run_stage_ex(STAGE, cfg, ["test"])
+    assert not ran
+
+
+def test_loaded_encoder_is_frozen_and_streams(trained, tiny_dataset) -> None:
+    """The loader needs only the checkpoint directory; the loaded encoder reproduces the saved weights."""
+    _, out = trained
+    enc = load_encoder(out)
+    assert not enc.training and not any(p.requires_grad for p in enc.parameters())
+    heads = load_heads(out, enc)
+    c, x, y = enc.out_shape
+    stream = BEVStream(enc)
+    cam = enc.cameras[0]
+    rgb = torch.randint(0, 255, (1, 2, 3, cam.height, cam.width), dtype=torch.uint8)
+    depth = torch.full((1, 2, cam.height, cam.width), 3.0)
+    s = stream.step(rgb, depth, torch.zeros(1, 3, dtype=torch.float64))
+    assert s.shape == (1, c, x, y) and torch.isfinite(s).all()
+    assert heads(s).shape == (1, 4, x, y)
+
+
+def test_corrupt_or_unfinished_checkpoint_is_named(trained, tmp_path: Path) -> None:
+    _, out = trained
+    bad = tmp_path / "bev"
+    shutil.copytree(out, bad)
+    w = bad / ENCODER_WEIGHTS
+    w.write_bytes(w.read_bytes()[:100])
+    with pytest.raises(CorruptArtifactError, match=str(w)):
+        load_encoder(bad)
+    (bad / "manifest.json").unlink()
+    with pytest.raises(InputMissingError, match="unfinished"):
+        load_encoder(bad)
+    with pytest.raises(InputMissingError, match="no BEV encoder checkpoint"):
+        load_encoder(tmp_path / "nowhere")
+
+
+def test_mismatching_weights_are_named(trained, tmp_path: Path) -> None:
+    """encoder.json and the weights disagree (e.g. edited channels): the error names the weights file."""
+    _, out = trained
+    bad = tmp_path / "bev"
+    shutil.copytree(out, bad)
+    desc = json.loads((bad / "encoder.json").read_text())
+    desc["encoder"]["bev_channels"] = 16
+    (bad / "encoder.json").write_text(json.dumps(desc))
+    with pytest.raises(CorruptArtifactError, match="does not match"):
+        load_encoder(bad)
+
+
+def test_dataset_without_needed_features(tmp_path: Path, tiny_dataset) -> None:
+    data = _data_dir(tmp_path, tiny_dataset.root)
+    info = data / "datasets" / REPO / "meta" / "info.json"
+    d = json.loads(info.read_text())
+    del d["features"]["privileged.ped_state"]
+    info.write_text(json.dumps(d))
+    with pytest.raises(InputMissingError, match="privileged.ped_state"):
+        run_stage_ex(STAGE, _cfg(data), ["test"])
+    assert not (data / "checkpoints").exists() or not any((data / "checkpoints").iterdir())
+
+
+def test_missing_dataset(tmp_path: Path) -> None:
+    with pytest.raises(InputMissingError, match="no LeRobot dataset"):
+        run_stage_ex(STAGE, _cfg(tmp_path / "data"), ["test"])
+
+
+def test_grid_that_does_not_fit_the_cameras(tmp_path: Path, tiny_dataset) -> None:
+    data = _data_dir(tmp_path, tiny_dataset.root)
+    with pytest.raises(ConfigError, match="max_depth_m"):
+        run_stage_ex(STAGE, _cfg(data, **{"encoder.x_bound": [0.0, 12.0, 0.1]}), ["test"])
+    with pytest.raises(ConfigError, match="field of view"):
+        run_stage_ex(STAGE, _cfg(data, **{"encoder.x_bound": [-6.0, -1.0, 0.1]}), ["test"])
+    assert not (data / "checkpoints" / "bev").exists()
+
+
+def test_cli_bad_grid_is_one_line_and_writes_nothing(tmp_path: Path, tiny_dataset) -> None:
+    data = _data_dir(tmp_path, tiny_dataset.root)
+    r = subprocess.run([sys.executable, "-m", "pipeline", "pretrain", "--profile", "smoke", "--data-dir", str(data),
+                        "--repo-id", REPO, "--encoder.x_bound", "0,12,0.1"], cwd=ROOT, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1 and "max_depth_m" in errors[0], r.stderr
+    assert not (data / "checkpoints").exists() or not any((data / "checkpoints").iterdir())
+
+
+def test_config_errors() -> None:
+    with pytest.raises(ConfigError, match="future_s"):
+        load_config(PretrainConfig, "pretrain", "smoke", overrides={"future_s": "0.5"})
+    with pytest.raises(ConfigError, match="val_fraction"):
+        load_config(PretrainConfig, "pretrain", "smoke", overrides={"val_fraction": "1.5"})
+    with pytest.raises(ConfigError, match="resnet_stages"):
+        load_config(PretrainConfig, "pretrain", "smoke", overrides={"encoder.resnet_stages": "7"})

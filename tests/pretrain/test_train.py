@@ -1,0 +1,114 @@
+"""The pretext training loop on the tiny exported dataset: it learns, it resumes exactly, it refuses bad state."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.errors import ConfigError, CorruptArtifactError
+from pretrain.data import FrameStore, load_frames
+from pretrain.geometry import cameras_from_dataset, check_grid_fits_cameras
+from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
+from pretrain.train import FitConfig, evaluate, fit, load_state, positive_weights
+
+# coarse grid and dense lift: the 64 x 48 tiny cameras give few points per person otherwise
+ENC = dict(bev_channels=16, x_bound=[0.0, 4.0, 0.2], y_bound=[-3.2, 3.2, 0.2], lift_stride_px=2)
+
+
+@pytest.fixture(scope="module")
+def tiny_store(tiny_dataset) -> tuple[FrameStore, np.ndarray, list]:
+    cams = cameras_from_dataset(tiny_dataset.root)
+    cfg = EncoderConfig(**ENC)
+    fov = check_grid_fits_cameras(cfg.grid, cams)
+    store = load_frames(tiny_dataset.root, cams, cfg.grid, cfg.lift_stride_px, [0.5, 1.0], progress=False)
+    return store, fov, cams
+
+
+def _fit_config(**kw) -> FitConfig:
+    base = dict(epochs=2, clip_frames=8, clips_per_batch=2, lr=1e-2, weight_decay=0.0, warmup_frac=0.1,
+                checkpoint_every_steps=1000, log_every_steps=1, seed=0, config_hash="test")
+    base.update(kw)
+    return FitConfig(**base)
+
+
+def _models(cams, seed: int = 0) -> tuple[BEVEncoder, PretextHeads]:
+    torch.manual_seed(seed)
+    return BEVEncoder(EncoderConfig(**ENC), cams), PretextHeads(ENC["bev_channels"])
+
+
+def test_store_matches_dataset(tiny_store, tiny_dataset) -> None:
+    """Every frame is loaded, decoded images are not blank, and labels contain people and obstacles."""
+    store, fov, _ = tiny_store
+    assert len(store) == tiny_dataset.counts["frames"]
+    assert store.rgb.std() > 5
+    assert (store.depth > 0).mean() > 0.3
+    assert store.labels[:, 0][:, fov].mean() > 0.05  # static
+    assert store.labels[:, 1][:, fov].sum() > 0  # people now
+    assert not store.valid[-1, 2:].any() and store.valid[0].all()
+
+
+def test_tiny_overfit_reaches_high_iou(tiny_store, tmp_path: Path) -> None:
+    """40 steps on one episode (with people in view) take it from chance to a high IoU on that episode."""
+    torch.set_num_threads(2)
+    store, fov, cams = tiny_store
+    sl = [store.episode_slices[1]]
+    enc, heads = _models(cams)
+    pw = positive_weights(store, sl, fov)
+    before = evaluate(enc, heads, store, sl, fov, pw, 8, 3)
+    res = fit(enc, heads, store, sl, sl, fov, _fit_config(epochs=40, clips_per_batch=4), tmp_path, resume=False,
+              progress=False)
+    after = res["history"][-1]
+    assert res["step"] == 40
+    assert after["iou_static"] >= 0.8, after
+    assert after["iou_ped_t"] >= 0.5, after
+    assert after["iou_ped_t"] > 3 * before["iou_ped_t"], (before, after)
+    assert after["val_loss"] < 0.5 * before["val_loss"]
+
+
+def _weights(m: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.clone() for k, v in m.state_dict().items()}
+
+
+def test_resume_continues_from_saved_step(tiny_store, tmp_path: Path) -> None:
+    """Stopped after 3 steps and resumed, training ends with the weights of an uninterrupted run; the log has
+    every step once."""
+    store, fov, cams = tiny_store
+    sl = store.episode_slices
+    fc = _fit_config(epochs=2)
+    enc_a, heads_a = _models(cams)
+    full = fit(enc_a, heads_a, store, sl[:1], sl[1:], fov, fc, tmp_path / "a", resume=False, progress=False)
+
+    enc_b, heads_b = _models(cams)
+    part = fit(enc_b, heads_b, store, sl[:1], sl[1:], fov, fc, tmp_path / "b", resume=False, progress=False,
+               stop_at_step=3)
+    assert part["stopped"] and part["step"] == 3
+    assert load_state(tmp_path / "b" / "state" / "last.pt")["step"] == 3
+    enc_c, heads_c = _models(cams, seed=123)  # a fresh process would start from other weights
+    rest = fit(enc_c, heads_c, store, sl[:1], sl[1:], fov, fc, tmp_path / "b", resume=True, progress=False)
+    assert rest["step"] == full["step"]
+    for name, v in _weights(enc_a).items():
+        torch.testing.assert_close(enc_c.state_dict()[name], v, rtol=1e-4, atol=1e-5, msg=name)
+    with open(tmp_path / "b" / "train_log.csv", newline="") as f:
+        steps = [int(r["step"]) for r in csv.DictReader(f)]
+    assert steps == list(range(1, full["step"] + 1))
+    assert [h["iou_static"] for h in rest["history"]] == pytest.approx([h["iou_static"] for h in full["history"]],
+                                                                       abs=1e-3)
+
+
+def test_resume_refuses_other_config_and_corrupt_state(tiny_store, tmp_path: Path) -> None:
+    store, fov, cams = tiny_store
+    sl = store.episode_slices
+    enc, heads = _models(cams)
+    fit(enc, heads, store, sl[:1], sl[1:], fov, _fit_config(epochs=1), tmp_path, resume=False, progress=False,
+        stop_at_step=1)
+    with pytest.raises(ConfigError, match="another config"):
+        fit(enc, heads, store, sl[:1], sl[1:], fov, _fit_config(epochs=1, config_hash="other"), tmp_path,
+            resume=True, progress=False)
+    state = tmp_path / "state" / "last.pt"
+    state.write_bytes(state.read_bytes()[: state.stat().st_size // 2])
+    with pytest.raises(CorruptArtifactError, match=str(state)):
+        fit(enc, heads, store, sl[:1], sl[1:], fov, _fit_config(epochs=1), tmp_path, resume=True, progress=False)
