@@ -21,7 +21,9 @@ are kept, ours are replaced) and prints every figure. Figures (single process, t
 * ``record_frames_per_s_1worker`` / ``_2workers`` — the record stage (expert driving, both cameras rendered,
   MCAP written) on ``record_episodes`` episodes of the bench scene, and ``record_mcap_share``, the share of
   recording time spent writing MCAP; ``export_frames_per_s`` — the LeRobot export of that recording
-  (reading MCAP, lerobot's writer incl. AV1 video and stats; the dataset doctor excluded).
+  (reading MCAP, lerobot's writer incl. AV1 video and stats; the dataset doctor excluded);
+* ``bev_*`` — the BEV encoder with the profile's ``pretrain.encoder`` architecture, one thread: lift vs its
+  reference, streaming step vs recomputing the window (see :mod:`pretrain.bench`).
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ class BenchConfig(BaseStageConfig):
     scene: str = field(default="office_lobby", metadata={"help": "scene of the env figures"})
     density: float = field(default=0.2, metadata={"help": "crowd density of the env figures, ped/m²"})
     sim: SimConfig = field(default_factory=SimConfig, metadata={"help": "the crowd world (camera resolution)"})
+    bev: bool = field(default=True, metadata={"help": "measure the BEV encoder figures (pretrain.bench)"})
 
     def validate(self) -> None:
         super().validate()
@@ -157,6 +160,12 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
     out["intention_head_lead_p10_s"] = float(np.percentile(leads, 10))
     out["intention_head_lead_p90_s"] = float(np.percentile(leads, 90))
     out["intention_head_first_share"] = float(np.mean(leads > 0))
+    if cfg.bev:
+        from pretrain.bench import measure_bev
+        from pretrain.stage import PretrainConfig
+
+        enc_cfg = load_config(PretrainConfig, "pretrain", cfg.profile).encoder
+        out.update(measure_bev(cfg.sim, cfg.scene, cfg.density, cfg.seed, enc_cfg, s))
     if cfg.record_episodes > 0:
         out.update(measure_recorder(cfg))
     return {k: round(float(v), 3) for k, v in out.items()}

@@ -177,8 +177,10 @@ def check_grid_fits_cameras(grid: BEVGrid, cameras: list[Camera], key: str = "gr
     """Fails unless the grid lies within the cameras' range; returns the field-of-view mask.
 
     Raises:
-        ConfigError: a grid corner is farther than every camera's ``max_depth_m``, or less than 20 % of the
-            grid's cells are in any camera's field of view (a grid behind or beside the cameras).
+        ConfigError: the grid reaches farther forward than every camera's ``max_depth_m`` (its far corners may
+            lie beyond the range: the field of view is a wedge, and those cells are masked out of the loss and
+            the IoU), or less than 20 % of the grid's cells are in any camera's field of view (a grid behind or
+            beside the cameras).
     """
     grid.validate(key)
     if not cameras:
@@ -319,13 +321,13 @@ def relative_pose(pose_from: torch.Tensor, pose_to: torch.Tensor) -> torch.Tenso
     return torch.stack([c * dx + s * dy, -s * dx + c * dy, dyaw], -1)
 
 
-def warp_bev(maps: torch.Tensor, past_in_current: torch.Tensor, grid: BEVGrid, mode: str = "bilinear") -> torch.Tensor:
+def warp_bev(maps: torch.Tensor, current_in_past: torch.Tensor, grid: BEVGrid, mode: str = "bilinear") -> torch.Tensor:
     """Warps BEV maps from a past robot frame into the current one (ego-motion compensation).
 
     Args:
         maps: ``B x C x X x Y`` maps in the past frame.
-        past_in_current: ``B x 3`` ``[dx, dy, dyaw]`` = :func:`relative_pose` ``(pose_past, pose_current)``,
-            i.e. the current frame's pose expressed in the past frame.
+        current_in_past: ``B x 3`` ``[dx, dy, dyaw]`` = :func:`relative_pose` ``(pose_past, pose_current)``:
+            the current frame's pose expressed in the past frame.
         grid: the grid of both maps.
         mode: ``grid_sample`` interpolation.
 
@@ -334,7 +336,7 @@ def warp_bev(maps: torch.Tensor, past_in_current: torch.Tensor, grid: BEVGrid, m
     """
     b = maps.shape[0]
     centres = torch.as_tensor(grid.cell_centres(), dtype=maps.dtype, device=maps.device)  # X Y 2
-    tx, ty, yaw = (past_in_current[:, k].to(maps.dtype).view(b, 1, 1) for k in range(3))
+    tx, ty, yaw = (current_in_past[:, k].to(maps.dtype).view(b, 1, 1) for k in range(3))
     c, s = torch.cos(yaw), torch.sin(yaw)
     px = tx + c * centres[..., 0] - s * centres[..., 1]  # B X Y: the cell centres in the past frame
     py = ty + s * centres[..., 0] + c * centres[..., 1]
