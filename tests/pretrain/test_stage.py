@@ -156,3 +156,33 @@ def test_config_errors() -> None:
         load_config(PretrainConfig, "pretrain", "smoke", overrides={"val_fraction": "1.5"})
     with pytest.raises(ConfigError, match="resnet_stages"):
         load_config(PretrainConfig, "pretrain", "smoke", overrides={"encoder.resnet_stages": "7"})
+
+
+def test_backbone_initialised_from_a_user_weights_file(tmp_path: Path) -> None:
+    """A torchvision resnet18 state dict initialises the kept trunk stages; a wrong file is named."""
+    import torchvision
+
+    from pretrain.geometry import Camera
+    from pretrain.model import BEVEncoder, EncoderConfig
+    from pretrain.stage import load_backbone_weights
+    from sim.cameras import CameraSpec
+
+    torch.manual_seed(1)
+    ref = torchvision.models.resnet18(weights=None)
+    path = tmp_path / "resnet18.pth"
+    torch.save(ref.state_dict(), path)
+    cams = [Camera.from_dict(CameraSpec(n, 64, 48, 70.0, y, 0.0, (0.1, 0.03 * s, 0.8)).to_dict())
+            for n, y, s in (("left", 35.0, 1), ("right", -35.0, -1))]
+    enc = BEVEncoder(EncoderConfig(resnet_stages=2), cams)
+    assert not torch.equal(enc.trunk[4][0].conv1.weight, ref.layer1[0].conv1.weight)
+    load_backbone_weights(enc, str(path))
+    assert torch.equal(enc.trunk[0].weight, ref.conv1.weight)
+    assert torch.equal(enc.trunk[5][1].conv2.weight, ref.layer2[1].conv2.weight)
+    bad = tmp_path / "bad.pth"
+    torch.save({"fc.weight": torch.zeros(3)}, bad)
+    with pytest.raises(CorruptArtifactError, match="bad.pth"):
+        load_backbone_weights(enc, str(bad))
+    junk = tmp_path / "junk.pth"
+    junk.write_bytes(b"not a checkpoint")
+    with pytest.raises(CorruptArtifactError, match="junk.pth"):
+        load_backbone_weights(enc, str(junk))
