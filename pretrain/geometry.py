@@ -20,6 +20,7 @@ for a whole batch with one ``index_add_``; :func:`lift_splat_reference` is the o
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass
@@ -321,6 +322,12 @@ def relative_pose(pose_from: torch.Tensor, pose_to: torch.Tensor) -> torch.Tenso
     return torch.stack([c * dx + s * dy, -s * dx + c * dy, dyaw], -1)
 
 
+@functools.lru_cache(maxsize=8)
+def _centres(grid: BEVGrid, dtype: torch.dtype) -> torch.Tensor:
+    """Cached ``X x Y x 2`` cell centres (read-only use)."""
+    return torch.as_tensor(grid.cell_centres(), dtype=dtype)
+
+
 def warp_bev(maps: torch.Tensor, current_in_past: torch.Tensor, grid: BEVGrid, mode: str = "bilinear") -> torch.Tensor:
     """Warps BEV maps from a past robot frame into the current one (ego-motion compensation).
 
@@ -335,7 +342,7 @@ def warp_bev(maps: torch.Tensor, current_in_past: torch.Tensor, grid: BEVGrid, m
         ``B x C x X x Y`` maps in the current frame; cells that were outside the past map are 0.
     """
     b = maps.shape[0]
-    centres = torch.as_tensor(grid.cell_centres(), dtype=maps.dtype, device=maps.device)  # X Y 2
+    centres = _centres(grid, maps.dtype).to(maps.device)  # X Y 2
     tx, ty, yaw = (current_in_past[:, k].to(maps.dtype).view(b, 1, 1) for k in range(3))
     c, s = torch.cos(yaw), torch.sin(yaw)
     px = tx + c * centres[..., 0] - s * centres[..., 1]  # B X Y: the cell centres in the past frame
