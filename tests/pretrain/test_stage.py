@@ -186,3 +186,18 @@ def test_backbone_initialised_from_a_user_weights_file(tmp_path: Path) -> None:
     junk.write_bytes(b"not a checkpoint")
     with pytest.raises(CorruptArtifactError, match="junk.pth"):
         load_backbone_weights(enc, str(junk))
+
+
+def test_evaluate_checkpoint_sweeps_thresholds(trained, tiny_dataset, tmp_path: Path) -> None:
+    """`python -m pretrain.evaluate` on the trained checkpoint: one IoU per target and threshold (+ bayes)."""
+    from pretrain.evaluate import main
+
+    _, out = trained
+    dest = tmp_path / "eval.json"
+    assert main([str(out), "--episodes", "all", "--out", str(dest)]) == 0
+    res = json.loads(dest.read_text())
+    assert res["frames"] == tiny_dataset.counts["frames"] and res["episodes"] == [0, 1]
+    for row in res["iou"].values():
+        assert set(row) == {"0.3", "0.4", "0.5", "0.6", "0.7", "0.8", "0.9", "bayes"}
+        assert all(v != v or 0.0 <= v <= 1.0 for v in row.values())  # NaN when a target never occurs
+    assert main([str(out), "--episodes", "7"]) == 2

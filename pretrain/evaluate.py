@@ -1,0 +1,149 @@
+"""Evaluate a pretrained BEV encoder on a dataset: IoU per pretext target at several decision thresholds.
+
+::
+
+    python -m pretrain.evaluate data/checkpoints/bev                          # its own validation episodes
+    python -m pretrain.evaluate data/checkpoints/bev --dataset data/datasets/icrowdnav/other --episodes all
+    python -m pretrain.evaluate data/checkpoints/bev --episodes 0,5,9 --out eval.json
+
+The checkpoint carries its grid and cameras (``encoder.json``); the dataset's cameras must be the same (an
+encoder lifts with the intrinsics/extrinsics it was trained with). IoU is dataset-level over the chosen frames,
+cells in the cameras' field of view only, at each threshold on the heads' probabilities; 0.5 is the headline
+figure of ``metrics.json``. Thresholds can be *chosen* on training episodes (``--episodes train``) and then
+applied to validation ones — choosing them on the validation episodes and reporting the same episodes is
+optimistic.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipeline.errors import ConfigError, ICrowdNavError
+from pretrain.checkpoint import load_encoder, load_heads, read_encoder_json
+from pretrain.data import load_frames, make_batches, make_clips
+from pretrain.geometry import cameras_from_dataset, check_grid_fits_cameras
+from pretrain.model import TARGETS
+from pretrain.train import forward_batch
+
+THRESHOLDS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+
+
+def check_same_cameras(encoder_cams, dataset_cams, where: str) -> None:
+    """The dataset must have the encoder's cameras (names, sizes, K, T_base_cam)."""
+    if [c.name for c in encoder_cams] != [c.name for c in dataset_cams]:
+        raise ConfigError(f"{where}: cameras {[c.name for c in dataset_cams]} differ from the encoder's "
+                          f"{[c.name for c in encoder_cams]}")
+    for a, b in zip(encoder_cams, dataset_cams, strict=True):
+        if (a.width, a.height) != (b.width, b.height) or not (np.allclose(a.K_np, b.K_np, atol=1e-6)
+                                                             and np.allclose(a.T_np, b.T_np, atol=1e-6)):
+            raise ConfigError(f"{where}: camera {b.name} ({b.width}x{b.height}) has other intrinsics/extrinsics "
+                              f"than the encoder's ({a.width}x{a.height}); the encoder only fits its own cameras")
+
+
+@torch.no_grad()
+def iou_sweep(encoder, heads, store, slices, fov: np.ndarray, thresholds=THRESHOLDS, clip_frames: int = 8,
+              clips_per_batch: int = 4, pos_weight: list[float] | None = None) -> dict[str, dict[str, float]]:
+    """``{target: {threshold: IoU}}`` over the frames of ``slices`` (field of view, valid frames only).
+
+    With ``pos_weight`` (the training loss's per-target BCE weights, ``metrics.json``), one more column ``bayes``
+    uses the threshold ``w / (1 + w)``: a BCE weighted by ``w`` on positives learns ``w``-inflated odds, so this
+    is where the *unweighted* probability crosses 0.5 — the decision rule that does not depend on the weight.
+    """
+    fov_t = torch.from_numpy(fov)
+    cols = [f"{x:g}" for x in thresholds]
+    th = torch.tensor(thresholds).view(-1, 1, 1, 1, 1).expand(-1, 1, len(TARGETS), 1, 1)
+    if pos_weight is not None:
+        w = torch.tensor(pos_weight, dtype=torch.float32)
+        th = torch.cat([th, (w / (1 + w)).view(1, 1, -1, 1, 1)], 0)
+        cols.append("bayes")
+    thresholds = cols
+    inter = torch.zeros(len(thresholds), len(TARGETS), dtype=torch.float64)
+    union = torch.zeros_like(inter)
+    for batch in make_batches(make_clips(store, slices, clip_frames, encoder.frames, None), clips_per_batch,
+                              encoder.frames):
+        logits, labels, valid = forward_batch(encoder, heads, store, batch)
+        m = (valid[:, :, None, None] & fov_t[None, None]).unsqueeze(0)
+        pred = (torch.sigmoid(logits).unsqueeze(0) > th) & m
+        true = (labels > 0.5).unsqueeze(0) & m
+        inter += (pred & true).sum((1, 3, 4)).double()
+        union += (pred | true).sum((1, 3, 4)).double()
+    iou = torch.where(union > 0, inter / union.clamp_min(1), torch.full_like(inter, float("nan")))
+    return {t: {x: float(iou[i, k]) for i, x in enumerate(thresholds)} for k, t in enumerate(TARGETS)}
+
+
+def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str = "val",
+                        thresholds=THRESHOLDS, progress: bool = True) -> dict:
+    """Loads a checkpoint and a dataset and returns the IoU sweep with its provenance."""
+    desc = read_encoder_json(ckpt)
+    ds = desc.get("dataset", {})
+    if dataset is None:
+        repo = ds.get("repo_id")
+        if not repo:
+            raise ConfigError(f"{ckpt}: encoder.json names no dataset; pass --dataset")
+        dataset = Path(ckpt).resolve().parents[1] / "datasets" / repo
+    dataset = Path(dataset)
+    encoder = load_encoder(ckpt)
+    heads = load_heads(ckpt, encoder)
+    cams = cameras_from_dataset(dataset)
+    check_same_cameras(encoder.cameras, cams, str(dataset))
+    fov = check_grid_fits_cameras(encoder.grid, cams)
+    info = json.loads((dataset / "meta" / "info.json").read_text())
+    total = int(info["total_episodes"])
+    if episodes in ("val", "train"):
+        eps = ds.get(f"{episodes}_episodes")
+        if eps is None:
+            raise ConfigError(f"{ckpt}: encoder.json lists no {episodes} episodes")
+    elif episodes == "all":
+        eps = list(range(total))
+    else:
+        try:
+            eps = sorted({int(x) for x in episodes.split(",") if x.strip()})
+        except ValueError:
+            raise ConfigError(f"--episodes: expected val, train, all or a comma list of indices, "
+                              f"got {episodes!r}") from None
+    bad = [e for e in eps if not 0 <= e < total]
+    if bad or not eps:
+        raise ConfigError(f"--episodes: {bad or 'none'} not in the dataset's 0..{total - 1}")
+    store = load_frames(dataset, cams, encoder.grid, encoder.cfg.lift_stride_px, desc.get("future_s", [0.5, 1.0]),
+                        episodes=eps, progress=progress)
+    pos_weight = None
+    mpath = Path(ckpt) / "metrics.json"
+    if mpath.is_file():
+        pos_weight = json.loads(mpath.read_text()).get("pos_weight")
+    sweep = iou_sweep(encoder, heads, store, store.episode_slices, fov, thresholds, pos_weight=pos_weight)
+    return {"checkpoint": str(ckpt), "dataset": str(dataset), "episodes": eps, "frames": len(store),
+            "iou": sweep, "note": "dataset-level IoU, field-of-view cells, valid frames"}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m pretrain.evaluate", description=__doc__.split("\n")[0])
+    ap.add_argument("checkpoint", type=Path)
+    ap.add_argument("--dataset", type=Path, default=None, help="dataset root (default: the one it was trained on)")
+    ap.add_argument("--episodes", default="val", help="val | train | all | comma list of episode indices")
+    ap.add_argument("--out", type=Path, default=None, help="also write the result as JSON here")
+    a = ap.parse_args(argv)
+    try:
+        res = evaluate_checkpoint(a.checkpoint, a.dataset, a.episodes)
+    except ICrowdNavError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"{res['frames']} frames of {len(res['episodes'])} episodes of {res['dataset']}")
+    ths = list(next(iter(res["iou"].values())))
+    print(f"{'target':<12}" + "".join(f"  p>{t:<5}" for t in ths) + "   (bayes: p > w/(1+w), w = pos_weight)")
+    for t, row in res["iou"].items():
+        print(f"{t:<12}" + "".join(f"  {row[x]:<7.3f}" for x in ths))
+    if a.out:
+        from pipeline.artifacts import atomic_write_json
+
+        atomic_write_json(a.out, res)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
