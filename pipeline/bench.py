@@ -91,7 +91,7 @@ def _env_rate(cfg: BenchConfig, seconds: float, **overrides) -> tuple[float, obj
     return _throughput(step, seconds), env
 
 
-def _time_call(fn, seconds: float) -> float:
+def time_call(fn, seconds: float) -> float:
     """Mean seconds per call of ``fn``."""
     return 1.0 / _throughput(fn, seconds)
 
@@ -109,7 +109,7 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
     out["env_steps_per_s_privileged"], _ = _env_rate(cfg, s, obs_mode="privileged", info_level="basic")
     out["env_steps_per_s_render"], env = _env_rate(cfg, s, obs_mode="visual", info_level="full")
     u = env.unwrapped
-    out["render_ms_per_camera"] = 1000 * _time_call(u.render_cameras, s / 2) / 2
+    out["render_ms_per_camera"] = 1000 * time_call(u.render_cameras, s / 2) / 2
     out["render_resolution_px"] = float(cfg.sim.camera.width_px * cfg.sim.camera.height_px)
     out["bench_peds"] = float(u.crowd.n)
 
@@ -121,8 +121,8 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
         ref = social_force_reference(*args)
         if not np.allclose(fast, ref, atol=1e-9):
             raise RuntimeError("vectorised social force disagrees with the reference")
-        t_fast = _time_call(lambda: crowd.social_forces(robot, 0.3), s / 4)
-        t_ref = _time_call(lambda: social_force_reference(*args), s / 4)
+        t_fast = time_call(lambda: crowd.social_forces(robot, 0.3), s / 4)
+        t_ref = time_call(lambda: social_force_reference(*args), s / 4)
         out[f"{prefix}_us"] = 1e6 * t_fast
         out[f"{prefix}_reference_us"] = 1e6 * t_ref
         out[f"{prefix}_speedup"] = t_ref / t_fast
@@ -137,8 +137,8 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
         sfm_pair(big, "sfm_vectorized_n40")
     pts = rng.uniform([u.layout.spec.bounds[0], u.layout.spec.bounds[2]],
                       [u.layout.spec.bounds[1], u.layout.spec.bounds[3]], (1000, 2))
-    t_fast = _time_call(lambda: u.layout.geometry.signed_distance(pts), s / 4)
-    t_ref = _time_call(lambda: [signed_distance_reference(u.layout.obstacles, p) for p in pts], s / 4)
+    t_fast = time_call(lambda: u.layout.geometry.signed_distance(pts), s / 4)
+    t_ref = time_call(lambda: [signed_distance_reference(u.layout.obstacles, p) for p in pts], s / 4)
     out["static_distance_speedup"] = t_ref / t_fast
     env.close()
     # the expert's decision time
@@ -149,7 +149,7 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
     env.reset(seed=cfg.seed)
     expert = PrivilegedExpert()
     expert.reset(env.unwrapped)
-    out["expert_ms_per_step"] = 1000 * _time_call(lambda: expert.command(env.unwrapped), s / 2)
+    out["expert_ms_per_step"] = 1000 * time_call(lambda: expert.command(env.unwrapped), s / 2)
     env.close()
     # the premise: heads turn before the walking direction does (free crowd, 120 s simulated)
     from sim.intention import head_leads, simulate

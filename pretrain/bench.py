@@ -23,14 +23,10 @@ import torch
 
 
 def _ms(fn, seconds: float) -> float:
-    fn()
-    n, t0 = 0, time.perf_counter()
-    while True:
-        fn()
-        n += 1
-        dt = time.perf_counter() - t0
-        if dt >= seconds:
-            return 1000.0 * dt / n
+    """Mean milliseconds per call (the bench's own timer, :func:`pipeline.bench.time_call`)."""
+    from pipeline.bench import time_call
+
+    return 1000.0 * time_call(fn, seconds)
 
 
 def measure_bev(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg: Any, seconds: float) -> dict:

@@ -29,7 +29,7 @@ from pretrain.checkpoint import load_encoder, load_heads, read_encoder_json
 from pretrain.data import load_frames, make_batches, make_clips
 from pretrain.geometry import cameras_from_dataset, check_grid_fits_cameras
 from pretrain.model import TARGETS
-from pretrain.train import forward_batch
+from pretrain.train import forward_batch, iou_counts
 
 THRESHOLDS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 
@@ -57,22 +57,19 @@ def iou_sweep(encoder, heads, store, slices, fov: np.ndarray, thresholds=THRESHO
     """
     fov_t = torch.from_numpy(fov)
     cols = [f"{x:g}" for x in thresholds]
-    th = torch.tensor(thresholds).view(-1, 1, 1, 1, 1).expand(-1, 1, len(TARGETS), 1, 1)
+    th = torch.tensor(thresholds, dtype=torch.float32).view(-1, 1).expand(-1, len(TARGETS))
     if pos_weight is not None:
         w = torch.tensor(pos_weight, dtype=torch.float32)
-        th = torch.cat([th, (w / (1 + w)).view(1, 1, -1, 1, 1)], 0)
+        th = torch.cat([th, (w / (1 + w)).view(1, -1)], 0)
         cols.append("bayes")
     thresholds = cols
-    inter = torch.zeros(len(thresholds), len(TARGETS), dtype=torch.float64)
+    inter = torch.zeros(th.shape[0], len(TARGETS), dtype=torch.float64)
     union = torch.zeros_like(inter)
     for batch in make_batches(make_clips(store, slices, clip_frames, encoder.frames, None), clips_per_batch,
                               encoder.frames):
-        logits, labels, valid = forward_batch(encoder, heads, store, batch)
-        m = (valid[:, :, None, None] & fov_t[None, None]).unsqueeze(0)
-        pred = (torch.sigmoid(logits).unsqueeze(0) > th) & m
-        true = (labels > 0.5).unsqueeze(0) & m
-        inter += (pred & true).sum((1, 3, 4)).double()
-        union += (pred | true).sum((1, 3, 4)).double()
+        i, u = iou_counts(*forward_batch(encoder, heads, store, batch), fov_t, th)
+        inter += i
+        union += u
     iou = torch.where(union > 0, inter / union.clamp_min(1), torch.full_like(inter, float("nan")))
     return {t: {x: float(iou[i, k]) for i, x in enumerate(thresholds)} for k, t in enumerate(TARGETS)}
 

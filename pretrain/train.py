@@ -95,6 +95,20 @@ def masked_bce(logits: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor, 
     return (per * mask).sum((0, 2, 3)) / mask.sum((0, 2, 3)).clamp_min(1.0)
 
 
+def iou_counts(logits: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor, fov: torch.Tensor,
+               thresholds: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Intersection and union counts ``S x K`` per threshold and target (valid frames, field-of-view cells).
+
+    Args:
+        logits, labels: ``P x K x X x Y``; valid: ``P x K``; fov: ``X x Y`` bool.
+        thresholds: ``S x K`` probability thresholds (one per target, per row).
+    """
+    m = (valid[:, :, None, None] & fov[None, None]).unsqueeze(0)
+    pred = (torch.sigmoid(logits).unsqueeze(0) > thresholds.view(*thresholds.shape, 1, 1, 1).transpose(1, 2)) & m
+    true = (labels > 0.5).unsqueeze(0) & m
+    return (pred & true).sum((1, 3, 4)).double(), (pred | true).sum((1, 3, 4)).double()
+
+
 @torch.no_grad()
 def evaluate(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, slices: list[tuple[int, int]],
              fov: np.ndarray, pos_weight: torch.Tensor, clip_frames: int, clips_per_batch: int) -> dict[str, float]:
@@ -112,11 +126,9 @@ def evaluate(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, slices
         logits, labels, valid = forward_batch(encoder, heads, store, batch)
         losses += masked_bce(logits, labels, valid, fov_t, pos_weight).double() * len(batch.targets)
         weights += len(batch.targets)
-        m = valid[:, :, None, None] & fov_t[None, None]
-        pred = (logits > 0) & m
-        true = (labels > 0.5) & m
-        inter += (pred & true).sum((0, 2, 3)).double()
-        union += (pred | true).sum((0, 2, 3)).double()
+        i, u = iou_counts(logits, labels, valid, fov_t, torch.full((1, len(TARGETS)), 0.5))
+        inter += i[0]
+        union += u[0]
     encoder.train(was[0])
     heads.train(was[1])
     out = {"val_loss": float((losses / max(weights, 1)).mean())}
