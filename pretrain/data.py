@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
-from pretrain.geometry import BEVGrid, Camera, sample_depth
+from pretrain.geometry import BEVGrid, Camera, cameras_from_meta, sample_depth
 
 log = logging.getLogger("icrowdnav")
 
@@ -42,8 +42,22 @@ def camera_features(cameras: list[Camera]) -> list[str]:
     return [f"observation.images.{c.name}" for c in cameras] + [f"observation.depth.{c.name}" for c in cameras]
 
 
-def check_dataset(root: Path, cameras: list[Camera]) -> dict:
-    """Checks that a dataset has what pretraining reads; returns its ``meta/icrowdnav.json``.
+@dataclass
+class DatasetMeta:
+    """What pretraining reads from a dataset's metadata: lerobot's ``info.json``, our ``icrowdnav.json`` and the
+    cameras it lists."""
+
+    info: dict
+    side: dict
+    cameras: list[Camera]
+
+
+def check_dataset(root: Path, cameras: list[Camera] | None = None) -> DatasetMeta:
+    """Checks that a dataset has what pretraining reads and returns its metadata.
+
+    Args:
+        root: dataset root.
+        cameras: the cameras whose images and depth must be there (default: the dataset's own).
 
     Raises:
         InputMissingError: no dataset at ``root``, or it lacks needed features (all of them are named).
@@ -54,12 +68,15 @@ def check_dataset(root: Path, cameras: list[Camera]) -> dict:
     if not info_path.is_file():
         raise InputMissingError(f"no LeRobot dataset at {root} (missing meta/info.json); make it with "
                                 "`make record` (icrowdnav record + export)")
+    side_path = root / "meta" / "icrowdnav.json"
     try:
         info = json.loads(info_path.read_text())
         features = info["features"]
-        side = json.loads((root / "meta" / "icrowdnav.json").read_text())
+        side = json.loads(side_path.read_text())
     except (OSError, json.JSONDecodeError, KeyError) as e:
         raise CorruptArtifactError(f"dataset {root}: unreadable metadata ({type(e).__name__}: {e})") from None
+    if cameras is None:
+        cameras = cameras_from_meta(side, str(side_path))
     need = list(REQUIRED_FEATURES) + camera_features(cameras)
     missing = [k for k in need if k not in features]
     if missing:
@@ -76,7 +93,7 @@ def check_dataset(root: Path, cameras: list[Camera]) -> dict:
     if "local_map" not in side.get("spec", {}):
         raise CorruptArtifactError(f"dataset {root}: meta/icrowdnav.json has no spec.local_map (the geometry of "
                                    "privileged.local_occupancy)")
-    return side
+    return DatasetMeta(info, side, cameras)
 
 
 def check_grid_in_local_map(grid: BEVGrid, local_map: dict, where: str) -> None:
@@ -265,7 +282,7 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
     from tqdm import tqdm
 
     root = Path(root)
-    side = check_dataset(root, cameras)
+    side = check_dataset(root, cameras).side
     local_map = side["spec"]["local_map"]
     check_grid_in_local_map(grid, local_map, str(root))
     fps = float(side.get("fps", 10))

@@ -26,8 +26,8 @@ import torch
 
 from pipeline.errors import ConfigError, ICrowdNavError
 from pretrain.checkpoint import load_encoder, load_heads, read_encoder_json
-from pretrain.data import load_frames, make_batches, make_clips
-from pretrain.geometry import cameras_from_dataset, check_grid_fits_cameras
+from pretrain.data import check_dataset, load_frames, make_batches, make_clips
+from pretrain.geometry import check_grid_fits_cameras
 from pretrain.model import TARGETS
 from pretrain.train import forward_batch, iou_counts
 
@@ -87,11 +87,11 @@ def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str =
     dataset = Path(dataset)
     encoder = load_encoder(ckpt)
     heads = load_heads(ckpt, encoder)
-    cams = cameras_from_dataset(dataset)
+    meta = check_dataset(dataset)
+    cams = meta.cameras
     check_same_cameras(encoder.cameras, cams, str(dataset))
     fov = check_grid_fits_cameras(encoder.grid, cams)
-    info = json.loads((dataset / "meta" / "info.json").read_text())
-    total = int(info["total_episodes"])
+    total = int(meta.info["total_episodes"])
     if episodes in ("val", "train"):
         eps = ds.get(f"{episodes}_episodes")
         if eps is None:

@@ -85,6 +85,14 @@ class Camera:
         return np.asarray(self.T_base_cam, dtype=np.float64)
 
 
+def cameras_from_meta(meta: dict[str, Any], where: str) -> list[Camera]:
+    """The cameras of a parsed ``meta/icrowdnav.json`` (``where`` names the file in errors), in its order."""
+    cams = meta.get("cameras") if isinstance(meta, dict) else None
+    if not isinstance(cams, dict) or not cams:
+        raise CorruptArtifactError(f"{where}: 'cameras' must be a non-empty mapping, got {cams!r:.80}")
+    return [Camera.from_dict(c, f"{where} cameras.{k}") for k, c in cams.items()]
+
+
 def cameras_from_dataset(root: Path) -> list[Camera]:
     """The cameras of an exported dataset (``meta/icrowdnav.json``), in the file's order (left, right)."""
     path = Path(root) / "meta" / "icrowdnav.json"
@@ -93,12 +101,9 @@ def cameras_from_dataset(root: Path) -> list[Camera]:
                                 "was it exported by `icrowdnav export`?")
     try:
         meta = json.loads(path.read_text())
-        cams = meta["cameras"]
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise CorruptArtifactError(f"{path}: cannot read the cameras ({type(e).__name__}: {e})") from None
-    if not isinstance(cams, dict) or not cams:
-        raise CorruptArtifactError(f"{path}: 'cameras' must be a non-empty mapping, got {cams!r:.80}")
-    return [Camera.from_dict(c, f"{path} cameras.{k}") for k, c in cams.items()]
+    return cameras_from_meta(meta, str(path))
 
 
 @dataclass(frozen=True)
@@ -187,18 +192,15 @@ def check_grid_fits_cameras(grid: BEVGrid, cameras: list[Camera], key: str = "gr
     if not cameras:
         raise ConfigError(f"{key}: no cameras to lift from")
     max_range = max(c.max_depth_m for c in cameras)
-    xs = (grid.x_bound[0], grid.x_bound[1])
-    ys = (grid.y_bound[0], grid.y_bound[1])
-    far = max(math.hypot(x, y) for x in xs for y in ys)
-    reach = max(math.hypot(x, 0.0) for x in xs)
+    reach = max(abs(grid.x_bound[0]), abs(grid.x_bound[1]))
     if reach > max_range:
         raise ConfigError(f"{key}: x_bound reaches {reach:.2f} m forward but the cameras see at most "
                           f"{max_range:.2f} m (max_depth_m); expected x_bound[1] <= {max_range:g}")
     mask = fov_mask(grid, cameras)
     frac = float(mask.mean())
     if frac < 0.2:
-        raise ConfigError(f"{key}: only {100 * frac:.1f} % of the BEV cells (x {grid.x_bound}, y {grid.y_bound}, "
-                          f"corner distance up to {far:.1f} m) are in the cameras' field of view; expected "
+        raise ConfigError(f"{key}: only {100 * frac:.1f} % of the BEV cells (x {grid.x_bound}, y {grid.y_bound}) "
+                          "are in the cameras' field of view; expected "
                           ">= 20 % — the grid does not fit the cameras")
     return mask
 

@@ -239,17 +239,13 @@ class BEVStream:
         pose = pose.to(torch.float64)
         x = enc.encode_frames(rgb, enc.lift_depth(depth))  # B C X Y
         b, t = x.shape[0], enc.frames
-        if self.maps is None or self.maps.shape[0] != b:
-            first = torch.ones(b, dtype=torch.bool)
         rep_maps = x.unsqueeze(1).expand(b, t - 1, *x.shape[1:])
         rep_poses = pose.unsqueeze(1).expand(b, t - 1, 3)
-        if first is not None and bool(first.any()):
-            if self.maps is None or self.maps.shape[0] != b:
-                self.maps, self.poses = rep_maps.clone(), rep_poses.clone()
-            else:
-                sel = first.view(b, 1, 1, 1, 1)
-                self.maps = torch.where(sel, rep_maps, self.maps)
-                self.poses = torch.where(first.view(b, 1, 1), rep_poses, self.poses)
+        if self.maps is None or self.maps.shape[0] != b:  # no (matching) history: every stream starts here
+            self.maps, self.poses = rep_maps.clone(), rep_poses.clone()
+        elif first is not None and bool(first.any()):
+            self.maps = torch.where(first.view(b, 1, 1, 1, 1), rep_maps, self.maps)
+            self.poses = torch.where(first.view(b, 1, 1), rep_poses, self.poses)
         window = torch.cat([self.maps, x.unsqueeze(1)], 1)
         poses = torch.cat([self.poses, pose.unsqueeze(1)], 1)
         out = enc.fuse(window, poses)

@@ -16,7 +16,6 @@ it; ``manifest.json`` is written last, so consumers refuse an unfinished checkpo
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -28,7 +27,7 @@ import torch
 
 from pipeline.artifacts import atomic_write_json
 from pipeline.config import BaseStageConfig, check_run_name, config_hash
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, CorruptArtifactError
 from pipeline.stage import Stage, run_stage
 from pretrain.model import TARGETS, EncoderConfig
 
@@ -90,23 +89,18 @@ def checkpoint_dir(cfg: PretrainConfig) -> Path:
 def _inputs(cfg: PretrainConfig) -> list[Path]:
     """The dataset; fails here, before any output exists, when it or the grid does not fit."""
     from pretrain.data import check_dataset, check_grid_in_local_map
-    from pretrain.geometry import cameras_from_dataset, check_grid_fits_cameras
+    from pretrain.geometry import check_grid_fits_cameras
 
     root = dataset_dir(cfg)
-    cameras = cameras_from_dataset(root) if (root / "meta").is_dir() else []
-    if not cameras:
-        check_dataset(root, [])  # raises the clear "no dataset" error
-    side = check_dataset(root, cameras)
-    check_grid_fits_cameras(cfg.encoder.grid, cameras, "pretrain.encoder")
-    check_grid_in_local_map(cfg.encoder.grid, side["spec"]["local_map"], str(root))
+    meta = check_dataset(root)
+    check_grid_fits_cameras(cfg.encoder.grid, meta.cameras, "pretrain.encoder")
+    check_grid_in_local_map(cfg.encoder.grid, meta.side["spec"]["local_map"], str(root))
     # only the dataset's files are inputs (not, e.g., a lock file lerobot may create)
     return [root / "meta", root / "data", root / "videos"]
 
 
 def load_backbone_weights(encoder, path: str) -> None:
     """Initialises the ResNet-18 trunk from a user-given torchvision ``resnet18`` state dict (.pth / .safetensors)."""
-    from pipeline.errors import CorruptArtifactError
-
     p = Path(path)
     try:
         if p.suffix == ".safetensors":
@@ -132,19 +126,19 @@ def load_backbone_weights(encoder, path: str) -> None:
 
 def _body(cfg: PretrainConfig, out: Path) -> dict:
     from pretrain.checkpoint import METRICS_JSON, write_encoder_checkpoint
-    from pretrain.data import load_frames, split_episodes
+    from pretrain.data import check_dataset, load_frames, split_episodes
     from pretrain.figures import plot_curves, plot_fov, plot_sample
-    from pretrain.geometry import cameras_from_dataset, check_grid_fits_cameras
+    from pretrain.geometry import check_grid_fits_cameras
     from pretrain.model import BEVEncoder, PretextHeads
     from pretrain.train import FitConfig, evaluate, fit, forward_batch
 
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
     root = dataset_dir(cfg)
-    cameras = cameras_from_dataset(root)
+    meta = check_dataset(root)
+    cameras = meta.cameras
     grid = cfg.encoder.grid
     fov = check_grid_fits_cameras(grid, cameras, "pretrain.encoder")
-    info = json.loads((root / "meta" / "info.json").read_text())
-    n_eps = int(info["total_episodes"])
+    n_eps = int(meta.info["total_episodes"])
     if cfg.max_episodes:
         n_eps = min(n_eps, cfg.max_episodes)
     train_eps, val_eps = split_episodes(n_eps, cfg.val_fraction, cfg.seed)
@@ -173,8 +167,7 @@ def _body(cfg: PretrainConfig, out: Path) -> dict:
     write_encoder_checkpoint(out, encoder, heads, {
         "targets": list(TARGETS), "future_s": list(cfg.future_s),
         "dataset": {"repo_id": cfg.repo_id, "train_episodes": train_eps, "val_episodes": val_eps},
-        "trained_steps": result["step"], "fps": float(json.loads((root / "meta" / "icrowdnav.json").read_text())
-                                                      .get("fps", 10))})
+        "trained_steps": result["step"], "fps": float(meta.side.get("fps", 10))})
     atomic_write_json(out / METRICS_JSON, {
         "final": final, "history": history, "targets": list(TARGETS), "iou": "dataset-level IoU at p > 0.5 over "
         "validation frames, cells in the cameras' field of view only", "pos_weight": result["pos_weight"],
