@@ -1,6 +1,6 @@
 # iCrowdNav pipeline. Every stage target takes PROFILE=smoke|default|paper, DATA_DIR=<dir>, ARGS="..." (extra CLI
 # options for every stage it runs, e.g. ARGS=--overwrite to replace outputs made by an older config or code) and
-# <STAGE>_ARGS="..." for one stage only (RECORD_ARGS, EXPORT_ARGS, PRETRAIN_ARGS, ROLLOUT_ARGS).
+# <STAGE>_ARGS="..." for one stage only (RECORD_ARGS, EXPORT_ARGS, PRETRAIN_ARGS, TRAIN_ARGS, ROLLOUT_ARGS).
 #   make all      install (if needed), then run the pipeline end to end on the default profile
 #   make test     install (if needed), then run the test suite
 SHELL := /bin/bash
@@ -12,15 +12,17 @@ RECORD_ARGS ?=
 EXPORT_ARGS ?=
 ROLLOUT_ARGS ?=
 PRETRAIN_ARGS ?=
+TRAIN_ARGS ?=
+TRAIN_VARIANTS ?= teacher full no_i2 no_bev
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export HF_HUB_OFFLINE := 1
 export PYTHONHASHSEED := 0
 
-.PHONY: install all record pretrain rollout smoke test bench lint help
+.PHONY: install all record pretrain train rollout smoke test bench lint help
 
 help:
-	@echo "targets: install all record pretrain rollout smoke test bench lint   (PROFILE=$(PROFILE) DATA_DIR=$(DATA_DIR))"
+	@echo "targets: install all record pretrain train rollout smoke test bench lint   (PROFILE=$(PROFILE) DATA_DIR=$(DATA_DIR))"
 
 # The venv is rebuilt only when the lock file or pyproject.toml change (the stamp is newer otherwise).
 # uv installs the exact pins of requirements.lock; its cache (~/.cache/uv) makes a re-install fast.
@@ -44,15 +46,21 @@ record: install
 pretrain: install
 	$(PY) -m pipeline pretrain --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(PRETRAIN_ARGS)
 
+# train: the privileged teacher, then each visual student variant (DAgger from the teacher through the recorder,
+# optional PPO fine-tuning) -> DATA_DIR/checkpoints/policy/<variant>/ (TRAIN_VARIANTS; a killed run: TRAIN_ARGS=--resume)
+train: install
+	@set -e; for v in $(TRAIN_VARIANTS); do \
+	  $(PY) -m pipeline train --profile $(PROFILE) --data-dir $(DATA_DIR) --variant $$v $(ARGS) $(TRAIN_ARGS); done
+
 # the expert's acceptance run on the test scenes: metrics, figures, videos -> DATA_DIR/rollouts/<run>/
 rollout: install
 	$(PY) -m pipeline rollout --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(ROLLOUT_ARGS)
 
-all: install record pretrain rollout
+all: install record pretrain train rollout
 
 # Every stage on tiny sizes through real files, into its own data dir (replaced on each run).
 smoke: install
-	$(MAKE) --no-print-directory record pretrain rollout PROFILE=smoke DATA_DIR=$(DATA_DIR)/smoke ARGS=--overwrite
+	$(MAKE) --no-print-directory record pretrain train rollout PROFILE=smoke DATA_DIR=$(DATA_DIR)/smoke ARGS=--overwrite
 
 test: install
 	$(PY) -m pytest -q -p no:cacheprovider
@@ -61,4 +69,4 @@ bench: install
 	$(PY) -m pipeline bench --profile $(PROFILE) --data-dir $(DATA_DIR)
 
 lint: install
-	$(VENV)/bin/ruff check pipeline sim recorder pretrain tests
+	$(VENV)/bin/ruff check pipeline sim recorder pretrain rl tests

@@ -46,6 +46,7 @@ VERBS: dict[str, str] = {
     "record": "recorder.record:STAGE",
     "export": "recorder.export_stage:STAGE",
     "pretrain": "pretrain.stage:STAGE",
+    "train": "rl.stage:STAGE",
     "doctor": "recorder.doctor:main",
     "recover": "recorder.doctor:recover_main",
 }

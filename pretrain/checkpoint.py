@@ -61,7 +61,7 @@ def load_safetensors(module: torch.nn.Module, path: Path) -> None:
         module.load_state_dict(state, strict=True)
     except RuntimeError as e:
         first = str(e).strip().splitlines()
-        raise CorruptArtifactError(f"weights file {path} does not match the architecture in its encoder.json: "
+        raise CorruptArtifactError(f"weights file {path} does not match the architecture its JSON describes: "
                                    f"{' '.join(first[:3])[:400]}") from None
 
 

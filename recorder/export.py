@@ -177,15 +177,16 @@ def _guarded(frames: Iterator[Frame], source: _Source) -> Iterator[Frame]:
         yield fr
 
 
-def _peek_max_people(frames: Iterator[Frame], source: _Source) -> tuple[Iterator[Frame], int]:
-    """``K`` = the number of detection rows of the first frame (frames are given back unconsumed)."""
+def _peek_first(frames: Iterator[Frame], source: _Source) -> tuple[Iterator[Frame], int, bool]:
+    """``K`` = the number of detection rows of the first frame, and whether it carries a label (frames are
+    given back unconsumed)."""
     frames = _guarded(frames, source)
     first = next(frames, None)
     if first is None:
-        return iter(()), DEFAULT_MAX_PEOPLE
+        return iter(()), DEFAULT_MAX_PEOPLE, False
     poses = getattr(first, "poses", None)
     k = poses.shape[0] if isinstance(poses, np.ndarray) and poses.ndim == 3 else DEFAULT_MAX_PEOPLE
-    return itertools.chain([first], frames), int(k)
+    return itertools.chain([first], frames), int(k), getattr(first, "label", None) is not None
 
 
 def _resolve_fps(fps: int | None, meta: EpisodeMeta, source: str) -> int:
@@ -209,7 +210,7 @@ def _resolve_fps(fps: int | None, meta: EpisodeMeta, source: str) -> int:
 
 def _check_same_spec(meta: EpisodeMeta, first: EpisodeMeta, spec: ExportSpec, fps: int, source: str) -> None:
     """Every episode of a dataset must have the first one's cameras (sizes, intrinsics, extrinsics) and period."""
-    other = ExportSpec.from_meta(meta, spec.max_people, spec.n_max, spec.local_map, source)
+    other = ExportSpec.from_meta(meta, spec.max_people, spec.n_max, spec.local_map, source, spec.labels)
     for cam in CAMERA_NAMES:
         if other.camera_sizes[cam] != spec.camera_sizes[cam]:
             raise FeatureError(f"{source}: episode metadata field 'cameras[{cam}]' (height, width): expected "
@@ -309,9 +310,9 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
             meta, occ, frames = src.open()
             if ds is None:
                 fps = _resolve_fps(fps, meta, src.name)
-                if max_people is None:
-                    frames, max_people = _peek_max_people(frames, src)
-                spec = ExportSpec.from_meta(meta, max_people, n_max, local_map, src.name)
+                frames, k_first, labels = _peek_first(frames, src)
+                max_people = k_first if max_people is None else max_people
+                spec = ExportSpec.from_meta(meta, max_people, n_max, local_map, src.name, labels)
                 features = spec.features()
                 scalar_keys = [k for k, ft in features.items() if tuple(ft["shape"]) == (1,)]
                 first_meta = meta

@@ -21,6 +21,8 @@ observation.poses                K x 17 x 3      float32  detected COCO-17 joint
 observation.pose_mask            K x 17          bool     detected joints (False rows/joints are zeros)
 observation.pose_conf            K x 17          float32  detector confidence of each joint
 action                           2               float32  the command that led to this frame [v m/s, ω rad/s]
+action.teacher                   2               float32  only in labelled (DAgger) datasets: the teacher's
+                                                          command for this frame's observation [v m/s, ω rad/s]
 next.reward                      1               float32  the paper's reward for the step into this frame
 next.reward_terms                6               float32  success, collision, near, progress, spin, total
 next.done                        1               bool     the episode ended at this frame
@@ -187,10 +189,11 @@ class ExportSpec:
     max_people: int = DEFAULT_MAX_PEOPLE
     n_max: int = N_MAX_PEDESTRIANS
     local_map: LocalMapSpec = field(default_factory=LocalMapSpec)
+    labels: bool = False  # frames carry the labeller's command (``Frame.label`` -> ``action.teacher``)
 
     @staticmethod
     def from_meta(meta: EpisodeMeta, max_people: int = DEFAULT_MAX_PEOPLE, n_max: int = N_MAX_PEDESTRIANS,
-                  local_map: LocalMapSpec | None = None, source: str = "episode") -> ExportSpec:
+                  local_map: LocalMapSpec | None = None, source: str = "episode", labels: bool = False) -> ExportSpec:
         """The spec of a dataset whose cameras are those of ``meta``.
 
         Raises:
@@ -203,7 +206,7 @@ class ExportSpec:
                 raise FeatureError(f"{source}: episode metadata field 'cameras[{cam}]': expected a camera dict "
                                    f"with 'height' and 'width', got {c!r}")
             sizes[cam] = (int(c["height"]), int(c["width"]))
-        return ExportSpec(sizes, max_people, n_max, local_map or LocalMapSpec())
+        return ExportSpec(sizes, max_people, n_max, local_map or LocalMapSpec(), labels)
 
     def features(self) -> dict[str, dict[str, Any]]:
         """The LeRobot ``features`` dict (without lerobot's own index/timestamp features)."""
@@ -223,6 +226,7 @@ class ExportSpec:
             "observation.pose_mask": {"dtype": "bool", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
             "observation.pose_conf": {"dtype": "float32", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
             "action": {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]},
+            **({"action.teacher": {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]}} if self.labels else {}),
             "next.reward": {"dtype": "float32", "shape": (1,), "names": ["reward"]},
             "next.reward_terms": {"dtype": "float32", "shape": (len(REWARD_TERMS),), "names": list(REWARD_TERMS)},
             "next.done": {"dtype": "bool", "shape": (1,), "names": ["done"]},
@@ -260,6 +264,8 @@ class ExportSpec:
                 "observation.pose_mask": "True where the joint was detected",
                 "observation.pose_conf": "detector confidence of each joint",
                 "action": "the physical command [v m/s, omega rad/s] that led to this frame (zeros at frame 0)",
+                **({"action.teacher": "the DAgger teacher's command [v m/s, omega rad/s] for this frame's "
+                                      "observation (the behaviour-cloning label)"} if self.labels else {}),
                 "next.reward": "the paper's reward of the step that led to this frame (0 at frame 0)",
                 "next.reward_terms": "the reward's terms in reward_terms order",
                 "next.done": "True at the episode's last frame (terminated or truncated)",
@@ -387,6 +393,8 @@ def frame_to_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray, sp
     out["observation.odom"] = odom
     out["observation.goal"] = f32("goal_xy", (2,), "observation.goal")
     out["action"] = f32("action", (2,), "action")
+    if spec.labels:
+        out["action.teacher"] = f32("label", (2,), "action.teacher")
 
     k = spec.max_people
     poses = chk.array("poses", _field(frame, "poses", chk), (None, N_JOINTS, 3), "f", "observation.poses")

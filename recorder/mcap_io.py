@@ -35,7 +35,7 @@ topic                        schema                      content
 /tf                          foxglove.FrameTransforms    world→base_link (odom), base_link→camera_{cam}
 /robot/pose, /robot/goal     foxglove.PoseInFrame        world frame (goal: identity orientation)
 /pedestrians/scene           foxglove.SceneUpdate        per pedestrian a cylinder (radius) + head arrow
-/robot/state                 json (jsonschema)           step, state, odom, action, goal_xy
+/robot/state                 json (jsonschema)           step, state, odom, action, goal_xy[, label]
 /pedestrians/state           json (jsonschema)           pos, vel, radius, yaw, intent_xy, keypoints
 /perception/poses            json (jsonschema)           poses, mask, confidence, track
 /episode/reward              json (jsonschema)           reward, terms, d_o, done, outcome
@@ -455,9 +455,10 @@ def _dec_array(d: dict) -> np.ndarray:
     return arr.reshape(shape)
 
 
-def _json_schema(title: str, properties: dict[str, dict]) -> bytes:
+def _json_schema(title: str, properties: dict[str, dict], optional: tuple[str, ...] = ()) -> bytes:
     return json.dumps({"$schema": "https://json-schema.org/draft/2020-12/schema", "title": title,
-                       "type": "object", "properties": properties, "required": list(properties),
+                       "type": "object", "properties": properties,
+                       "required": [k for k in properties if k not in optional],
                        "additionalProperties": False}, indent=None, sort_keys=False).encode()
 
 
@@ -478,7 +479,9 @@ JSON_SCHEMAS: dict[str, tuple[str, bytes]] = {
         "odom": _array_prop("float32", "3", "[x m, y m, yaw rad], world frame"),
         "action": _array_prop("float32", "2", "[v m/s, omega rad/s] that led to this frame"),
         "goal_xy": _array_prop("float32", "2", "goal, world frame, m"),
-    })),
+        "label": _array_prop("float32", "2", "optional: the labeller's (DAgger teacher's) [v m/s, omega rad/s] "
+                             "for this frame's observation"),
+    }, optional=("label",))),
     TOPIC_PEDS: ("icrowdnav.PedestrianState", _json_schema("icrowdnav.PedestrianState", {
         "pos": _array_prop("float32", "N x 2", "positions, world frame, m"),
         "vel": _array_prop("float32", "N x 2", "velocities, world frame, m/s"),
@@ -607,6 +610,8 @@ class _Encoder:
         out.append((TOPIC_PEDS_SCENE, self._scene(fr, t).SerializeToString()))
         robot = {"step": int(fr.step), "state": _enc_array(fr.state), "odom": _enc_array(fr.odom),
                  "action": _enc_array(fr.action), "goal_xy": _enc_array(fr.goal_xy)}
+        if getattr(fr, "label", None) is not None:
+            robot["label"] = _enc_array(np.asarray(fr.label, dtype=np.float32))
         peds = {"pos": _enc_array(fr.ped_pos), "vel": _enc_array(fr.ped_vel), "radius": _enc_array(fr.ped_radius),
                 "yaw": _enc_array(fr.ped_yaw), "intent_xy": _enc_array(fr.ped_intent_xy),
                 "keypoints": _enc_array(fr.ped_keypoints)}
@@ -1280,6 +1285,7 @@ def decode_frame(msgs: dict[str, bytes], t_ns: int) -> Frame:
         ped_keypoints=_dec_array(peds["keypoints"]),
         reward=_dec_float(rew["reward"]), reward_terms={str(k): _dec_float(v) for k, v in rew["terms"].items()},
         d_o=_dec_float(rew["d_o"]), done=rew["done"], outcome=rew["outcome"],
+        label=_dec_array(robot["label"]) if "label" in robot else None,
     )
 
 

@@ -33,6 +33,9 @@ reward_terms       dict[str, float]        success / collision / near / progress
 d_o                float                   robot centre to the nearest pedestrian/obstacle surface, m
 done               bool                    terminated or truncated at this step
 outcome            str                     "" while running; success / collision_* / timeout at the end
+label              2 or None               optional: the command a labeller (the DAgger teacher) gives for
+                                           this frame's observation [v m/s, ω rad/s]; exported as
+                                           ``action.teacher`` when the episodes carry it
 =================  ======================  ==========================================================
 """
 
@@ -138,6 +141,7 @@ class Frame:
     d_o: float = float("inf")
     done: bool = False
     outcome: str = ""
+    label: np.ndarray | None = None
 
 
 def sim_config_hash(cfg) -> str:
@@ -162,7 +166,7 @@ def episode_meta_from_env(env, seed: int, driver: str) -> EpisodeMeta:
 
 
 def frame_from_env(env, obs: dict, info: dict, step: int, command: tuple[float, float] = (0.0, 0.0),
-                   reward: float = 0.0, done: bool = False) -> Frame:
+                   reward: float = 0.0, done: bool = False, label: tuple[float, float] | None = None) -> Frame:
     """Build a :class:`Frame` from an unwrapped visual-mode env right after ``reset`` or ``step``.
 
     Args:
@@ -171,6 +175,7 @@ def frame_from_env(env, obs: dict, info: dict, step: int, command: tuple[float, 
         step: 0 after reset, k after the k-th step.
         command: the physical (v, ω) that was executed (zeros at step 0).
         reward, done: what ``step`` returned (``done`` = terminated or truncated).
+        label: the labeller's command for this frame's observation (DAgger), or None.
     """
     priv = info["privileged"]
     det = env.last_detections
@@ -189,4 +194,5 @@ def frame_from_env(env, obs: dict, info: dict, step: int, command: tuple[float, 
         ped_keypoints=priv["keypoints_world"].astype(np.float32),
         reward=float(reward), reward_terms={k: float(v) for k, v in info.get("reward_terms", {}).items()},
         d_o=float(info["d_o"]), done=bool(done), outcome=info.get("outcome") or "",
+        label=None if label is None else np.asarray(label, dtype=np.float32),
     )

@@ -1,0 +1,180 @@
+"""DAgger distillation of the privileged teacher into the visual student, through the recorder.
+
+Iteration ``k`` (β_k = ``beta0 · beta_decay^k``; β_0 = 1 means the teacher drives the first iteration):
+
+1. **Roll out** ``episodes_per_iter`` rendered episodes over the training scenes and densities (process pool). At
+   every step the teacher labels the observation from privileged state (:func:`rl.observe.teacher_observation`)
+   and the robot executes the teacher's action with probability β_k, else the current student's.
+2. **Record** each episode through the recorder: one MCAP log (``Frame.label`` = the teacher's command) and, after
+   the iteration, one LeRobot dataset of the iteration (``action.teacher`` feature) — the data-centric loop: every
+   iteration's data is a dataset anyone can load. Beside it, ``features/<episode>.npz`` caches what the student
+   saw (its observation dict, ``s_bev`` as float16) with the label index, so cloning does not re-run the encoder.
+3. **Clone**: behaviour cloning (cross-entropy on the teacher's action index) on the aggregate of all iterations.
+
+Everything an iteration writes is in ``dagger/iter_<k>/``; a finished iteration has ``done.json``. A killed run
+resumes at the first unfinished episode of the first unfinished iteration.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.artifacts import atomic_write_json
+from sim.env import CrowdNavEnv, SimConfig
+
+_CACHE: dict[str, Any] = {}
+
+
+def _cached(key: str, make):
+    if key not in _CACHE:
+        _CACHE[key] = make()
+    return _CACHE[key]
+
+
+def _policy(path: Path | None):
+    if path is None:
+        return None
+    from rl.policy import load_policy
+
+    return _cached(f"policy:{path}:{os.path.getmtime(Path(path) / 'policy.safetensors')}",
+                   lambda: load_policy(path)[0])
+
+
+def episode_name(scene: str, density: float, seed: int) -> str:
+    return f"{Path(scene).stem}_d{density:g}_s{seed}"
+
+
+def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
+    """One DAgger episode (see the module docstring); writes ``raw/<name>.mcap`` and ``features/<name>.npz``."""
+    from recorder.mcap_io import EpisodeWriter
+    from recorder.schema import episode_meta_from_env, frame_from_env
+    from rl.observe import StudentObserver, env_cameras, load_student_encoder, teacher_observation
+    from rl.policy import act
+
+    torch.set_num_threads(1)
+    sim_cfg: SimConfig = args["sim"]
+    name = episode_name(args["scene"], args["density"], args["seed"])
+    raw, feat = Path(args["iter_dir"]) / "raw", Path(args["iter_dir"]) / "features"
+    t0 = time.perf_counter()
+    env = CrowdNavEnv(config=replace(sim_cfg, scene=args["scene"], density=args["density"], obs_mode="visual",
+                                     info_level="full", action_type="discrete"))
+    encoder = _cached(f"enc:{args['variant']}:{args['encoder']}",
+                      lambda: load_student_encoder(args["variant"], args["encoder"]))
+    teacher = _policy(args["teacher"])
+    student = _policy(args["student"])
+    observer = StudentObserver(args["variant"], env_cameras(env), encoder, env.cfg.detector.max_people)
+    rng = np.random.default_rng(args["seed"] + 7919)
+    obs, info = env.reset(seed=args["seed"])
+    meta = episode_meta_from_env(env, args["seed"], f"dagger:{args['variant']}:iter{args['iteration']}:"
+                                                    f"beta{args['beta']:g}")
+    rows: dict[str, list] = {}
+    labels: list[int] = []
+    student_steps = 0
+    cmd, reward, done, step = (0.0, 0.0), 0.0, False, 0
+    with EpisodeWriter(raw / f"{name}.mcap", meta, env.layout.occupancy) as writer:
+        while True:
+            s_obs = observer(obs)
+            label = act(teacher, teacher_observation(env))
+            writer.add(frame_from_env(env, obs, info, step, command=cmd, reward=reward, done=done,
+                                      label=env.decode_action(label)))
+            for k, v in s_obs.items():
+                rows.setdefault(k, []).append(v.astype(np.float16) if k == "bev" else v)
+            labels.append(label)
+            if done:
+                break
+            a = label
+            if student is not None and rng.random() >= args["beta"]:
+                a = act(student, s_obs)
+                student_steps += 1
+            obs, reward, term, trunc, info = env.step(a)
+            cmd, done, step = tuple(env.robot_v), bool(term or trunc), step + 1
+    env.close()
+    outcome = info.get("outcome") or "timeout"
+    arrays = {k: np.stack(v) for k, v in rows.items()}
+    arrays["action"] = np.asarray(labels, np.int64)
+    tmp = feat / f"{name}.tmp.npz"
+    np.savez(tmp, **arrays)
+    tmp.replace(feat / f"{name}.npz")
+    return {"episode": name, "scene": Path(args["scene"]).stem, "density": args["density"], "seed": args["seed"],
+            "frames": len(labels), "student_steps": student_steps, "outcome": outcome,
+            "seconds": round(time.perf_counter() - t0, 2)}
+
+
+def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, progress: bool = True) -> list[dict]:
+    """Runs the iteration's episodes that have no ``features/<name>.npz`` yet (process pool); returns all rows."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm import tqdm
+
+    iter_dir = Path(iter_dir)
+    for sub in ("raw", "features"):
+        (iter_dir / sub).mkdir(parents=True, exist_ok=True)
+    rows_path = iter_dir / "episodes.jsonl"
+    done_rows = {}
+    if rows_path.exists():
+        for line in rows_path.read_text().splitlines():
+            r = json.loads(line)
+            if (iter_dir / "features" / f"{r['episode']}.npz").exists():
+                done_rows[r["episode"]] = r
+    todo = [j for j in jobs if episode_name(j["scene"], j["density"], j["seed"]) not in done_rows]
+    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=f"dagger {iter_dir.name}", unit="ep",
+               disable=not progress, dynamic_ncols=True)
+    with open(rows_path, "a") as f:
+        if workers <= 1:
+            results = map(dagger_episode, todo)
+        else:
+            pool = ProcessPoolExecutor(workers)
+            results = pool.map(dagger_episode, todo)
+        for r in results:
+            done_rows[r["episode"]] = r
+            f.write(json.dumps(r) + "\n")
+            f.flush()
+            bar.update(1)
+        if workers > 1:
+            pool.shutdown()
+    bar.close()
+    return [done_rows[episode_name(j["scene"], j["density"], j["seed"])] for j in jobs]
+
+
+def load_features(iter_dirs: list[Path]) -> dict[str, np.ndarray]:
+    """The cached student observations + labels of every episode of these iterations, concatenated."""
+    parts: dict[str, list[np.ndarray]] = {}
+    for d in iter_dirs:
+        for f in sorted((Path(d) / "features").glob("*.npz")):
+            if f.name.endswith(".tmp.npz"):
+                continue
+            with np.load(f) as z:
+                for k in z.files:
+                    parts.setdefault(k, []).append(z[k])
+    if not parts:
+        from pipeline.errors import InputMissingError
+
+        raise InputMissingError(f"no DAgger features in {[str(d) for d in iter_dirs]}")
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def bev_stats(data: dict[str, np.ndarray], max_frames: int = 2000) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-channel mean and std of the cached ``s_bev`` (a strided subsample of at most ``max_frames``)."""
+    bev = data["bev"]
+    sub = bev[:: max(1, len(bev) // max_frames)].astype(np.float32)
+    return torch.from_numpy(sub.mean((0, 2, 3))), torch.from_numpy(sub.std((0, 2, 3)))
+
+
+def export_iteration(iter_dir: Path, repo_id: str, progress: bool = True) -> dict[str, Any]:
+    """The iteration's MCAP logs → ``iter_dir/dataset`` (a validated LeRobot dataset with ``action.teacher``)."""
+    from recorder.export import export_run
+
+    return export_run(Path(iter_dir) / "raw", Path(iter_dir) / "dataset", repo_id, overwrite=True,
+                      progress=progress)
+
+
+def write_done(iter_dir: Path, info: dict[str, Any]) -> None:
+    atomic_write_json(Path(iter_dir) / "done.json", info)

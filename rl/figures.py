@@ -1,0 +1,42 @@
+"""Training curves of a ``train`` run (from its ``train_log.csv``) as one PNG."""
+
+from __future__ import annotations
+
+import csv
+from collections import defaultdict
+from pathlib import Path
+
+
+def plot_training(log_csv: Path, out: Path, title: str) -> None:
+    """One panel per (phase, key) logged in ``log_csv`` (rows: phase, step, key, value); nothing if it is empty."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    series: dict[tuple[str, str], list[tuple[int, float]]] = defaultdict(list)
+    if Path(log_csv).exists():
+        with open(log_csv) as f:
+            for row in csv.DictReader(f):
+                series[(row["phase"], row["key"])].append((int(row["step"]), float(row["value"])))
+    if not series:
+        return
+    keys = sorted(series)
+    cols = min(3, len(keys))
+    rows = (len(keys) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 2.8 * rows), squeeze=False)
+    for ax, key in zip(axes.flat, keys, strict=False):
+        xs, ys = zip(*sorted(series[key]), strict=True)
+        ax.plot(xs, ys, marker="." if len(xs) < 30 else None)
+        ax.set_title(f"{key[0]}: {key[1]}", fontsize=9)
+        ax.set_xlabel("epoch" if key[0].endswith("bc") else "iteration" if key[0] == "dagger" else "step",
+                      fontsize=8)
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[len(keys):]:
+        ax.axis("off")
+    fig.suptitle(f"train {title}")
+    fig.tight_layout()
+    tmp = Path(out).with_name(Path(out).name + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(out)

@@ -1,0 +1,136 @@
+"""Policy networks as stable-baselines3 features extractors (the actor/critic heads are SB3's).
+
+Student (the paper's policy, §III-B/C), variants :data:`VARIANTS`::
+
+    full    z = φ_f([φ_bev(s_bev), I²Former(poses, mask, s), φ_s(s)])
+    no_i2   z = φ_f([φ_bev(s_bev),                           φ_s(s)])          ablation "w/o I²"
+    no_bev  z = φ_f([φ_occ(occ),   I²Former(poses, mask, s), φ_s(s)])          ablation "w/o BEV"
+
+``s_bev`` is the frozen spatio-temporal encoder's output after a fixed 2 x 2 average pool (done by the observer,
+:mod:`rl.observe`, so it is what DAgger caches); ``occ`` is a local occupancy map built from the depth images on
+the same grid (no learned perception). φ_bev and φ_occ are the same architecture: 2D convolutions with residual
+connections and max pooling, then an adaptive average pool to a small spatial grid and a linear layer. The
+per-channel mean and standard deviation of ``s_bev`` (measured on the first DAgger data) are buffers of the
+extractor, so they travel inside every checkpoint.
+
+Teacher (privileged, no rendering): ``[s, nearest pedestrians (x, y, vx, vy, r, present) in the robot frame,
+range scan of the static map]`` scaled by fixed constants and concatenated; SB3's MLP heads do the rest.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import torch
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from torch import nn
+
+from rl.i2former import I2Former, I2FormerConfig, mlp, normalise_state
+
+VARIANTS = ("full", "no_i2", "no_bev")
+VARIANT_LABELS = {"full": "iCrowdNav (full)", "no_i2": "w/o I²", "no_bev": "w/o BEV"}
+
+
+def variant_keys(variant: str) -> tuple[str, ...]:
+    """The observation keys a student variant consumes."""
+    from pipeline.errors import ConfigError
+
+    if variant not in VARIANTS:
+        raise ConfigError(f"variant: expected one of {list(VARIANTS)}, got {variant!r}")
+    return {"full": ("bev", "poses", "pose_mask", "state"), "no_i2": ("bev", "state"),
+            "no_bev": ("occ", "poses", "pose_mask", "state")}[variant]
+
+
+class ResBlock(nn.Module):
+    """Two 3 x 3 convolutions with a residual connection (1 x 1 projection when the width changes)."""
+
+    def __init__(self, c_in: int, c_out: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(c_in, c_out, 3, padding=1)
+        self.conv2 = nn.Conv2d(c_out, c_out, 3, padding=1)
+        self.skip = nn.Identity() if c_in == c_out else nn.Conv2d(c_in, c_out, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.relu(self.skip(x) + self.conv2(torch.relu(self.conv1(x))))
+
+
+class BEVNet(nn.Module):
+    """φ_bev / φ_occ: ``B x C x X x Y`` map → ``B x out`` (residual conv blocks, max pooling, a linear layer)."""
+
+    def __init__(self, c_in: int, width: int = 32, out: int = 256, pooled: tuple[int, int] = (3, 4)) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Conv2d(c_in, width, 3, padding=1), nn.ReLU(),
+            ResBlock(width, width), nn.MaxPool2d(2),
+            ResBlock(width, 2 * width), nn.MaxPool2d(2),
+            ResBlock(2 * width, 2 * width), nn.AdaptiveAvgPool2d(pooled), nn.Flatten(),
+            nn.Linear(2 * width * pooled[0] * pooled[1], out), nn.ReLU(),
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+class StudentExtractor(BaseFeaturesExtractor):
+    """The visual policy's state embedding ``z`` for one variant (see the module docstring)."""
+
+    def __init__(self, observation_space: gym.spaces.Dict, variant: str = "full", bev_dim: int = 256,
+                 bev_width: int = 32, state_dim: int = 64, fused_dim: int = 256,
+                 i2former: dict[str, Any] | None = None) -> None:
+        keys = variant_keys(variant)
+        missing = [k for k in keys if k not in observation_space.spaces]
+        if missing:
+            from pipeline.errors import ConfigError
+
+            raise ConfigError(f"variant {variant!r} needs observation keys {missing}, the env gives "
+                              f"{sorted(observation_space.spaces)}")
+        super().__init__(observation_space, fused_dim)
+        self.variant = variant
+        width = 0
+        if "bev" in keys:
+            c = observation_space["bev"].shape[0]
+            self.bev = BEVNet(c, bev_width, bev_dim)
+            self.register_buffer("bev_mean", torch.zeros(1, c, 1, 1))
+            self.register_buffer("bev_std", torch.ones(1, c, 1, 1))
+            width += bev_dim
+        if "occ" in keys:
+            self.occ = BEVNet(observation_space["occ"].shape[0], bev_width, bev_dim)
+            width += bev_dim
+        if "poses" in keys:
+            self.i2former = I2Former(I2FormerConfig(**(i2former or {})))
+            width += self.i2former.out_dim
+        self.state_net = mlp([5, state_dim, state_dim])  # φ_s
+        width += state_dim
+        self.fusion = mlp([width, fused_dim, fused_dim])  # φ_f
+
+    def set_bev_stats(self, mean: torch.Tensor, std: torch.Tensor) -> None:
+        """Per-channel statistics of ``s_bev`` (``C``) used to standardise it."""
+        self.bev_mean.copy_(mean.view_as(self.bev_mean))
+        self.bev_std.copy_(std.clamp_min(1e-3).view_as(self.bev_std))
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        parts = []
+        if hasattr(self, "bev"):
+            parts.append(self.bev((obs["bev"] - self.bev_mean) / self.bev_std))
+        if hasattr(self, "occ"):
+            parts.append(self.occ(obs["occ"]))
+        if hasattr(self, "i2former"):
+            parts.append(self.i2former(obs["poses"], obs["pose_mask"] > 0.5, obs["state"]))
+        parts.append(self.state_net(normalise_state(obs["state"])))
+        return self.fusion(torch.cat(parts, -1))
+
+
+class TeacherExtractor(BaseFeaturesExtractor):
+    """The privileged teacher's input: scaled and concatenated state, pedestrians and static scan."""
+
+    def __init__(self, observation_space: gym.spaces.Dict, scan_range_m: float = 10.0, ped_scale_m: float = 5.0):
+        k = observation_space["peds"].shape
+        rays = observation_space["scan"].shape[0]
+        super().__init__(observation_space, 5 + k[0] * k[1] + rays)
+        self.scan_range_m = float(scan_range_m)
+        self.register_buffer("ped_scale", torch.tensor([ped_scale_m, ped_scale_m, 1.0, 1.0, 1.0, 1.0]))
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        peds = (obs["peds"] / self.ped_scale).flatten(1)
+        return torch.cat([normalise_state(obs["state"]), peds, obs["scan"] / self.scan_range_m], -1)

@@ -1,0 +1,193 @@
+"""What the policies see: the student's observation from the rendered RGB-D frames, and the teacher's from privileged
+state.
+
+:class:`StudentObserver` turns a visual-mode observation of :class:`sim.env.CrowdNavEnv` into the student's
+observation dict (keys per variant, :func:`rl.networks.variant_keys`):
+
+=========  ===================  ====================================================================================
+key        shape                meaning
+=========  ===================  ====================================================================================
+bev        C x X/2 x Y/2        ``s_bev`` of the frozen pretrained encoder (streaming: only the newest frame is
+                                encoded, the cached history is warped), 2 x 2 average-pooled (the fixed first layer of
+                                φ_bev, applied here so DAgger caches 4x less)
+occ        1 x X/2 x Y/2        local occupancy from depth (the "w/o BEV" ablation): 1 where a measured depth point
+                                above the floor (the encoder grid's z band) falls in the cell, on the same grid
+poses      K x 17 x 3           detected 3D joints, robot frame (the env's detector)
+pose_mask  K x 17               1 = detected joint
+state      5                    s = [g_x, g_y, d_g, v_x, v_y]
+=========  ===================  ====================================================================================
+
+:func:`teacher_observation` builds the privileged teacher's observation (as ``obs_mode="privileged"`` would) from a
+visual-mode env, so one rendered episode gives both the student's input and the teacher's label (DAgger).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pipeline.errors import ConfigError
+from pretrain.geometry import BEVGrid, Camera, LiftGeometry, lift_splat, sample_depth
+from pretrain.model import BEVEncoder, BEVStream, EncoderConfig
+from rl.networks import variant_keys
+
+BEV_POOL = 2  # s_bev is average-pooled by this before caching / φ_bev
+OCC_STRIDE_PX = 2  # depth pixels lifted for the occupancy map (every 2nd row and column)
+
+
+def env_cameras(env) -> list[Camera]:
+    """The encoder-side :class:`pretrain.geometry.Camera` list of an (unwrapped) env, left then right."""
+    return [Camera.from_dict(spec.to_dict(), f"env camera {spec.name}") for spec in env.cameras]
+
+
+def check_encoder_matches(encoder: BEVEncoder, cameras: list[Camera], where: str) -> None:
+    """The encoder must have been trained for exactly these cameras (sizes, intrinsics, mounting)."""
+    mine = [c.to_dict() for c in encoder.cameras]
+    theirs = [c.to_dict() for c in cameras]
+    if len(mine) != len(theirs):
+        raise ConfigError(f"{where}: encoder expects {len(mine)} cameras, the env has {len(theirs)}")
+    for a, b in zip(mine, theirs, strict=True):
+        for key in ("name", "width", "height"):
+            if a[key] != b[key]:
+                raise ConfigError(f"{where}: encoder/camera mismatch: the encoder was trained for camera "
+                                  f"{a['name']} {key}={a[key]!r}, the env has {b[key]!r} (train with the "
+                                  "recording's camera settings, or re-run pretrain)")
+        for key in ("K", "T_base_cam"):
+            if not np.allclose(np.asarray(a[key]), np.asarray(b[key]), atol=1e-6):
+                raise ConfigError(f"{where}: encoder/camera mismatch: camera {a['name']} {key} differs from the "
+                                  "encoder's (train with the recording's camera settings, or re-run pretrain)")
+
+
+class StudentObserver:
+    """Visual observations → the student's observation dict (module docstring). One stream (one env).
+
+    Args:
+        variant: the student variant (decides the keys).
+        cameras: the env's cameras (:func:`env_cameras`).
+        encoder: the frozen pretrained encoder (required unless the variant is ``no_bev``).
+        max_people: ``K`` of the detector.
+    """
+
+    def __init__(self, variant: str, cameras: list[Camera], encoder: BEVEncoder | None, max_people: int) -> None:
+        self.variant = variant
+        self.keys = variant_keys(variant)
+        self.cameras = cameras
+        if "bev" in self.keys:
+            if encoder is None:
+                raise ConfigError(f"variant {variant!r} needs the pretrained encoder")
+            check_encoder_matches(encoder, cameras, "student observer")
+            self.encoder = encoder
+            self.stream = BEVStream(encoder)
+            self.grid = encoder.grid
+        else:
+            self.encoder = None
+            self.stream = None
+            self.grid = (encoder.grid if encoder is not None else EncoderConfig().grid)
+        if "occ" in self.keys:
+            self.occ_geom = LiftGeometry(cameras, OCC_STRIDE_PX)
+        self.max_people = max_people
+        self._first = True
+        self.observation_space = self._space()
+
+    def _pooled_shape(self) -> tuple[int, int]:
+        nx, ny = self.grid.shape
+        return nx // BEV_POOL, ny // BEV_POOL
+
+    def _space(self) -> gym.spaces.Dict:
+        big = np.float32(1e4)
+        px, py = self._pooled_shape()
+        d: dict[str, gym.spaces.Space] = {"state": gym.spaces.Box(-big, big, (5,), np.float32)}
+        if "bev" in self.keys:
+            d["bev"] = gym.spaces.Box(-big, big, (self.encoder.cfg.bev_channels, px, py), np.float32)
+        if "occ" in self.keys:
+            d["occ"] = gym.spaces.Box(0.0, 1.0, (1, px, py), np.float32)
+        if "poses" in self.keys:
+            d["poses"] = gym.spaces.Box(-big, big, (self.max_people, 17, 3), np.float32)
+            d["pose_mask"] = gym.spaces.Box(0.0, 1.0, (self.max_people, 17), np.float32)
+        return gym.spaces.Dict(d)
+
+    def reset(self) -> None:
+        """The next observation starts a new episode (its history is that frame repeated)."""
+        self._first = True
+
+    @torch.no_grad()
+    def __call__(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        out: dict[str, np.ndarray] = {"state": np.asarray(obs["state"], np.float32)}
+        names = [c.name for c in self.cameras]
+        if "bev" in self.keys or "occ" in self.keys:
+            depth = torch.from_numpy(np.stack([obs[f"depth_{n}"] for n in names])).unsqueeze(0)  # 1 N H W
+        if "bev" in self.keys:
+            rgb = torch.from_numpy(np.stack([obs[f"rgb_{n}"] for n in names])).permute(0, 3, 1, 2).unsqueeze(0)
+            pose = torch.as_tensor(np.asarray(obs["odom"], np.float64)).unsqueeze(0)
+            first = None if not self._first else torch.ones(1, dtype=torch.bool)
+            if self._first:
+                self.stream.reset()
+            s_bev = self.stream.step(rgb, depth, pose, first)
+            out["bev"] = F.avg_pool2d(s_bev, BEV_POOL)[0].numpy()
+        if "occ" in self.keys:
+            out["occ"] = self.occupancy(depth)[0].numpy()
+        if "poses" in self.keys:
+            out["poses"] = np.asarray(obs["poses"], np.float32)
+            out["pose_mask"] = np.asarray(obs["pose_mask"], np.float32)
+        self._first = False
+        return out
+
+    def occupancy(self, depth: torch.Tensor) -> torch.Tensor:
+        """``B x N x H x W`` depth → ``B x 1 x X/2 x Y/2`` occupancy (1 = a depth point above the floor)."""
+        d = sample_depth(depth.float(), OCC_STRIDE_PX)
+        ones = d.new_ones(d.shape[0], d.shape[1], 1, *d.shape[2:])
+        count = lift_splat(ones, d, self.occ_geom, self.grid)
+        return F.max_pool2d((count > 0).float(), BEV_POOL)
+
+
+def teacher_observation(env) -> dict[str, np.ndarray]:
+    """The privileged observation of an unwrapped env in any obs mode (what ``obs_mode="privileged"`` returns)."""
+    return {"state": env.robot_state(), "odom": env.robot.astype(np.float32), "peds": env.privileged_peds(),
+            "scan": env.static_scan().astype(np.float32)}
+
+
+class StudentEnv(gym.Wrapper):
+    """A visual-mode env whose observations are the student's (for PPO fine-tuning and evaluation).
+
+    The encoder is loaded in the process that builds the env (each subprocess of a vectorised env has its own,
+    running on one thread).
+    """
+
+    def __init__(self, env: gym.Env, variant: str, encoder_ckpt: Path | None, threads: int = 1) -> None:
+        super().__init__(env)
+        torch.set_num_threads(threads)
+        u = env.unwrapped
+        if u.cfg.obs_mode != "visual":
+            raise ConfigError(f"StudentEnv needs obs_mode='visual', got {u.cfg.obs_mode!r}")
+        encoder = load_student_encoder(variant, encoder_ckpt)
+        self.observer = StudentObserver(variant, env_cameras(u), encoder, u.cfg.detector.max_people)
+        self.observation_space = self.observer.observation_space
+
+    def reset(self, **kwargs: Any):
+        obs, info = self.env.reset(**kwargs)
+        self.observer.reset()
+        return self.observer(obs), info
+
+    def step(self, action):
+        obs, r, term, trunc, info = self.env.step(action)
+        return self.observer(obs), r, term, trunc, info
+
+
+def load_student_encoder(variant: str, encoder_ckpt: Path | None) -> BEVEncoder | None:
+    """The frozen encoder a variant needs (None for ``no_bev``, whose occupancy map needs no network)."""
+    if "bev" not in variant_keys(variant):
+        return None
+    if encoder_ckpt is None:
+        raise ConfigError(f"variant {variant!r} needs a pretrained encoder checkpoint (encoder_ckpt)")
+    from pretrain.checkpoint import load_encoder
+
+    return load_encoder(Path(encoder_ckpt), frozen=True)
+
+
+def grid_of(encoder: BEVEncoder | None) -> BEVGrid:
+    return encoder.grid if encoder is not None else EncoderConfig().grid

@@ -1,0 +1,120 @@
+"""Building, saving and loading the actor-critic policies (SB3 ``ActorCriticPolicy`` with our extractors).
+
+A saved policy is two files in a directory: ``policy.safetensors`` (every parameter and buffer, including the
+input statistics the extractor standardises with) and ``policy.json`` (what to build: kind, variant, observation
+shapes, network sizes, the action grid, and the provenance of the weights). :func:`load_policy` rebuilds the
+network from the JSON and loads the weights; a missing file, unreadable JSON or a weight that does not fit gives
+one error naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from stable_baselines3.common.policies import ActorCriticPolicy
+
+from pipeline.artifacts import atomic_write_text
+from pipeline.errors import CorruptArtifactError, InputMissingError
+from rl.networks import StudentExtractor, TeacherExtractor
+
+POLICY_JSON = "policy.json"
+POLICY_WEIGHTS = "policy.safetensors"
+N_ACTIONS = 105  # the 5 x 21 (v, ω) grid of sim.robot.action_grid (the paper's)
+
+
+def space_to_json(space: gym.spaces.Dict) -> dict[str, Any]:
+    return {k: {"shape": list(s.shape), "low": float(np.min(s.low)), "high": float(np.max(s.high))}
+            for k, s in space.spaces.items()}
+
+
+def space_from_json(d: dict[str, Any]) -> gym.spaces.Dict:
+    return gym.spaces.Dict({k: gym.spaces.Box(np.float32(v["low"]), np.float32(v["high"]), tuple(v["shape"]),
+                                              np.float32) for k, v in d.items()})
+
+
+def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[str, Any]:
+    """SB3 ``policy_kwargs`` of a teacher or a student variant."""
+    if kind == "teacher":
+        return {"features_extractor_class": TeacherExtractor,
+                "features_extractor_kwargs": {"scan_range_m": net.get("scan_range_m", 10.0)},
+                "net_arch": {"pi": list(net.get("pi", [256, 256])), "vf": list(net.get("vf", [256, 256]))},
+                "share_features_extractor": True}
+    ext = {k: net[k] for k in ("bev_dim", "bev_width", "state_dim", "fused_dim", "i2former") if k in net}
+    return {"features_extractor_class": StudentExtractor,
+            "features_extractor_kwargs": {"variant": variant, **ext},
+            "net_arch": {"pi": list(net.get("pi", [256])), "vf": list(net.get("vf", [128]))},
+            "share_features_extractor": True}
+
+
+def build_policy(kind: str, variant: str | None, obs_space: gym.spaces.Dict, net: dict[str, Any],
+                 lr: float = 3e-4) -> ActorCriticPolicy:
+    """A fresh policy (random weights) for ``obs_space`` and the discrete action grid."""
+    return ActorCriticPolicy(obs_space, gym.spaces.Discrete(N_ACTIONS), lambda _: lr,
+                             **policy_kwargs(kind, variant, net))
+
+
+def describe(kind: str, variant: str | None, obs_space: gym.spaces.Dict, net: dict[str, Any],
+             **extra: Any) -> dict[str, Any]:
+    return {"kind": kind, "variant": variant, "observation_space": space_to_json(obs_space), "net": net,
+            "actions": {"type": "discrete", "n": N_ACTIONS, "grid": "sim.robot.action_grid: 5 speeds x 21 yaw rates"},
+            **extra}
+
+
+def save_policy(out: Path, policy: ActorCriticPolicy, desc: dict[str, Any]) -> None:
+    """Writes ``policy.safetensors`` and ``policy.json`` into ``out`` (each atomically)."""
+    from pretrain.checkpoint import save_safetensors
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_safetensors(policy, out / POLICY_WEIGHTS, {"kind": str(desc["kind"]), "variant": str(desc["variant"])})
+    atomic_write_text(out / POLICY_JSON, json.dumps(desc, indent=2, sort_keys=True) + "\n")
+
+
+def read_policy_json(ckpt: Path) -> dict[str, Any]:
+    path = Path(ckpt) / POLICY_JSON
+    if not path.is_file():
+        raise InputMissingError(f"missing policy checkpoint: {path} does not exist (run `make train`)")
+    try:
+        desc = json.loads(path.read_text())
+        desc["kind"], desc["observation_space"], desc["net"]  # noqa: B018 - presence check
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as e:
+        raise CorruptArtifactError(f"{path}: not a policy description ({type(e).__name__}: {e})") from None
+    return desc
+
+
+def load_policy(ckpt: Path) -> tuple[ActorCriticPolicy, dict[str, Any]]:
+    """The policy saved in ``ckpt`` (eval mode) and its description.
+
+    Raises:
+        InputMissingError: the directory or a file is missing. CorruptArtifactError: unreadable or mismatching.
+    """
+    from pretrain.checkpoint import load_safetensors
+
+    ckpt = Path(ckpt)
+    desc = read_policy_json(ckpt)
+    try:
+        space = space_from_json(desc["observation_space"])
+        policy = build_policy(desc["kind"], desc.get("variant"), space, desc["net"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CorruptArtifactError(f"{ckpt / POLICY_JSON}: cannot build the policy ({type(e).__name__}: {e})") from None
+    load_safetensors(policy, ckpt / POLICY_WEIGHTS)
+    policy.set_training_mode(False)
+    return policy, desc
+
+
+def obs_to_tensor(obs: dict[str, np.ndarray], batch: bool = False) -> dict[str, torch.Tensor]:
+    """A (batched) observation dict as float tensors."""
+    return {k: torch.as_tensor(np.asarray(v, np.float32)) if batch else
+            torch.as_tensor(np.asarray(v, np.float32)).unsqueeze(0) for k, v in obs.items()}
+
+
+@torch.no_grad()
+def act(policy: ActorCriticPolicy, obs: dict[str, np.ndarray], deterministic: bool = True) -> int:
+    """The action index of one observation."""
+    dist = policy.get_distribution(obs_to_tensor({k: obs[k] for k in policy.observation_space.spaces}))
+    return int(dist.get_actions(deterministic=deterministic)[0])

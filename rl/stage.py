@@ -1,0 +1,480 @@
+"""``icrowdnav train``: the privileged teacher, then each visual student variant (DAgger + PPO fine-tuning).
+
+::
+
+    icrowdnav train --variant teacher            # BC warm start from the expert + PPO (privileged, no rendering)
+    icrowdnav train --variant full               # DAgger from the teacher, then PPO fine-tuning (rendered)
+    icrowdnav train --variant no_i2 --resume     # continue a killed run
+    make train                                   # teacher, full, no_i2, no_bev in turn (TRAIN_VARIANTS)
+
+Inputs: the teacher needs nothing but the simulator; a student needs ``DATA_DIR/checkpoints/policy/teacher`` and,
+for ``full`` and ``no_i2``, the pretrained encoder ``DATA_DIR/checkpoints/<encoder>``. Output
+``DATA_DIR/checkpoints/policy/<variant>/``::
+
+    policy.safetensors, policy.json   the final policy (weights incl. input statistics; what to build + provenance)
+    config.yaml, manifest.json        resolved config; provenance (written last: an unfinished run has none)
+    metrics.json                      training summary + the acceptance evaluation (SR per scene, seeded)
+    train_log.csv, tb/                per-step / per-iteration logs (TensorBoard)
+    curves.png                        training curves
+    teacher:  expert_bc.npz summary in metrics.json; ppo/ (SB3 checkpoint for --resume)
+    student:  dagger/iter_<k>/{raw/*.mcap, dataset/ (LeRobot), features/*.npz, episodes.jsonl, policy/, done.json}
+              ppo/ (SB3 checkpoint of the fine-tuning for --resume)
+
+Every policy.json states which steps produced it (``produced_by``). Runs write in place (resumable, like
+``record``/``pretrain``); ``manifest.json`` comes last.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.artifacts import atomic_write_json
+from pipeline.config import BaseStageConfig
+from pipeline.errors import ConfigError
+from pipeline.stage import Stage, run_stage
+from rl.networks import VARIANTS
+from rl.teacher import CurriculumStage, check_curriculum
+from sim.env import SimConfig
+
+log = logging.getLogger("icrowdnav")
+TRAIN_VARIANTS = ("teacher", *VARIANTS)
+
+
+@dataclass
+class TeacherConfig:
+    """The privileged teacher (rl.teacher)."""
+
+    bc_episodes: int = 200  # expert episodes for the warm start (spread over the curriculum's pairs)
+    bc_epochs: int = 30  # behaviour-cloning epochs
+    bc_batch: int = 512
+    bc_lr: float = 1e-3
+    ppo_steps: int = 200_000  # PPO env steps after the warm start (0 = the teacher is the cloned expert)
+    n_envs: int = 8  # vectorised envs
+    subprocess: bool = True  # SubprocVecEnv (both cores) instead of DummyVecEnv
+    ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 512, "batch_size": 512, "n_epochs": 6,
+                                                           "learning_rate": 1e-4, "clip_range": 0.1,
+                                                           "ent_coef": 0.0})
+    net: dict[str, Any] = field(default_factory=lambda: {"pi": [256, 256], "vf": [256, 256]})
+    curriculum: list[CurriculumStage] = field(default_factory=lambda: [
+        CurriculumStage(until=0.3, densities=[0.1]), CurriculumStage(until=1.0, densities=[0.1, 0.2])])
+
+
+@dataclass
+class DaggerConfig:
+    """DAgger distillation into the student (rl.dagger)."""
+
+    iterations: int = 4
+    episodes_per_iter: int = 20  # rendered episodes per iteration
+    beta0: float = 1.0  # probability that the teacher drives, iteration 0
+    beta_decay: float = 0.5  # β_k = beta0 · beta_decay^k
+    bc_epochs: int = 8  # cloning epochs on the aggregate after each iteration
+    bc_batch: int = 128
+    bc_lr: float = 5e-4
+    scenes: list[str] = field(default_factory=lambda: ["hallway", "corner", "doorway", "cluttered_room", "open_crowd"])
+    densities: list[float] = field(default_factory=lambda: [0.1, 0.2])
+
+
+@dataclass
+class FinetuneConfig:
+    """PPO fine-tuning of the student with the paper's reward and the frozen encoder."""
+
+    ppo_steps: int = 0  # rendered env steps (0 = no fine-tuning; the paper profile sizes it like the paper)
+    n_envs: int = 2
+    ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 256, "batch_size": 128, "n_epochs": 6,
+                                                           "learning_rate": 5e-5, "clip_range": 0.1})
+
+
+@dataclass
+class AcceptanceConfig:
+    """The seeded evaluation run at the end of training (the test scenes; `make eval` is the full benchmark)."""
+
+    scenes: list[str] = field(default_factory=lambda: ["office_lobby", "hospital_corridor", "warehouse"])
+    densities: list[float] = field(default_factory=lambda: [0.1])
+    episodes: int = 50  # per (scene, density); seeds 10_000 + k (disjoint from training seeds)
+
+
+@dataclass
+class TrainConfig(BaseStageConfig):
+    """Config of the ``train`` stage (one variant per run)."""
+
+    variant: str = "full"  # teacher | full | no_i2 | no_bev
+    encoder: str = "bev"  # pretrained encoder: DATA_DIR/checkpoints/<encoder>/
+    sim: SimConfig = field(default_factory=SimConfig)
+    teacher: TeacherConfig = field(default_factory=TeacherConfig)
+    dagger: DaggerConfig = field(default_factory=DaggerConfig)
+    finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
+    acceptance: AcceptanceConfig = field(default_factory=AcceptanceConfig)
+    net: dict[str, Any] = field(default_factory=dict)  # student network sizes (rl.networks.StudentExtractor)
+    workers: int = 2  # processes for rollouts and evaluation
+    threads: int = 0  # torch threads for cloning / PPO updates (0 = every core)
+    progress: bool = True
+
+    def validate(self) -> None:
+        super().validate()
+        if self.variant not in TRAIN_VARIANTS:
+            raise ConfigError(f"train.variant: expected one of {list(TRAIN_VARIANTS)}, got {self.variant!r}")
+        check_curriculum(self.teacher.curriculum)
+        t, d = self.teacher, self.dagger
+        for key, v in (("teacher.bc_episodes", t.bc_episodes), ("teacher.bc_epochs", t.bc_epochs),
+                       ("teacher.n_envs", t.n_envs), ("dagger.iterations", d.iterations),
+                       ("dagger.episodes_per_iter", d.episodes_per_iter), ("dagger.bc_epochs", d.bc_epochs),
+                       ("workers", self.workers), ("finetune.n_envs", self.finetune.n_envs),
+                       ("acceptance.episodes", self.acceptance.episodes)):
+            if v < 1:
+                raise ConfigError(f"train.{key}: expected an integer >= 1, got {v}")
+        if t.ppo_steps < 0 or self.finetune.ppo_steps < 0:
+            raise ConfigError("train: ppo_steps must be >= 0")
+        if not (0 <= d.beta0 <= 1 and 0 <= d.beta_decay <= 1):
+            raise ConfigError(f"train.dagger: beta0 and beta_decay must be in [0, 1], got {d.beta0}, {d.beta_decay}")
+        if not d.scenes or not d.densities or not self.acceptance.scenes or not self.acceptance.densities:
+            raise ConfigError("train: dagger and acceptance need at least one scene and one density")
+        from sim.scene import load_scene
+
+        for s in {*d.scenes, *self.acceptance.scenes, *(x for st in t.curriculum for x in st.scenes)}:
+            load_scene(s)  # unknown scene -> ConfigError naming it
+
+
+def policy_root(cfg: TrainConfig) -> Path:
+    return Path(cfg.data_dir) / "checkpoints" / "policy"
+
+
+def output_dir(cfg: TrainConfig) -> Path:
+    return policy_root(cfg) / cfg.variant
+
+
+def encoder_dir(cfg: TrainConfig) -> Path:
+    return Path(cfg.data_dir) / "checkpoints" / cfg.encoder
+
+
+def _inputs(cfg: TrainConfig) -> list[Path]:
+    """The teacher and the encoder a student needs; checked here, before any output exists."""
+    if cfg.variant == "teacher":
+        return []
+    from pretrain.checkpoint import read_encoder_json
+    from rl.policy import read_policy_json
+
+    teacher = policy_root(cfg) / "teacher"
+    read_policy_json(teacher)
+    if not (teacher / "manifest.json").is_file():
+        from pipeline.errors import InputMissingError
+
+        raise InputMissingError(f"teacher checkpoint {teacher} is unfinished (no manifest.json); run "
+                                "`icrowdnav train --variant teacher` first")
+    paths = [teacher / "policy.json", teacher / "policy.safetensors"]
+    if cfg.variant != "no_bev":
+        read_encoder_json(encoder_dir(cfg))  # missing / unfinished / corrupt -> one clear error
+        from rl.observe import check_encoder_matches, env_cameras, load_student_encoder
+        from sim.env import CrowdNavEnv
+
+        enc = load_student_encoder(cfg.variant, encoder_dir(cfg))
+        env = CrowdNavEnv(config=replace(cfg.sim, scene=cfg.dagger.scenes[0], obs_mode="state"))
+        env.reset(seed=0)
+        check_encoder_matches(enc, env_cameras(env), f"train --variant {cfg.variant} (encoder {encoder_dir(cfg)})")
+        paths += [encoder_dir(cfg) / "encoder.json", encoder_dir(cfg) / "encoder.safetensors"]
+    return paths
+
+
+class _Log:
+    """Appends rows to ``train_log.csv`` and TensorBoard."""
+
+    def __init__(self, out: Path) -> None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.path = out / "train_log.csv"
+        self.tb = SummaryWriter(str(out / "tb"))
+
+    def add(self, phase: str, step: int, **values: float) -> None:
+        new = not self.path.exists()
+        with open(self.path, "a", newline="") as f:
+            w = csv.writer(f)
+            if new:
+                w.writerow(["phase", "step", "key", "value"])
+            for k, v in values.items():
+                w.writerow([phase, step, k, f"{float(v):.6g}"])
+                self.tb.add_scalar(f"{phase}/{k}", float(v), step)
+        self.tb.flush()
+
+
+def _acceptance(cfg: TrainConfig, policy_dir: Path, method: str) -> dict[str, Any]:
+    from rl.evaluate import evaluate, success_table
+
+    a = cfg.acceptance
+    seeds = [10_000 + k for k in range(a.episodes)]
+    rows = evaluate(policy_dir, cfg.sim, [(s, d) for s in a.scenes for d in a.densities], seeds,
+                    cfg.workers, method, cfg.progress)
+    return {"seeds": [seeds[0], seeds[-1]], "table": success_table(rows), "episodes": rows}
+
+
+# --------------------------------------------------------------------------------------------------------- teacher
+def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
+    from stable_baselines3 import PPO
+
+    from rl.policy import build_policy, describe, policy_kwargs, save_policy
+    from rl.teacher import (
+        SceneMixEnv,
+        behaviour_clone,
+        collect_expert,
+        curriculum_callback,
+        make_vec_env,
+        ppo_kwargs,
+        stage_pairs_all,
+    )
+
+    t = cfg.teacher
+    logger = _Log(out)
+    pairs = stage_pairs_all(t.curriculum)
+    probe = SceneMixEnv(cfg.sim, pairs[:1])
+    net = {**t.net, "scan_range_m": cfg.sim.scan_range_m}
+    bc_dir = out / "bc"
+    summary: dict[str, Any] = {}
+    if (bc_dir / "policy.json").exists():
+        from rl.policy import load_policy
+
+        policy, desc = load_policy(bc_dir)
+        summary["bc"] = desc["bc"]
+    else:
+        t0 = time.perf_counter()
+        data = collect_expert(cfg.sim, pairs, t.bc_episodes, cfg.seed, ppo_kwargs(t.ppo)["gamma"], cfg.workers,
+                              cfg.progress)
+        collect_s = time.perf_counter() - t0
+        torch.manual_seed(cfg.seed)
+        policy = build_policy("teacher", None, probe.observation_space, net)
+        rows = behaviour_clone(policy, data, t.bc_epochs, t.bc_batch, t.bc_lr, cfg.seed, progress=cfg.progress)
+        for r in rows:
+            logger.add("teacher_bc", r["epoch"], bc_loss=r["bc_loss"], accuracy=r["accuracy"],
+                       value_loss=r["value_loss"])
+        summary["bc"] = {"episodes": t.bc_episodes, "frames": int(len(data["action"])),
+                         "expert_success_rate": float(data["expert_success_rate"]), "collect_s": round(collect_s, 1),
+                         "final": rows[-1]}
+        save_policy(bc_dir, policy, describe("teacher", None, probe.observation_space, net, bc=summary["bc"],
+                                             produced_by={"expert_bc_frames": summary["bc"]["frames"]}))
+    ppo_steps = 0
+    if t.ppo_steps > 0:
+        torch.set_num_threads(1)  # the envs use the cores; the MLP update is small
+        venv = make_vec_env(cfg.sim, pairs, t.n_envs, cfg.seed, t.subprocess)
+        last = out / "ppo" / "last.zip"
+        if last.exists():
+            model = PPO.load(last, env=venv, device="cpu")
+        else:
+            model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs("teacher", None, net), seed=cfg.seed,
+                        device="cpu", verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(t.ppo))
+            model.policy.load_state_dict(policy.state_dict())
+        done = model.num_timesteps
+        t0 = time.perf_counter()
+        cb = [curriculum_callback(t.curriculum, t.ppo_steps), _checkpoint_callback(out / "ppo", model, 20_000),
+              _progress_callback(t.ppo_steps, "teacher PPO", cfg.progress)]
+        model.learn(max(0, t.ppo_steps - done), callback=cb, reset_num_timesteps=False, tb_log_name="ppo")
+        summary["ppo_steps_per_s"] = round((model.num_timesteps - done) / max(time.perf_counter() - t0, 1e-9), 1)
+        ppo_steps = int(model.num_timesteps)
+        last.parent.mkdir(parents=True, exist_ok=True)
+        model.save(last)
+        venv.close()
+        policy = model.policy
+    summary["ppo_steps"] = ppo_steps
+    desc = describe("teacher", None, probe.observation_space, net, sim_scan_range_m=cfg.sim.scan_range_m,
+                    produced_by={"expert_bc_frames": summary["bc"]["frames"], "ppo_steps": ppo_steps})
+    save_policy(out, policy, desc)
+    return summary
+
+
+def _checkpoint_callback(path: Path, model, every: int):
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class Save(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.next = model.num_timesteps + every
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps >= self.next:
+                path.mkdir(parents=True, exist_ok=True)
+                tmp = path / "last.tmp.zip"
+                self.model.save(tmp)
+                tmp.replace(path / "last.zip")
+                self.next += every
+            return True
+
+    return Save()
+
+
+def _progress_callback(total: int, desc: str, enabled: bool):
+    from stable_baselines3.common.callbacks import BaseCallback
+    from tqdm import tqdm
+
+    class Bar(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.bar = tqdm(total=total, initial=min(self.num_timesteps, total), desc=desc, unit="step",
+                            disable=not enabled, dynamic_ncols=True)
+
+        def _on_step(self) -> bool:
+            self.bar.update(self.training_env.num_envs)
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return Bar()
+
+
+# --------------------------------------------------------------------------------------------------------- student
+def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
+    from rl.dagger import bev_stats, export_iteration, load_features, run_iteration, write_done
+    from rl.observe import StudentObserver, env_cameras, load_student_encoder
+    from rl.policy import build_policy, describe, load_policy, save_policy
+    from rl.teacher import bc_loss, behaviour_clone
+    from sim.env import CrowdNavEnv
+
+    d = cfg.dagger
+    logger = _Log(out)
+    teacher_dir = policy_root(cfg) / "teacher"
+    enc_dir = encoder_dir(cfg) if cfg.variant != "no_bev" else None
+    encoder = load_student_encoder(cfg.variant, enc_dir)
+    env = CrowdNavEnv(config=replace(cfg.sim, scene=d.scenes[0], obs_mode="state"))
+    env.reset(seed=0)
+    space = StudentObserver(cfg.variant, env_cameras(env), encoder, cfg.sim.detector.max_people).observation_space
+    net = dict(cfg.net)
+    extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir)}
+    pairs = [(s, float(x)) for s in d.scenes for x in d.densities]
+    torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
+    torch.manual_seed(cfg.seed)
+    policy = build_policy("student", cfg.variant, space, net)
+    iters: list[dict[str, Any]] = []
+    frames_total = 0
+    for k in range(d.iterations):
+        it = out / "dagger" / f"iter_{k}"
+        if (it / "done.json").exists():
+            info = json.loads((it / "done.json").read_text())
+            iters.append(info)
+            frames_total = info["aggregate_frames"]
+            policy, _ = load_policy(it / "policy")
+            continue
+        beta = d.beta0 * d.beta_decay ** k
+        student_dir = out / "dagger" / f"iter_{k - 1}" / "policy" if k > 0 else None
+        jobs = [{"sim": cfg.sim, "scene": pairs[e % len(pairs)][0], "density": pairs[e % len(pairs)][1],
+                 "seed": cfg.seed + 1000 * k + e, "variant": cfg.variant, "encoder": str(enc_dir) if enc_dir else None,
+                 "teacher": str(teacher_dir), "student": str(student_dir) if student_dir else None, "beta": beta,
+                 "iteration": k, "iter_dir": str(it)} for e in range(d.episodes_per_iter)]
+        rows = run_iteration(it, jobs, cfg.workers, cfg.progress)
+        counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress)
+        new = load_features([it])
+        data = load_features([out / "dagger" / f"iter_{j}" for j in range(k + 1)])
+        if k == 0 and "bev" in space.spaces:
+            policy.features_extractor.set_bev_stats(*bev_stats(data))
+        before = bc_loss(policy, new)
+        hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, cfg.seed + k, progress=cfg.progress)
+        after = bc_loss(policy, new)
+        frames_total = int(len(data["action"]))
+        for r in hist:
+            logger.add("dagger_bc", k * d.bc_epochs + r["epoch"], bc_loss=r["bc_loss"], accuracy=r["accuracy"])
+        sr_rollout = float(np.mean([r["outcome"] == "success" for r in rows]))
+        logger.add("dagger", k, rollout_success=sr_rollout, bc_loss_new_before=before, bc_loss_new_after=after,
+                   aggregate_frames=frames_total)
+        info = {"iteration": k, "beta": beta, "episodes": len(rows), "frames": int(len(new["action"])),
+                "aggregate_frames": frames_total, "rollout_success_rate": sr_rollout,
+                "student_steps": int(sum(r["student_steps"] for r in rows)),
+                "bc_loss_new_before": before, "bc_loss_new_after": after, "final_accuracy": hist[-1]["accuracy"],
+                "dataset": str(it / "dataset"), "dataset_frames": counts["frames"]}
+        save_policy(it / "policy", policy, describe("student", cfg.variant, space, net, **extra,
+                                                    produced_by={"dagger_iterations": k + 1,
+                                                                 "dagger_frames": frames_total}))
+        write_done(it, info)
+        iters.append(info)
+        del data, new
+    produced = {"teacher": str(teacher_dir), "dagger_iterations": d.iterations, "dagger_frames": frames_total,
+                "ppo_finetune_steps": 0}
+    summary: dict[str, Any] = {"dagger": iters}
+    if cfg.finetune.ppo_steps > 0:
+        policy, steps, rate = _finetune(cfg, out, policy, pairs, enc_dir)
+        produced["ppo_finetune_steps"] = steps
+        summary["finetune"] = {"steps": steps, "steps_per_s": rate}
+    save_policy(out, policy, describe("student", cfg.variant, space, net, **extra, produced_by=produced))
+    return summary
+
+
+def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir):
+    """PPO on the student (rendered envs, the paper's reward), starting from the distilled policy."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    from rl.observe import StudentEnv
+    from rl.policy import policy_kwargs
+    from rl.teacher import SceneMixEnv, ppo_kwargs
+
+    f = cfg.finetune
+
+    def make():
+        return StudentEnv(SceneMixEnv(cfg.sim, pairs, obs_mode="visual"), cfg.variant, enc_dir)
+
+    venv = (SubprocVecEnv([make] * f.n_envs, start_method="fork") if f.n_envs > 1 else DummyVecEnv([make]))
+    venv.seed(cfg.seed + 77)
+    last = out / "ppo" / "last.zip"
+    if last.exists():
+        model = PPO.load(last, env=venv, device="cpu")
+    else:
+        model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs("student", cfg.variant, dict(cfg.net)),
+                    seed=cfg.seed, device="cpu", verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(f.ppo))
+        model.policy.load_state_dict(policy.state_dict())
+    done = model.num_timesteps
+    t0 = time.perf_counter()
+    model.learn(max(0, f.ppo_steps - done), reset_num_timesteps=False, tb_log_name="finetune",
+                callback=[_checkpoint_callback(out / "ppo", model, 2048),
+                          _progress_callback(f.ppo_steps, "student PPO", cfg.progress)])
+    rate = round((model.num_timesteps - done) / max(time.perf_counter() - t0, 1e-9), 2)
+    (out / "ppo").mkdir(exist_ok=True)
+    model.save(last)
+    venv.close()
+    model.policy.set_training_mode(False)
+    return model.policy, int(model.num_timesteps), rate
+
+
+# -------------------------------------------------------------------------------------------------------- the stage
+def _body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
+    from pipeline.config import dump_yaml
+    from rl.figures import plot_training
+
+    dump_yaml(cfg, out / "config.yaml")
+    t0 = time.perf_counter()
+    summary = _train_teacher(cfg, out) if cfg.variant == "teacher" else _train_student(cfg, out)
+    train_s = time.perf_counter() - t0
+    method = "teacher" if cfg.variant == "teacher" else cfg.variant
+    acc = _acceptance(cfg, out, method)
+    metrics = {"variant": cfg.variant, "train_seconds": round(train_s, 1), **summary,
+               "acceptance": {k: v for k, v in acc.items() if k != "episodes"}}
+    atomic_write_json(out / "metrics.json", metrics)
+    with open(out / "acceptance_episodes.jsonl", "w") as fh:
+        for r in acc["episodes"]:
+            fh.write(json.dumps({k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                                 for k, v in r.items()}) + "\n")
+    plot_training(out / "train_log.csv", out / "curves.png", cfg.variant)
+    counts: dict[str, Any] = {"train_seconds": round(train_s, 1)}
+    for cell, row in acc["table"].items():
+        counts[f"sr_{cell}"] = round(row["sr"], 3)
+    return counts
+
+
+STAGE = Stage(
+    name="train",
+    config_cls=TrainConfig,
+    help="train the privileged teacher or a visual student variant (DAgger + PPO) -> DATA_DIR/checkpoints/policy/",
+    output_dir=output_dir,
+    inputs=_inputs,
+    body=_body,
+    resumable=True,
+    in_place=True,
+    code=("pipeline", "rl", "sim", "pretrain", "recorder"),
+)
+
+
+def run(cfg: TrainConfig):
+    """Runs the train stage for ``cfg.variant``; returns its manifest."""
+    return run_stage(STAGE, cfg)
