@@ -1,0 +1,253 @@
+"""Teacher, DAgger and the train stage on tiny sizes (real envs, real rendering, real files)."""
+
+import json
+import shutil
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from pipeline.config import load_config
+from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
+from rl.policy import act, build_policy, describe, load_policy, save_policy
+from rl.teacher import SceneMixEnv, bc_loss, behaviour_clone, collect_expert
+from sim.env import CameraConfig, SimConfig
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY_SIM = SimConfig(max_episode_s=4.0, camera=CameraConfig(width_px=64, height_px=48))
+
+
+@pytest.fixture(scope="module")
+def teacher_dir(tmp_path_factory):
+    """A teacher cloned from 2 expert episodes (enough to label; not a good driver)."""
+    out = tmp_path_factory.mktemp("policy") / "teacher"
+    data = collect_expert(TINY_SIM, [("hallway", 0.1)], 2, 0, 0.99, 1, progress=False)
+    space = SceneMixEnv(TINY_SIM, [("hallway", 0.1)]).observation_space
+    policy = build_policy("teacher", None, space, {})
+    behaviour_clone(policy, data, 3, 256, 1e-3, 0, progress=False)
+    save_policy(out, policy, describe("teacher", None, space, {}))
+    (out / "manifest.json").write_text("{}")
+    return out
+
+
+EMPTY_ROOM = {"name": "empty_room", "split": "train", "description": "test: an empty 6 x 6 m room",
+              "bounds": [0.0, 6.0, 0.0, 6.0], "obstacles": [], "start_goal": {"distance_m": [1.0, 1.3],
+                                                                              "clearance_m": 0.5}}
+
+
+def _success_rate(policy, sim_cfg, seeds):
+    env = SceneMixEnv(sim_cfg, [(sim_cfg.scene, 0.0)])
+    wins = 0
+    for s in seeds:
+        obs, _ = env.reset(seed=s)
+        while True:
+            obs, _, term, trunc, info = env.step(act(policy, obs))
+            if term or trunc:
+                wins += info["outcome"] == "success"
+                break
+    return wins / len(seeds)
+
+
+def test_teacher_ppo_learns_a_trivial_scene(tmp_path):
+    """PPO from scratch (no warm start) learns to reach a nearby goal in an empty room within 8k steps.
+
+    Measured: deterministic SR on 10 seeds 0.1 -> 0.4 after 8k steps, 0.6 after 25k (the 105-action grid makes
+    exploration slow; the real teacher starts from the cloned expert instead)."""
+    from stable_baselines3 import PPO
+
+    from rl.policy import policy_kwargs
+    from rl.teacher import make_vec_env, ppo_kwargs
+
+    scene = tmp_path / "empty_room.yaml"
+    scene.write_text(yaml.safe_dump(EMPTY_ROOM))
+    sim_cfg = replace(SimConfig(), scene=str(scene), density=0.0, max_episode_s=8.0)
+    torch.manual_seed(0)
+    venv = make_vec_env(sim_cfg, [(str(scene), 0.0)], 4, 0, subprocess=False)
+    model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs("teacher", None, {}), seed=0, device="cpu",
+                **ppo_kwargs({"n_steps": 256, "batch_size": 256, "n_epochs": 10, "learning_rate": 1e-3,
+                              "gamma": 0.95}))
+    seeds = list(range(100, 110))
+    before = _success_rate(model.policy, sim_cfg, seeds)
+    model.learn(8192)
+    after = _success_rate(model.policy, sim_cfg, seeds)
+    assert after >= before + 0.2, (before, after)
+
+
+def test_dagger_iteration_writes_a_loadable_dataset_and_lowers_bc_loss(tmp_path, teacher_dir):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from rl.dagger import export_iteration, load_features, run_iteration
+    from rl.observe import StudentObserver, env_cameras
+    from sim.env import CrowdNavEnv
+
+    it = tmp_path / "iter_0"
+    jobs = [{"sim": TINY_SIM, "scene": "hallway", "density": 0.1, "seed": s, "variant": "no_bev", "encoder": None,
+             "teacher": str(teacher_dir), "student": None, "beta": 1.0, "iteration": 0, "iter_dir": str(it)}
+            for s in (1, 2)]
+    rows = run_iteration(it, jobs, workers=1, progress=False)
+    assert [r["student_steps"] for r in rows] == [0, 0]  # beta = 1: the teacher drove
+    assert sorted(p.name for p in (it / "raw").glob("*.mcap")) == ["hallway_d0.1_s1.mcap", "hallway_d0.1_s2.mcap"]
+    counts = export_iteration(it, "icrowdnav/dagger_test", progress=False)
+    ds = LeRobotDataset("icrowdnav/dagger_test", root=it / "dataset")
+    assert ds.meta.total_episodes == 2 and ds.meta.total_frames == counts["frames"]
+    assert "action.teacher" in ds.features
+    data = load_features([it])
+    assert len(data["action"]) == counts["frames"] == sum(r["frames"] for r in rows)
+    # the dataset's labels are the cached label indices, decoded to (v, omega)
+    env = CrowdNavEnv(config=replace(TINY_SIM, action_type="discrete", obs_mode="state"))
+    labels = np.stack([np.asarray(v, np.float32) for v in ds.hf_dataset.with_format(None)["action.teacher"]])
+    assert np.allclose(labels, np.stack([env.decode_action(a) for a in data["action"]]), atol=1e-6)
+
+    env.reset(seed=0)
+    space = StudentObserver("no_bev", env_cameras(env), None, TINY_SIM.detector.max_people).observation_space
+    torch.manual_seed(0)
+    policy = build_policy("student", "no_bev", space, {"bev_width": 8})
+    before = bc_loss(policy, data)
+    behaviour_clone(policy, data, 4, 64, 1e-3, 0, progress=False)
+    assert bc_loss(policy, data) < before - 0.5
+
+
+def test_observer_full_variant_streams_the_encoder():
+    """The full variant's ``bev`` equals the pooled batch forward of the encoder on the same window."""
+    import torch.nn.functional as F
+
+    from pretrain.model import BEVEncoder, EncoderConfig
+    from rl.observe import BEV_POOL, StudentObserver, env_cameras
+    from sim.env import CrowdNavEnv
+
+    env = CrowdNavEnv(config=replace(TINY_SIM, scene="hallway", obs_mode="visual"))
+    cams = env_cameras(env)
+    torch.manual_seed(0)
+    enc = BEVEncoder(EncoderConfig(bev_channels=8, resnet_stages=1, lift_stride_px=4), cams).eval()
+    obs_obs = StudentObserver("full", cams, enc, 6)
+    frames, out = [], None
+    o, _ = env.reset(seed=3)
+    for t in range(4):
+        frames.append(o)
+        out = obs_obs(o)
+        o, *_ = env.step(env.action_space.sample())
+    win = frames[-3:]
+    rgb = torch.stack([torch.from_numpy(np.stack([f["rgb_left"], f["rgb_right"]])).permute(0, 3, 1, 2)
+                       for f in win]).unsqueeze(0)
+    depth = torch.stack([torch.from_numpy(np.stack([f["depth_left"], f["depth_right"]])) for f in win]).unsqueeze(0)
+    poses = torch.stack([torch.as_tensor(f["odom"], dtype=torch.float64) for f in win]).unsqueeze(0)
+    with torch.no_grad():
+        ref = F.avg_pool2d(enc(rgb, depth, poses), BEV_POOL)[0].numpy()
+    assert out["bev"].shape == ref.shape and np.allclose(out["bev"], ref, atol=1e-4)
+    assert set(out) == {"bev", "poses", "pose_mask", "state"}
+
+
+def test_observer_occupancy_sees_a_wall_ahead():
+    from rl.observe import StudentObserver, env_cameras
+    from sim.env import CrowdNavEnv
+
+    env = CrowdNavEnv(config=replace(TINY_SIM, scene="hallway", density=0.0, obs_mode="visual"))
+    obs, _ = env.reset(seed=0)
+    env.robot[:] = [12.5, 1.5, 0.0]  # facing the end wall of the hallway 1.5 m ahead
+    obs = env._obs()
+    ob = StudentObserver("no_bev", env_cameras(env), None, 6)
+    occ = ob(obs)["occ"][0]
+    grid = ob.grid
+    # pooled cells: x index i covers forward metres [2 i dx, 2 (i+1) dx)
+    dx = 2 * grid.x_bound[2]
+    row = int((1.5 - grid.x_bound[0]) / dx)
+    dy = 2 * grid.y_bound[2]
+    mid = slice(int((-1.0 - grid.y_bound[0]) / dy), int((1.0 - grid.y_bound[0]) / dy))  # |y| < 1 m
+    assert occ[row - 1: row + 2, mid].max() == 1.0  # the wall
+    assert occ[: int(1.0 / dx), mid].max() == 0.0  # free floor in front of the robot (side walls at |y| = 1.5)
+
+
+def _train_cfg(data_dir, variant, **over):
+    ov = {"variant": variant, "sim.max_episode_s": "3.0", "sim.camera.width_px": "64",
+          "sim.camera.height_px": "48", "dagger.iterations": "2", "dagger.episodes_per_iter": "1",
+          "dagger.bc_epochs": "2", "dagger.scenes": "hallway", "dagger.densities": "0.1",
+          "acceptance.scenes": "hallway", "acceptance.episodes": "1", "workers": "1",
+          "threads": "1", "progress": "false", "net.bev_width": "8",
+          "finetune.ppo_steps": "0"}
+    ov.update({f"{k}": str(v) for k, v in over.items()})
+    from rl.stage import TrainConfig
+
+    return load_config(TrainConfig, "train", "smoke", {"data_dir": str(data_dir), **ov})
+
+
+def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir):
+    from rl.stage import run
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d in (a, b):
+        shutil.copytree(teacher_dir, d / "checkpoints" / "policy" / "teacher")
+    run(_train_cfg(a, "no_bev"))
+    out_a = a / "checkpoints" / "policy" / "no_bev"
+    assert json.loads((out_a / "policy.json").read_text())["produced_by"]["dagger_iterations"] == 2
+    # b: the same run killed during iteration 1 (iteration 0 finished), then resumed
+    run(_train_cfg(b, "no_bev"))
+    out_b = b / "checkpoints" / "policy" / "no_bev"
+    for name in ("manifest.json", "policy.safetensors", "policy.json", "metrics.json"):
+        (out_b / name).unlink()
+    shutil.rmtree(out_b / "dagger" / "iter_1")
+    run(_train_cfg(b, "no_bev", resume="true"))
+    assert (out_a / "policy.safetensors").read_bytes() == (out_b / "policy.safetensors").read_bytes()
+    pa, _ = load_policy(out_a)
+    assert (out_a / "curves.png").stat().st_size > 0 and (out_a / "manifest.json").is_file()
+    m = json.loads((out_a / "metrics.json").read_text())
+    assert m["acceptance"]["table"]["hallway@0.1"]["n"] == 1
+    assert all(it["bc_loss_new_after"] < it["bc_loss_new_before"] for it in m["dagger"])
+
+
+def test_missing_encoder_is_one_clear_error(tmp_path, teacher_dir):
+    from rl.stage import run
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    with pytest.raises(InputMissingError, match="no BEV encoder checkpoint"):
+        run(_train_cfg(tmp_path, "full"))
+    assert not (tmp_path / "checkpoints" / "policy" / "full").exists()
+
+
+def test_missing_teacher_is_one_clear_error(tmp_path):
+    from rl.stage import run
+
+    with pytest.raises(InputMissingError, match="missing policy checkpoint"):
+        run(_train_cfg(tmp_path, "no_bev"))
+
+
+def test_encoder_camera_mismatch_is_one_clear_error(tmp_path, teacher_dir):
+    from pretrain.checkpoint import write_encoder_checkpoint
+    from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
+    from rl.observe import env_cameras
+    from rl.stage import run
+    from sim.env import CrowdNavEnv
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    env = CrowdNavEnv(config=replace(SimConfig(), obs_mode="state"))  # 160 x 120: not the 64 x 48 of the run
+    enc = BEVEncoder(EncoderConfig(bev_channels=8, resnet_stages=1), env_cameras(env))
+    ck = tmp_path / "checkpoints" / "bev"
+    ck.mkdir(parents=True)
+    write_encoder_checkpoint(ck, enc, PretextHeads(8), {})
+    (ck / "manifest.json").write_text("{}")
+    with pytest.raises(ConfigError, match="encoder/camera mismatch"):
+        run(_train_cfg(tmp_path, "full"))
+
+
+def test_unknown_variant_cli_is_one_line_and_writes_nothing(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "pipeline", "train", "--profile", "smoke", "--data-dir", str(tmp_path),
+                        "--variant", "no_everything"], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode != 0
+    assert "train.variant" in r.stderr and "no_everything" in r.stderr
+    assert "Traceback" not in r.stderr
+    assert not any(tmp_path.iterdir())
+
+
+def test_corrupt_policy_checkpoint_names_the_file(tmp_path, teacher_dir):
+    bad = tmp_path / "teacher"
+    shutil.copytree(teacher_dir, bad)
+    (bad / "policy.safetensors").write_bytes(b"not a safetensors file")
+    with pytest.raises(CorruptArtifactError, match="policy.safetensors"):
+        load_policy(bad)
+    (bad / "policy.json").write_text("{")
+    with pytest.raises(CorruptArtifactError, match="policy.json"):
+        load_policy(bad)
