@@ -23,7 +23,9 @@ are kept, ours are replaced) and prints every figure. Figures (single process, t
   recording time spent writing MCAP; ``export_frames_per_s`` — the LeRobot export of that recording
   (reading MCAP, lerobot's writer incl. AV1 video and stats; the dataset doctor excluded);
 * ``bev_*`` — the BEV encoder with the profile's ``pretrain.encoder`` architecture, one thread: lift vs its
-  reference, streaming step vs recomputing the window (see :mod:`pretrain.bench`).
+  reference, streaming step vs recomputing the window (see :mod:`pretrain.bench`);
+* ``teacher_env_steps_per_s`` (vs one in-process env) and ``policy_inference_hz`` (streaming vs recomputing the
+  window) — see :mod:`rl.bench`.
 """
 
 from __future__ import annotations
@@ -54,6 +56,7 @@ class BenchConfig(BaseStageConfig):
     density: float = field(default=0.2, metadata={"help": "crowd density of the env figures, ped/m²"})
     sim: SimConfig = field(default_factory=SimConfig, metadata={"help": "the crowd world (camera resolution)"})
     bev: bool = field(default=True, metadata={"help": "measure the BEV encoder figures (pretrain.bench)"})
+    rl: bool = field(default=True, metadata={"help": "measure the teacher PPO and policy inference figures (rl.bench)"})
 
     def validate(self) -> None:
         super().validate()
@@ -166,6 +169,15 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
 
         enc_cfg = load_config(PretrainConfig, "pretrain", cfg.profile).encoder
         out.update(measure_bev(cfg.sim, cfg.scene, cfg.density, cfg.seed, enc_cfg, s))
+    if cfg.rl:
+        from pretrain.stage import PretrainConfig
+        from rl.bench import measure_inference, measure_teacher
+        from rl.stage import TrainConfig
+
+        train_cfg = load_config(TrainConfig, "train", cfg.profile)
+        out.update(measure_teacher(cfg.sim, cfg.scene, cfg.density, cfg.seed, train_cfg, 2 * s))
+        enc_cfg = load_config(PretrainConfig, "pretrain", cfg.profile).encoder
+        out.update(measure_inference(cfg.sim, cfg.scene, cfg.density, cfg.seed, enc_cfg, s))
     if cfg.record_episodes > 0:
         out.update(measure_recorder(cfg))
     return {k: round(float(v), 3) for k, v in out.items()}

@@ -127,7 +127,7 @@ def test_observer_full_variant_streams_the_encoder():
     obs_obs = StudentObserver("full", cams, enc, 6)
     frames, out = [], None
     o, _ = env.reset(seed=3)
-    for t in range(4):
+    for _ in range(4):
         frames.append(o)
         out = obs_obs(o)
         o, *_ = env.step(env.action_space.sample())

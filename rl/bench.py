@@ -1,0 +1,99 @@
+"""Benchmark figures of training and inference (called by ``icrowdnav bench``).
+
+* ``teacher_env_steps_per_s`` — the teacher's PPO (stable-baselines3, privileged envs, SubprocVecEnv of
+  ``n_envs`` on both cores) collecting and updating, env steps per second of wall time; reference in the same run:
+  ``teacher_env_steps_per_s_1env`` — the same PPO on one in-process env (DummyVecEnv); the ratio is reported;
+* ``policy_inference_ms`` / ``policy_inference_hz`` — the full visual policy (variant ``full``) from the two RGB-D
+  frames + detected poses to an action index, one CPU thread: streaming encoder step (newest frame only) + pooling +
+  φ_bev + I²Former + fusion + actor head; ``policy_inference_recompute_ms`` — the same with the encoder recomputing
+  the whole T-frame window (what a policy without the streaming cache does), and the ratio.
+
+Weights are random (speed does not depend on them); the encoder has the profile's ``pretrain.encoder`` architecture,
+the frames are rendered from the bench scene at the profile's resolution.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import torch
+
+
+def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_cfg: Any, seconds: float) -> dict:
+    from stable_baselines3 import PPO
+
+    from rl.policy import policy_kwargs
+    from rl.teacher import make_vec_env, ppo_kwargs
+
+    t = train_cfg.teacher
+    out = {}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for key, n_envs, sub in (("teacher_env_steps_per_s", t.n_envs, t.subprocess),
+                                 ("teacher_env_steps_per_s_1env", 1, False)):
+            venv = make_vec_env(sim_cfg, [(scene, density)], n_envs, seed, sub)
+            model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs("teacher", None, dict(t.net)),
+                        seed=seed, device="cpu", **ppo_kwargs(t.ppo))
+            chunk = model.n_steps * n_envs
+            model.learn(chunk)  # warm-up: one rollout + update
+            t0, done = time.perf_counter(), 0
+            while time.perf_counter() - t0 < seconds or done == 0:
+                model.learn(chunk, reset_num_timesteps=False)
+                done += chunk
+            out[key] = done / (time.perf_counter() - t0)
+            venv.close()
+    finally:
+        torch.set_num_threads(threads)
+    out["teacher_env_steps_speedup_vs_1env"] = out["teacher_env_steps_per_s"] / out["teacher_env_steps_per_s_1env"]
+    return out
+
+
+def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg: Any, seconds: float) -> dict:
+    import torch.nn.functional as F
+
+    from pipeline.bench import time_call
+    from pretrain.model import BEVEncoder
+    from rl.observe import BEV_POOL, StudentObserver, env_cameras
+    from rl.policy import act, build_policy
+    from sim.env import CrowdNavEnv
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        env = CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, obs_mode="visual"))
+        obs, _ = env.reset(seed=seed)
+        cams = env_cameras(env)
+        torch.manual_seed(seed)
+        enc = BEVEncoder(encoder_cfg, cams).eval().requires_grad_(False)
+        observer = StudentObserver("full", cams, enc, env.cfg.detector.max_people)
+        policy = build_policy("student", "full", observer.observation_space, {})
+        policy.set_training_mode(False)
+        observer(obs)
+
+        def stream() -> None:
+            act(policy, observer(obs))
+
+        names = [c.name for c in cams]
+        win = enc.frames
+        rgb = torch.from_numpy(np.stack([obs[f"rgb_{n}"] for n in names])).permute(0, 3, 1, 2)
+        rgb = rgb.unsqueeze(0).unsqueeze(0).expand(1, win, *rgb.shape).contiguous()
+        depth = torch.from_numpy(np.stack([obs[f"depth_{n}"] for n in names]))
+        depth = depth.unsqueeze(0).unsqueeze(0).expand(1, win, *depth.shape).contiguous()
+        poses = torch.as_tensor(obs["odom"], dtype=torch.float64).view(1, 1, 3).expand(1, win, 3).contiguous()
+
+        @torch.no_grad()
+        def recompute() -> None:
+            o = {"bev": F.avg_pool2d(enc(rgb, depth, poses), BEV_POOL)[0].numpy(), "state": obs["state"],
+                 "poses": obs["poses"], "pose_mask": obs["pose_mask"].astype(np.float32)}
+            act(policy, o)
+
+        ms = 1000.0 * time_call(stream, seconds)
+        ref = 1000.0 * time_call(recompute, seconds)
+    finally:
+        torch.set_num_threads(threads)
+    return {"policy_inference_ms": ms, "policy_inference_hz": 1000.0 / ms, "policy_inference_recompute_ms": ref,
+            "policy_inference_speedup_vs_recompute": ref / ms}
