@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from pipeline.errors import ConfigError
-from pretrain.geometry import BEVGrid, Camera, LiftGeometry, lift_splat, sample_depth
+from pretrain.geometry import Camera, LiftGeometry, lift_splat, sample_depth
 from pretrain.model import BEVEncoder, BEVStream, EncoderConfig
 from rl.networks import variant_keys
 
@@ -188,6 +188,3 @@ def load_student_encoder(variant: str, encoder_ckpt: Path | None) -> BEVEncoder 
 
     return load_encoder(Path(encoder_ckpt), frozen=True)
 
-
-def grid_of(encoder: BEVEncoder | None) -> BEVGrid:
-    return encoder.grid if encoder is not None else EncoderConfig().grid
