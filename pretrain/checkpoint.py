@@ -40,11 +40,16 @@ FORMAT_VERSION = 1
 
 
 def save_safetensors(module: torch.nn.Module, path: Path, metadata: dict[str, str] | None = None) -> None:
-    """Saves a module's state dict atomically (temporary name, then rename)."""
+    """Saves a module's state dict atomically (temporary name, then rename).
+
+    The same weights and metadata give the same bytes: safetensors writes its metadata from a Rust hash map
+    (random order per call), so the metadata travels as one key, ``icrowdnav``, holding sorted JSON.
+    """
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     state = {k: v.detach().contiguous().clone() for k, v in module.state_dict().items()}
-    save_file(state, str(tmp), metadata=metadata)
+    meta = {"icrowdnav": json.dumps(metadata, sort_keys=True)} if metadata else None
+    save_file(state, str(tmp), metadata=meta)
     tmp.replace(path)
 
 

@@ -20,7 +20,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 
 from pipeline.artifacts import atomic_write_text
 from pipeline.errors import CorruptArtifactError, InputMissingError
-from rl.networks import StudentExtractor, TeacherExtractor
+from rl.networks import StudentExtractor, teacher_extractor_class
 
 POLICY_JSON = "policy.json"
 POLICY_WEIGHTS = "policy.safetensors"
@@ -40,7 +40,7 @@ def space_from_json(d: dict[str, Any]) -> gym.spaces.Dict:
 def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[str, Any]:
     """SB3 ``policy_kwargs`` of a teacher or a student variant."""
     if kind == "teacher":
-        return {"features_extractor_class": TeacherExtractor,
+        return {"features_extractor_class": teacher_extractor_class(net.get("encoder", "flat")),
                 "features_extractor_kwargs": {"scan_range_m": net.get("scan_range_m", 10.0)},
                 "net_arch": {"pi": list(net.get("pi", [256, 256])), "vf": list(net.get("vf", [256, 256]))},
                 "share_features_extractor": True}

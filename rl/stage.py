@@ -2,7 +2,7 @@
 
 ::
 
-    icrowdnav train --variant teacher            # BC warm start from the expert + PPO (privileged, no rendering)
+    icrowdnav train --variant teacher            # expert cloning + DAgger, then PPO (privileged, no rendering)
     icrowdnav train --variant full               # DAgger from the teacher, then PPO fine-tuning (rendered)
     icrowdnav train --variant no_i2 --resume     # continue a killed run
     make train                                   # teacher, full, no_i2, no_bev in turn (TRAIN_VARIANTS)
@@ -16,7 +16,9 @@ for ``full`` and ``no_i2``, the pretrained encoder ``DATA_DIR/checkpoints/<encod
     metrics.json                      training summary + the acceptance evaluation (SR per scene, seeded)
     train_log.csv, tb/                per-step / per-iteration logs (TensorBoard)
     curves.png                        training curves
-    teacher:  expert_bc.npz summary in metrics.json; ppo/ (SB3 checkpoint for --resume)
+    teacher:  imitation/<k>/{policy.*, data.npz}: k = 0 clones the expert's episodes, k >= 1 is a DAgger iteration
+              (the teacher drives, the expert labels every state with its cost of each action); ppo/ (SB3
+              checkpoint for --resume); metrics.json also has the acceptance run of the policy before PPO
     student:  dagger/iter_<k>/{raw/*.mcap, dataset/ (LeRobot), features/*.npz, episodes.jsonl, policy/, done.json}
               ppo/ (SB3 checkpoint of the fine-tuning for --resume)
 
@@ -58,13 +60,19 @@ class TeacherConfig:
     bc_epochs: int = 30  # behaviour-cloning epochs
     bc_batch: int = 512
     bc_lr: float = 1e-3
+    soft_tau: float = 0.1  # > 0: clone the expert's softmin over the action grid (its costs) instead of its argmin
+    mirror: bool = True  # left-right mirror augmentation while cloning
+    dagger_iterations: int = 4  # DAgger on privileged states: the teacher drives, the expert labels (no rendering)
+    dagger_episodes: int = 100  # episodes per DAgger iteration
+    dagger_beta0: float = 0.5  # probability that the expert drives in iteration 0 (0 afterwards)
+    dagger_epochs: int = 10  # cloning epochs on the aggregate after each iteration
     ppo_steps: int = 200_000  # PPO env steps after the warm start (0 = the teacher is the cloned expert)
     n_envs: int = 8  # vectorised envs
     subprocess: bool = True  # SubprocVecEnv (both cores) instead of DummyVecEnv
     ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 512, "batch_size": 512, "n_epochs": 6,
                                                            "learning_rate": 1e-4, "clip_range": 0.1,
                                                            "ent_coef": 0.0})
-    net: dict[str, Any] = field(default_factory=lambda: {"pi": [256, 256], "vf": [256, 256]})
+    net: dict[str, Any] = field(default_factory=lambda: {"pi": [256, 256], "vf": [256, 256], "encoder": "set"})
     curriculum: list[CurriculumStage] = field(default_factory=lambda: [
         CurriculumStage(until=0.3, densities=[0.1]), CurriculumStage(until=1.0, densities=[0.1, 0.2])])
 
@@ -125,6 +133,11 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError(f"train.variant: expected one of {list(TRAIN_VARIANTS)}, got {self.variant!r}")
         check_curriculum(self.teacher.curriculum)
         t, d = self.teacher, self.dagger
+        if t.dagger_iterations < 0 or t.soft_tau < 0 or not 0.0 <= t.dagger_beta0 <= 1.0:
+            raise ConfigError("teacher: expected dagger_iterations >= 0, soft_tau >= 0 and dagger_beta0 in [0, 1], "
+                              f"got {t.dagger_iterations}, {t.soft_tau}, {t.dagger_beta0}")
+        if t.dagger_iterations and t.dagger_episodes < 1:
+            raise ConfigError(f"teacher.dagger_episodes: expected >= 1, got {t.dagger_episodes}")
         for key, v in (("teacher.bc_episodes", t.bc_episodes), ("teacher.bc_epochs", t.bc_epochs),
                        ("teacher.n_envs", t.n_envs), ("dagger.iterations", d.iterations),
                        ("dagger.episodes_per_iter", d.episodes_per_iter), ("dagger.bc_epochs", d.bc_epochs),
@@ -223,6 +236,7 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     from rl.teacher import (
         SceneMixEnv,
         behaviour_clone,
+        collect_dagger,
         collect_expert,
         curriculum_callback,
         make_vec_env,
@@ -235,29 +249,59 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     pairs = stage_pairs_all(t.curriculum)
     probe = SceneMixEnv(cfg.sim, pairs[:1])
     net = {**t.net, "scan_range_m": cfg.sim.scan_range_m}
-    bc_dir = out / "bc"
     summary: dict[str, Any] = {}
-    if (bc_dir / "policy.json").exists():
-        from rl.policy import load_policy
+    gamma = ppo_kwargs(t.ppo)["gamma"]
+    clone = {"batch": t.bc_batch, "soft_tau": t.soft_tau, "mirror": t.mirror, "progress": cfg.progress}
+    policy, data = None, None
+    # stage k = 0: clone the expert's own episodes; k >= 1: DAgger iteration k (teacher drives, expert labels).
+    # Each stage's policy and data land in imitation/<k>/ so a killed run resumes after the last finished one.
+    for k in range(t.dagger_iterations + 1):
+        sdir = out / "imitation" / f"{k:02d}"
+        if (sdir / "policy.json").exists() and (sdir / "data.npz").exists():
+            continue
+        if k > 0 and policy is None:  # resuming: the previous stage's policy and aggregate
+            from rl.policy import load_policy
 
-        policy, desc = load_policy(bc_dir)
-        summary["bc"] = desc["bc"]
-    else:
+            policy, _ = load_policy(out / "imitation" / f"{k - 1:02d}")
+        if data is None and k > 0:
+            data = _load_aggregate(out, k)
         t0 = time.perf_counter()
-        data = collect_expert(cfg.sim, pairs, t.bc_episodes, cfg.seed, ppo_kwargs(t.ppo)["gamma"], cfg.workers,
-                              cfg.progress)
+        if k == 0:
+            new = collect_expert(cfg.sim, pairs, t.bc_episodes, cfg.seed, gamma, cfg.workers, cfg.progress)
+            new["success_rate"] = new.pop("expert_success_rate")
+        else:
+            beta = t.dagger_beta0 if k == 1 else 0.0
+            new = collect_dagger(policy, net, cfg.sim, pairs, t.dagger_episodes, cfg.seed + 100_000 * k, beta, gamma,
+                                 cfg.workers, cfg.progress, desc=f"teacher: DAgger {k}/{t.dagger_iterations}")
         collect_s = time.perf_counter() - t0
-        torch.manual_seed(cfg.seed)
-        policy = build_policy("teacher", None, probe.observation_space, net)
-        rows = behaviour_clone(policy, data, t.bc_epochs, t.bc_batch, t.bc_lr, cfg.seed, progress=cfg.progress)
+        rate = float(new.pop("success_rate"))
+        data = new if data is None else {key: np.concatenate([data[key], new[key]]) for key in data}
+        if k == 0:
+            torch.manual_seed(cfg.seed)
+            policy = build_policy("teacher", None, probe.observation_space, net)
+        rows = behaviour_clone(policy, data, t.bc_epochs if k == 0 else t.dagger_epochs,
+                               lr=t.bc_lr if k == 0 else t.bc_lr / 2, seed=cfg.seed + k, **clone)
         for r in rows:
-            logger.add("teacher_bc", r["epoch"], bc_loss=r["bc_loss"], accuracy=r["accuracy"],
-                       value_loss=r["value_loss"])
-        summary["bc"] = {"episodes": t.bc_episodes, "frames": int(len(data["action"])),
-                         "expert_success_rate": float(data["expert_success_rate"]), "collect_s": round(collect_s, 1),
-                         "final": rows[-1]}
-        save_policy(bc_dir, policy, describe("teacher", None, probe.observation_space, net, bc=summary["bc"],
-                                             produced_by={"expert_bc_frames": summary["bc"]["frames"]}))
+            logger.add("teacher_bc" if k == 0 else f"teacher_dagger{k}", r["epoch"], bc_loss=r["bc_loss"],
+                       accuracy=r["accuracy"], value_loss=r["value_loss"])
+        stat = {"stage": k, "episodes": t.bc_episodes if k == 0 else t.dagger_episodes, "new_frames": len(new["action"]),
+                "frames": int(len(data["action"])), "driver_success_rate": rate, "collect_s": round(collect_s, 1),
+                "final": rows[-1]}
+        logger.add("teacher_imitation", k, driver_success_rate=rate, frames=stat["frames"])
+        sdir.mkdir(parents=True, exist_ok=True)
+        atomic_save_npz(sdir / "data.npz", new)
+        save_policy(sdir, policy, describe("teacher", None, probe.observation_space, net, imitation=stat,
+                                           produced_by={"expert_frames": stat["frames"], "dagger_iterations": k}))
+    from rl.policy import load_policy, read_policy_json
+
+    last = out / "imitation" / f"{t.dagger_iterations:02d}"
+    if policy is None:
+        policy, _ = load_policy(last)
+    stats = [read_policy_json(out / "imitation" / f"{k:02d}")["imitation"] for k in range(t.dagger_iterations + 1)]
+    summary["imitation"] = stats
+    summary["bc"] = {"episodes": t.bc_episodes, "frames": stats[0]["new_frames"],
+                     "expert_success_rate": stats[0]["driver_success_rate"], "final": stats[0]["final"]}
+    imitation_frames = stats[-1]["frames"]
     ppo_steps = 0
     if t.ppo_steps > 0:
         torch.set_num_threads(1)  # the envs use the cores; the MLP update is small
@@ -282,9 +326,32 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         policy = model.policy
     summary["ppo_steps"] = ppo_steps
     desc = describe("teacher", None, probe.observation_space, net, sim_scan_range_m=cfg.sim.scan_range_m,
-                    produced_by={"expert_bc_frames": summary["bc"]["frames"], "ppo_steps": ppo_steps})
+                    produced_by={"expert_labelled_frames": imitation_frames, "dagger_iterations": t.dagger_iterations,
+                                 "ppo_steps": ppo_steps})
     save_policy(out, policy, desc)
     return summary
+
+
+def _load_aggregate(out: Path, k: int) -> dict[str, np.ndarray]:
+    """The imitation data of stages 0 .. k-1 (each ``imitation/<j>/data.npz`` holds that stage's new frames)."""
+    from pipeline.errors import CorruptArtifactError
+
+    parts = []
+    for j in range(k):
+        path = out / "imitation" / f"{j:02d}" / "data.npz"
+        try:
+            with np.load(path) as z:
+                parts.append({key: z[key] for key in z.files})
+        except (OSError, ValueError, KeyError) as e:
+            raise CorruptArtifactError(f"{path}: unreadable imitation data ({type(e).__name__}: {e}); delete "
+                                       f"{path.parent} to redo that stage") from None
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+
+def atomic_save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
 
 
 def _checkpoint_callback(path: Path, model, every: int):
@@ -450,6 +517,10 @@ def _body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     acc = _acceptance(cfg, out, method)
     metrics = {"variant": cfg.variant, "train_seconds": round(train_s, 1), **summary,
                "acceptance": {k: v for k, v in acc.items() if k != "episodes"}}
+    if cfg.variant == "teacher" and summary.get("ppo_steps", 0) > 0:
+        # the same episodes for the imitation policy before PPO: does PPO help? (reported, never hidden)
+        pre = _acceptance(cfg, out / "imitation" / f"{cfg.teacher.dagger_iterations:02d}", "teacher_imitation")
+        metrics["acceptance_before_ppo"] = {k: v for k, v in pre.items() if k != "episodes"}
     atomic_write_json(out / "metrics.json", metrics)
     with open(out / "acceptance_episodes.jsonl", "w") as fh:
         for r in acc["episodes"]:

@@ -27,6 +27,7 @@ import torch
 
 from pipeline.errors import ConfigError
 from sim.env import CrowdNavEnv, SimConfig
+from sim.robot import action_grid
 
 
 @dataclass
@@ -119,28 +120,50 @@ def expert_episode(args: tuple[SimConfig, str, float, int, float]) -> dict[str, 
     obs, _ = env.reset(seed=seed)
     expert.reset(env)
     rows: dict[str, list] = {k: [] for k in obs}
-    actions, rewards = [], []
+    actions, rewards, costs = [], [], []
     outcome = "timeout"
     while True:
-        a = env.encode_command(*expert.command(env))
+        cost = expert_grid_costs(expert, env)
+        a = int(np.argmin(cost))
+        expert._prev_w = float(env.decode_action(a)[1])
         for k, v in obs.items():
             rows[k].append(v)
         actions.append(a)
+        costs.append(cost)
         obs, r, term, trunc, info = env.step(a)
         rewards.append(r)
         if term or trunc:
             outcome = info["outcome"] or "timeout"
             break
+    out = {k: np.stack(v).astype(np.float32) for k, v in rows.items()}
+    out["action"] = np.asarray(actions, np.int64)
+    out["costs"] = np.stack(costs).astype(np.float32)
+    out["return"] = _discounted(rewards, gamma)
+    out["success"] = np.array([outcome == "success"])
+    env.close()
+    return out
+
+
+def expert_grid_costs(expert, env: CrowdNavEnv) -> np.ndarray:
+    """The privileged expert's cost of each of the policy's discrete actions (the env's 5 x 21 grid)."""
+    return expert.costs(env, action_grid(env.cfg.robot))
+
+
+def _discounted(rewards: list[float], gamma: float) -> np.ndarray:
+    """Discounted Monte-Carlo returns of one episode (nothing is bootstrapped after a timeout)."""
     ret = np.zeros(len(rewards), np.float32)
     acc = 0.0
     for t in range(len(rewards) - 1, -1, -1):
-        acc = rewards[t] + gamma * acc * (0.0 if (t == len(rewards) - 1 and outcome != "timeout") else 1.0)
+        acc = rewards[t] + gamma * acc
         ret[t] = acc
-    out = {k: np.stack(v).astype(np.float32) for k, v in rows.items()}
-    out["action"] = np.asarray(actions, np.int64)
-    out["return"] = ret
-    out["success"] = np.array([outcome == "success"])
-    return out
+    return ret
+
+
+def _concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    keys = [k for k in parts[0] if k not in ("success", "outcome")]
+    data = {k: np.concatenate([p[k] for p in parts]) for k in keys}
+    data["success_rate"] = np.array(np.mean([p["success"][0] for p in parts]))
+    return data
 
 
 def collect_expert(sim_cfg: SimConfig, pairs: list[tuple[str, float]], episodes: int, seed: int, gamma: float,
@@ -154,16 +177,95 @@ def collect_expert(sim_cfg: SimConfig, pairs: list[tuple[str, float]], episodes:
         for part in tqdm(pool.map(expert_episode, jobs), total=len(jobs), desc="teacher: expert episodes",
                          unit="ep", disable=not progress, dynamic_ncols=True):
             parts.append(part)
-    keys = [k for k in parts[0] if k != "success"]
-    data = {k: np.concatenate([p[k] for p in parts]) for k in keys}
-    data["expert_success_rate"] = np.array(np.mean([p["success"][0] for p in parts]))
+    data = _concat(parts)
+    data["expert_success_rate"] = data.pop("success_rate")
     return data
+
+
+# ------------------------------------------------------------------------------------ DAgger on the expert
+_WORKER_POLICY: dict[str, Any] = {}
+
+
+def _init_dagger_worker(kind: str, obs_space, net: dict[str, Any], state: dict[str, torch.Tensor]) -> None:
+    from rl.policy import build_policy
+
+    torch.set_num_threads(1)
+    policy = build_policy(kind, None, obs_space, net)
+    policy.load_state_dict(state)
+    policy.set_training_mode(False)
+    _WORKER_POLICY["policy"] = policy
+
+
+def expert_dagger_episode(args: tuple[SimConfig, str, float, int, float, float]) -> dict[str, np.ndarray]:
+    """One DAgger episode on privileged observations: the policy of this worker drives (the expert with probability
+    ``beta`` per step), the privileged expert labels every visited state with the action it would take."""
+    from rl.policy import act
+    from sim.expert import PrivilegedExpert
+
+    sim_cfg, scene, density, seed, beta, gamma = args
+    policy = _WORKER_POLICY["policy"]
+    env = CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, obs_mode="privileged",
+                                     action_type="discrete", info_level="basic"))
+    rng = np.random.default_rng(seed + 7_919)
+    expert = PrivilegedExpert()
+    obs, _ = env.reset(seed=seed)
+    expert.reset(env)
+    rows: dict[str, list] = {k: [] for k in obs}
+    labels, rewards, costs = [], [], []
+    outcome = "timeout"
+    while True:
+        cost = expert_grid_costs(expert, env)
+        label = int(np.argmin(cost))
+        a = label if rng.random() < beta else act(policy, obs)
+        expert._prev_w = float(env.decode_action(a)[1])  # smoothness relative to what was executed
+        for k, v in obs.items():
+            rows[k].append(v)
+        labels.append(label)
+        costs.append(cost)
+        obs, r, term, trunc, info = env.step(a)
+        rewards.append(r)
+        if term or trunc:
+            outcome = info["outcome"] or "timeout"
+            break
+    out = {k: np.stack(v).astype(np.float32) for k, v in rows.items()}
+    out["action"] = np.asarray(labels, np.int64)
+    out["costs"] = np.stack(costs).astype(np.float32)
+    out["return"] = _discounted(rewards, gamma)
+    out["success"] = np.array([outcome == "success"])
+    out["outcome"] = np.array([outcome])
+    env.close()
+    return out
+
+
+def collect_dagger(policy, net: dict[str, Any], sim_cfg: SimConfig, pairs: list[tuple[str, float]], episodes: int,
+                   seed: int, beta: float, gamma: float, workers: int, progress: bool = True,
+                   desc: str = "teacher: DAgger") -> dict[str, np.ndarray]:
+    """``episodes`` DAgger episodes of ``policy`` (a privileged teacher built with ``net``) over ``pairs``, every
+    visited state labelled by the expert; concatenated like :func:`collect_expert` plus ``success_rate``."""
+    from tqdm import tqdm
+
+    state = {k: v.detach().clone() for k, v in policy.state_dict().items()}
+    jobs = [(sim_cfg, *pairs[k % len(pairs)], seed + k, beta, gamma) for k in range(episodes)]
+    init = ("teacher", policy.observation_space, net, state)
+    parts = []
+    with ProcessPoolExecutor(max(1, workers), initializer=_init_dagger_worker, initargs=init) as pool:
+        for part in tqdm(pool.map(expert_dagger_episode, jobs), total=len(jobs), desc=desc, unit="ep",
+                         disable=not progress, dynamic_ncols=True):
+            parts.append(part)
+    return _concat(parts)
 
 
 def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int, lr: float, seed: int,
                     value_coef: float = 0.5, keys: tuple[str, ...] | None = None,
-                    progress: bool = True) -> list[dict[str, float]]:
+                    progress: bool = True, soft_tau: float = 0.0, mirror: bool = False,
+                    n_rot: int = 21) -> list[dict[str, float]]:
     """Cross-entropy on ``data["action"]`` (+ value regression on ``data["return"]`` when present).
+
+    With ``soft_tau > 0`` and ``data["costs"]`` (the expert's cost of every action), the target is the softmin
+    ``softmax(-cost / soft_tau)`` over the whole action grid instead of the one-hot argmin: every state then says
+    how much worse each other action is (dense supervision; near-ties stop being label noise). With ``mirror``
+    every sample is reflected about the robot's x axis with probability 1/2 (:func:`mirror_batch`; the world is
+    left-right symmetric, so this doubles the data for free). ``n_rot`` is the number of yaw rates of the grid.
 
     Returns one row per epoch: ``{"epoch", "bc_loss", "accuracy", "value_loss"}`` (means over the epoch).
     """
@@ -178,6 +280,8 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     def take(idx: np.ndarray) -> dict[str, torch.Tensor]:  # per batch: the cache stays float16 numpy
         return {k: torch.as_tensor(data[k][idx], dtype=torch.float32) for k in keys}
 
+    mirror_rng = np.random.default_rng(seed + 1)
+
     rows = []
     for epoch in tqdm(range(epochs), desc="behaviour cloning", unit="epoch", disable=not progress,
                       dynamic_ncols=True):
@@ -187,8 +291,17 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
             idx = np.sort(perm[s:s + batch])
             obs = take(idx)
             act_t = torch.as_tensor(data["action"][idx], dtype=torch.long)
-            values, logp, _ = policy.evaluate_actions(obs, act_t)
-            loss_bc = -logp.mean()
+            cost = torch.as_tensor(data["costs"][idx], dtype=torch.float32) if "costs" in data else None
+            if mirror:
+                flip = torch.as_tensor(mirror_rng.random(len(idx)) < 0.5)
+                obs, act_t, cost = mirror_batch(obs, act_t, cost, flip, n_rot)
+            logits, values = policy_logits_values(policy, obs)
+            logp_all = torch.log_softmax(logits, -1)
+            if soft_tau > 0 and cost is not None:  # cross-entropy to the expert's softmin over the whole grid
+                target = torch.softmax(-(cost - cost.min(1, keepdim=True).values) / soft_tau, -1)
+                loss_bc = -(target * logp_all).sum(-1).mean()
+            else:
+                loss_bc = -logp_all.gather(1, act_t.unsqueeze(1)).mean()
             loss = loss_bc
             if "return" in data:
                 loss_v = torch.nn.functional.mse_loss(values.flatten(),
@@ -199,13 +312,42 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
             opt.step()
-            with torch.no_grad():
-                pred = policy.get_distribution(obs).get_actions(True)
+            pred = logits.detach().argmax(-1)
             tot["bc_loss"] += loss_bc.item() * len(idx)
             tot["accuracy"] += float((pred == act_t).float().sum())
         rows.append({"epoch": epoch, **{k: v / n for k, v in tot.items()}})
     policy.set_training_mode(False)
     return rows
+
+
+def policy_logits_values(policy, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Action logits and values of an SB3 ``ActorCriticPolicy`` (discrete actions) in one forward pass."""
+    features = policy.extract_features(obs)
+    latent_pi, latent_vf = policy.mlp_extractor(features)
+    return policy.action_net(latent_pi), policy.value_net(latent_vf)
+
+
+def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch.Tensor | None, flip: torch.Tensor,
+                 n_rot: int) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor | None]:
+    """Reflects the samples where ``flip`` about the robot's x axis: y, v_y of the goal state and of every
+    pedestrian change sign, scan ray k becomes ray −k, and yaw-rate index j of the action grid becomes n_rot−1−j."""
+    out = dict(obs)
+    f = flip.view(-1, 1)
+    if "state" in obs:  # [g_x, g_y, d_g, v_x, v_y]
+        sign = obs["state"].new_tensor([1.0, -1.0, 1.0, 1.0, -1.0])
+        out["state"] = torch.where(f, obs["state"] * sign, obs["state"])
+    if "peds" in obs:  # [x, y, vx, vy, r, present]
+        sign = obs["peds"].new_tensor([1.0, -1.0, 1.0, -1.0, 1.0, 1.0])
+        out["peds"] = torch.where(f.unsqueeze(-1), obs["peds"] * sign, obs["peds"])
+    if "scan" in obs:  # rays at heading + k·2π/n → heading − k·2π/n
+        rev = torch.roll(torch.flip(obs["scan"], [-1]), 1, -1)
+        out["scan"] = torch.where(f, rev, obs["scan"])
+    i, j = action // n_rot, action % n_rot
+    action = torch.where(flip, i * n_rot + (n_rot - 1 - j), action)
+    if cost is not None:
+        c = cost.view(len(cost), -1, n_rot)
+        cost = torch.where(f, torch.flip(c, [-1]).reshape(len(cost), -1), cost)
+    return out, action, cost
 
 
 @torch.no_grad()

@@ -92,11 +92,20 @@ class PrivilegedExpert:
 
     def command(self, env) -> tuple[float, float]:
         """Best (v m/s, ω rad/s) for the env's current state."""
+        k = int(np.argmin(self.costs(env)))
+        vb, wb = self.cand[k]
+        self._prev_w = float(wb)
+        return float(vb), float(wb)
+
+    def costs(self, env, cand: np.ndarray | None = None) -> np.ndarray:
+        """The cost of every candidate (v, ω) — ``self.cand`` or a given ``C x 2`` table such as the policy's
+        action grid — in the env's current state (lower is better; changes no state)."""
         c = self.cfg
         x, y, yaw = env.robot
         rr = env.cfg.robot.radius_m
-        v = self.cand[:, 0:1]
-        w = self.cand[:, 1:2]
+        cand = self.cand if cand is None else np.asarray(cand, np.float64)
+        v = cand[:, 0:1]
+        w = cand[:, 1:2]
         t = self.times[None, :]
         # unicycle arcs, C x S
         straight = np.abs(w) < 1e-6
@@ -106,7 +115,7 @@ class PrivilegedExpert:
         py = np.where(straight, y + v * t * math.sin(yaw), y - v / ws * (np.cos(th) - math.cos(yaw)))
         traj = np.stack([px, py], -1)  # C x S x 2
         disc = np.exp(-self.times / c.discount_s)  # S
-        cost = np.zeros(len(self.cand))
+        cost = np.zeros(len(cand))
         # pedestrians (constant-velocity prediction)
         crowd = env.crowd
         if crowd.n:
@@ -134,10 +143,7 @@ class PrivilegedExpert:
         else:  # close to the goal: just get there
             cost += 2.0 * np.linalg.norm(traj - env.goal[None, None, :], axis=-1).min(1)
         cost += c.w_smooth * np.abs(w[:, 0] - self._prev_w)
-        k = int(np.argmin(cost))
-        vb, wb = self.cand[k]
-        self._prev_w = float(wb)
-        return float(vb), float(wb)
+        return cost
 
 
 def expert_steps(env, seed: int, expert: PrivilegedExpert | None = None):
