@@ -1,6 +1,6 @@
 # iCrowdNav pipeline. Every stage target takes PROFILE=smoke|default|paper, DATA_DIR=<dir>, ARGS="..." (extra CLI
 # options for every stage it runs, e.g. ARGS=--overwrite to replace outputs made by an older config or code) and
-# <STAGE>_ARGS="..." for one stage only (RECORD_ARGS, EXPORT_ARGS, PRETRAIN_ARGS, TRAIN_ARGS, ROLLOUT_ARGS).
+# <STAGE>_ARGS="..." for one stage only (RECORD_ARGS, EXPORT_ARGS, PRETRAIN_ARGS, TRAIN_ARGS, EVAL_ARGS, ROLLOUT_ARGS).
 #   make all      install (if needed), then run the pipeline end to end on the default profile
 #   make test     install (if needed), then run the test suite
 SHELL := /bin/bash
@@ -11,6 +11,7 @@ ARGS ?=
 RECORD_ARGS ?=
 EXPORT_ARGS ?=
 ROLLOUT_ARGS ?=
+EVAL_ARGS ?=
 PRETRAIN_ARGS ?=
 TRAIN_ARGS ?=
 TRAIN_VARIANTS ?= teacher full no_i2 no_bev
@@ -19,10 +20,10 @@ STAMP := $(VENV)/.installed
 export HF_HUB_OFFLINE := 1
 export PYTHONHASHSEED := 0
 
-.PHONY: install all record pretrain train rollout smoke test bench lint help
+.PHONY: install all record pretrain train eval rollout smoke test bench lint help
 
 help:
-	@echo "targets: install all record pretrain train rollout smoke test bench lint   (PROFILE=$(PROFILE) DATA_DIR=$(DATA_DIR))"
+	@echo "targets: install all record pretrain train eval rollout smoke test bench lint   (PROFILE=$(PROFILE) DATA_DIR=$(DATA_DIR))"
 
 # The venv is rebuilt only when the lock file or pyproject.toml change (the stamp is newer otherwise).
 # uv installs the exact pins of requirements.lock; its cache (~/.cache/uv) makes a re-install fast.
@@ -35,7 +36,6 @@ $(STAMP): requirements.lock pyproject.toml
 	$(VENV)/bin/uv pip install -q --python $(PY) --no-deps -e . --config-settings editable_mode=compat
 	@touch $(STAMP)
 
-# Stages of the pipeline that exist so far (train / eval arrive with their issues).
 # record: expert episodes -> DATA_DIR/raw/<run>/*.mcap, then export -> DATA_DIR/datasets/<repo_id>/ (LeRobot v3.0)
 record: install
 	$(PY) -m pipeline record --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(RECORD_ARGS)
@@ -52,15 +52,20 @@ train: install
 	@set -e; for v in $(TRAIN_VARIANTS); do \
 	  $(PY) -m pipeline train --profile $(PROFILE) --data-dir $(DATA_DIR) --variant $$v $(ARGS) $(TRAIN_ARGS); done
 
+# eval: the benchmark (every method on the same seeded episodes + long-horizon runs on a GVG map)
+# -> DATA_DIR/eval/<run_name>/ (report.md, results.json/csv, paired tests, figures, videos, MCAP logs)
+eval: install
+	$(PY) -m pipeline eval --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(EVAL_ARGS)
+
 # the expert's acceptance run on the test scenes: metrics, figures, videos -> DATA_DIR/rollouts/<run>/
 rollout: install
 	$(PY) -m pipeline rollout --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(ROLLOUT_ARGS)
 
-all: install record pretrain train rollout
+all: install record pretrain train eval
 
 # Every stage on tiny sizes through real files, into its own data dir (replaced on each run).
 smoke: install
-	$(MAKE) --no-print-directory record pretrain train rollout PROFILE=smoke DATA_DIR=$(DATA_DIR)/smoke ARGS=--overwrite
+	$(MAKE) --no-print-directory record pretrain train eval PROFILE=smoke DATA_DIR=$(DATA_DIR)/smoke ARGS=--overwrite
 
 test: install
 	$(PY) -m pytest -q -p no:cacheprovider
@@ -69,4 +74,4 @@ bench: install
 	$(PY) -m pipeline bench --profile $(PROFILE) --data-dir $(DATA_DIR)
 
 lint: install
-	$(VENV)/bin/ruff check pipeline sim recorder pretrain rl tests
+	$(VENV)/bin/ruff check pipeline sim recorder pretrain rl evaluation tests

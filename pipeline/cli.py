@@ -47,6 +47,7 @@ VERBS: dict[str, str] = {
     "export": "recorder.export_stage:STAGE",
     "pretrain": "pretrain.stage:STAGE",
     "train": "rl.stage:STAGE",
+    "eval": "evaluation.stage:STAGE",
     "doctor": "recorder.doctor:main",
     "recover": "recorder.doctor:recover_main",
 }

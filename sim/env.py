@@ -208,7 +208,12 @@ class CrowdNavEnv(gym.Env):
         self.episode_seed = ep_seed
         self.reset_seed = seed
         self.layout = self.spec_scene.layout(r_layout)
-        start, goal, geo = self.layout.sample_start_goal(r_sg, c.robot.radius_m, exact_length=False)
+        if options and "start" in options and "goal" in options:  # a given pair (long-horizon runs on a map)
+            start = np.asarray(options["start"], float).reshape(2)
+            goal = np.asarray(options["goal"], float).reshape(2)
+            geo = math.nan
+        else:
+            start, goal, geo = self.layout.sample_start_goal(r_sg, c.robot.radius_m, exact_length=False)
         self.start, self.goal = start, goal
         self._shortest = geo if math.isfinite(geo) else None  # exact length, computed on first use if not known
         to_goal = math.atan2(goal[1] - start[1], goal[0] - start[0])

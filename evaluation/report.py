@@ -1,0 +1,219 @@
+"""Tables, paired comparisons and figures from per-episode rows (``episodes.jsonl``).
+
+* ``results.json`` / ``results.csv`` — per (scene, density, method): N and every metric's mean, std, 95 % CI;
+* ``paired.json`` — the full model against every other method on the same seeds: SR by an exact McNemar test
+  (the discordant pairs), TPZ by a Wilcoxon signed-rank test on all episodes, NT and PL by Wilcoxon on the episodes
+  both methods finished;
+* ``report.md`` — the paper's tables (SR, collision, timeout with Wilson CIs; NT, PL, TPZ mean ± std over successes;
+  N), the paired tests, the paper's expected ordering checked against our numbers, the long-horizon table;
+* ``figures/sr_by_cell.png`` — SR with 95 % CIs per cell and method.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim.metrics import aggregate, metrics_table_markdown, paired_test
+
+TABLE_METRICS = ("success", "collision", "timeout", "nav_time_s", "path_length_m", "tpz_s")
+
+
+def cells_of(rows: Sequence[dict[str, Any]]) -> list[tuple[str, float]]:
+    seen: dict[tuple[str, float], None] = {}
+    for r in rows:
+        seen[(r["scene"], float(r["density"]))] = None
+    return list(seen)
+
+
+def methods_of(rows: Sequence[dict[str, Any]]) -> list[str]:
+    seen: dict[str, None] = {}
+    for r in rows:
+        seen[r["method"]] = None
+    return list(seen)
+
+
+def results(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """``{"<scene>@<density>": {method: aggregate(rows)}}``."""
+    out: dict[str, dict[str, Any]] = {}
+    for scene, d in cells_of(rows):
+        cell = [r for r in rows if r["scene"] == scene and float(r["density"]) == d]
+        out[f"{scene}@{d:g}"] = {m: aggregate([r for r in cell if r["method"] == m]) for m in methods_of(cell)}
+    return out
+
+
+def results_csv(res: dict[str, dict[str, Any]]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["cell", "method", "metric", "n", "mean", "std", "ci95_low", "ci95_high"])
+    for cell, by_m in res.items():
+        for m, agg in by_m.items():
+            for k, s in agg.items():
+                if isinstance(s, dict):
+                    w.writerow([cell, m, k, s.get("n"), *(_num(s.get(q)) for q in ("mean", "std", "ci95_low",
+                                                                                       "ci95_high"))])
+    return buf.getvalue()
+
+
+def _num(v: Any) -> str:
+    return "" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{float(v):.6g}"
+
+
+def mcnemar_exact(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:
+    """Exact McNemar test for paired binary outcomes: ``b01`` (a fails, b succeeds), ``b10``, two-sided p."""
+    from scipy.stats import binomtest
+
+    x, y = np.asarray(a) > 0.5, np.asarray(b) > 0.5
+    b10, b01 = int(np.sum(x & ~y)), int(np.sum(~x & y))
+    p = float(binomtest(b10, b10 + b01, 0.5).pvalue) if b10 + b01 else math.nan
+    return {"a_only": b10, "b_only": b01, "p_value": p, "n": int(len(x)), "sr_diff": float(x.mean() - y.mean())}
+
+
+def paired(rows: Sequence[dict[str, Any]], ref: str = "full") -> dict[str, dict[str, Any]]:
+    """``{"<cell>": {other: {"sr": mcnemar, "tpz_s": wilcoxon, "nav_time_s": ..., "path_length_m": ...}}}``."""
+    out: dict[str, dict[str, Any]] = {}
+    for scene, d in cells_of(rows):
+        cell = [r for r in rows if r["scene"] == scene and float(r["density"]) == d]
+        by = {m: {r["seed"]: r for r in cell if r["method"] == m} for m in methods_of(cell)}
+        if ref not in by:
+            continue
+        res: dict[str, Any] = {}
+        for m, other in by.items():
+            if m == ref:
+                continue
+            seeds = sorted(set(by[ref]) & set(other))
+            a, b = [by[ref][s] for s in seeds], [other[s] for s in seeds]
+            entry = {"n_pairs": len(seeds), "sr": mcnemar_exact([r["success"] for r in a], [r["success"] for r in b]),
+                     "tpz_s": paired_test([r["tpz_s"] for r in a], [r["tpz_s"] for r in b])}
+            both = [(x, y) for x, y in zip(a, b, strict=True) if x["success"] == 1 and y["success"] == 1]
+            for k in ("nav_time_s", "path_length_m"):
+                entry[k] = paired_test([x[k] for x, _ in both], [y[k] for _, y in both])
+            res[m] = entry
+        out[f"{scene}@{d:g}"] = res
+    return out
+
+
+def _fmt_d(x: float) -> str:
+    return "n/a" if x is None or not math.isfinite(x) else f"{x:+.2f}"
+
+
+def _fmt_p(p: float) -> str:
+    return "n/a" if p is None or not math.isfinite(p) else (f"{p:.3f}" if p >= 0.001 else "<0.001")
+
+
+def _sr(agg: dict[str, Any]) -> float:
+    return float(agg.get("success", {}).get("mean", math.nan))
+
+
+def _tpz(agg: dict[str, Any]) -> float:
+    return float(agg.get("tpz_s", {}).get("mean", math.nan))
+
+
+def shape_checks(res: dict[str, dict[str, Any]]) -> list[str]:
+    """The paper's expected ordering, checked cell by cell; each line states the numbers (never tuned)."""
+    lines = []
+    for cell, by in res.items():
+        if not cell.endswith("@0.2") or "full" not in by:
+            continue
+        f = _sr(by["full"])
+        for ab in ("no_i2", "no_bev"):
+            if ab in by:
+                ok = f >= _sr(by[ab])
+                lines.append(f"- {cell}: SR full {f:.2f} {'≥' if ok else '<'} {ab} {_sr(by[ab]):.2f} — "
+                             f"{'as in the paper' if ok else 'differs from the paper'}")
+                if "dwa" in by:
+                    ok2 = _sr(by[ab]) >= _sr(by["dwa"])
+                    lines.append(f"- {cell}: SR {ab} {_sr(by[ab]):.2f} {'≥' if ok2 else '<'} DWA "
+                                 f"{_sr(by['dwa']):.2f} — {'as in the paper' if ok2 else 'differs from the paper'}")
+    for cell, by in res.items():
+        if "full" in by and "no_i2" in by:
+            a, b = _tpz(by["full"]), _tpz(by["no_i2"])
+            ok = a < b
+            lines.append(f"- {cell}: TPZ full {a:.2f} s {'<' if ok else '≥'} w/o I² {b:.2f} s — "
+                         f"{'as in the paper' if ok else 'differs from the paper'}")
+    return lines
+
+
+def report_markdown(rows: Sequence[dict[str, Any]], labels: dict[str, str], header: str,
+                    lh_rows: Sequence[dict[str, Any]] = (), references: Sequence[str] = ()) -> str:
+    res = results(rows)
+    parts = [header, ""]
+    if references:
+        parts.append("Upper references (privileged information, not competitors): "
+                     + ", ".join(labels.get(m, m) for m in references) + ".\n")
+    parts.append("SR, collision and timeout: percent with the 95 % Wilson interval. NT, PL, TPZ: mean ± std over "
+                 "successful episodes (their count in parentheses).\n")
+    for cell in res:
+        scene, d = cell.split("@")
+        by = {labels.get(m, m): [r for r in rows if r["scene"] == scene and float(r["density"]) == float(d)
+                                 and r["method"] == m] for m in res[cell]}
+        parts.append(f"### {scene} @ {d} ped/m²\n\n" + metrics_table_markdown(by))
+    pr = paired(rows)
+    if pr:
+        parts.append("## Paired comparisons with the full model (same seeds)\n")
+        parts.append("SR: exact McNemar test (episodes only the full model / only the other method finished). "
+                     "TPZ: Wilcoxon signed-rank over all pairs; NT/PL: over pairs both finished. Δ = full − other.\n")
+        parts.append("| cell | other | pairs | ΔSR | full only / other only | p (SR) | ΔTPZ [s] | p (TPZ) | "
+                     "ΔNT [s] | p (NT) |")
+        parts.append("|---|---|---|---|---|---|---|---|---|---|")
+        for cell, by in pr.items():
+            for m, e in by.items():
+                sr, tpz, nt = e["sr"], e["tpz_s"], e["nav_time_s"]
+                parts.append(f"| {cell} | {labels.get(m, m)} | {e['n_pairs']} | {sr['sr_diff']:+.2f} | "
+                             f"{sr['a_only']} / {sr['b_only']} | {_fmt_p(sr['p_value'])} | "
+                             f"{_fmt_d(tpz['mean_diff'])} | {_fmt_p(tpz['p_value'])} | {_fmt_d(nt['mean_diff'])} | "
+                             f"{_fmt_p(nt['p_value'])} |")
+        parts.append("")
+    checks = shape_checks(res)
+    if checks:
+        parts.append("## The paper's expected ordering, checked\n")
+        parts.extend(checks)
+        parts.append("")
+    if lh_rows:
+        parts.append("## Long-horizon navigation on the topological map (paper §IV-C)\n")
+        by_map: dict[str, dict[str, list]] = {}
+        for r in lh_rows:
+            by_map.setdefault(r["scene"], {}).setdefault(labels.get(r["method"], r["method"]), []).append(r)
+        for scene, by in by_map.items():
+            parts.append(f"### {scene}\n\n" + metrics_table_markdown(by))
+    return "\n".join(parts) + "\n"
+
+
+def plot_sr(res: dict[str, dict[str, Any]], labels: dict[str, str], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cells = list(res)
+    methods = list(dict.fromkeys(m for c in cells for m in res[c]))
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.6 * len(cells)), 3.8))
+    w = 0.8 / max(len(methods), 1)
+    cmap = plt.get_cmap("viridis", max(len(methods), 2))
+    for k, m in enumerate(methods):
+        xs, ys, lo, hi = [], [], [], []
+        for i, c in enumerate(cells):
+            s = res[c].get(m, {}).get("success")
+            if not s:
+                continue
+            xs.append(i + (k - (len(methods) - 1) / 2) * w)
+            ys.append(s["mean"])
+            lo.append(s["mean"] - s["ci95_low"])
+            hi.append(s["ci95_high"] - s["mean"])
+        ax.bar(xs, ys, w, yerr=[lo, hi], capsize=2, label=labels.get(m, m), color=cmap(k))
+    ax.set_xticks(range(len(cells)), cells, rotation=15)
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("success rate (95 % CI)")
+    ax.legend(fontsize=7, ncol=3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    tmp.replace(path)

@@ -1,0 +1,238 @@
+"""``icrowdnav eval``: the paper's benchmark — scenes × densities × methods × seeded episodes, plus long-horizon
+runs on a topological map — with tables, paired tests, figures, videos and MCAP logs. ::
+
+    icrowdnav eval                                   # the profile's methods, scenes, densities, episodes
+    icrowdnav eval --methods '[full, dwa]' --episodes 5 --run_name quick
+    make eval                                        # the same on the default profile
+
+Inputs: ``DATA_DIR/checkpoints/policy/<name>/`` of every learned method (``make train``); the expert and DWA need
+nothing. Output ``DATA_DIR/eval/<run_name>/``::
+
+    config.yaml, manifest.json   resolved config, provenance (inputs with hashes, code, versions)
+    seeds.json                   the seed list every method faced (per cell and for the long-horizon runs)
+    episodes.jsonl               one row per episode: method, scene, density, seed, outcome, every metric
+    results.json, results.csv    per cell and method: N, mean, std, 95 % CI of every metric
+    paired.json                  the full model against each method on the same seeds (McNemar / Wilcoxon)
+    report.md                    the paper's tables, paired tests, the expected ordering checked, long horizon
+    figures/sr_by_cell.png       SR with CIs; figures/<episode>.png trajectories (robot coloured by time)
+    videos/<episode>.mp4         both cameras, depth, the method's BEV input, top-down
+    mcap/<episode>.mcap          the same episodes as MCAP logs (open in Foxglove)
+    traces/<episode>.npz         every episode's trace (sim.trace.EpisodeTrace)
+    long_horizon/episodes.jsonl, long_horizon/<map>_gvg.png (the map, its GVG and every method's paths)
+
+``<episode>`` is ``[lh_]<scene>_d<density>_s<seed>_<method>``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from evaluation.methods import MethodSpec, resolve_methods
+from pipeline.artifacts import atomic_write_json, atomic_write_text
+from pipeline.config import BaseStageConfig, check_run_name
+from pipeline.errors import ConfigError
+from pipeline.stage import Stage, run_stage
+from sim.env import SimConfig
+from sim.scene import check_episode_grid
+
+log = logging.getLogger("icrowdnav")
+
+
+@dataclass
+class LongHorizonConfig:
+    """Long-horizon runs (paper §IV-C): GVG topological map, start and goal on it, waypoints for the local policy."""
+
+    maps: list[str] = field(default_factory=lambda: ["office_floor", "hospital_floor"])
+    runs: int = 25  # per map and method (the paper: 25)
+    density: float = 0.1
+    min_path_m: float = 20.0  # goals at least this far from the start along the graph
+    max_episode_s: float = 150.0
+
+
+@dataclass
+class EvalConfig(BaseStageConfig):
+    """Config of the ``eval`` stage."""
+
+    run_name: str = field(default="benchmark", metadata={"help": "output folder under DATA_DIR/eval/"})
+    methods: list[str] = field(default_factory=lambda: ["expert", "teacher", "full", "no_i2", "no_bev", "dwa"],
+                               metadata={"help": "methods (evaluation.methods)"})
+    scenes: list[str] = field(default_factory=lambda: ["office_lobby", "hospital_corridor", "warehouse"])
+    densities: list[float] = field(default_factory=lambda: [0.1, 0.2])
+    episodes: int = field(default=75, metadata={"help": "episodes per cell (paper: 25 goals x 3 trials)"})
+    seed_base: int = field(default=20_000, metadata={"help": "episode seeds are seed_base + seed + k"})
+    workers: int = 2
+    figures: int = field(default=1, metadata={"help": "trajectory PNGs per cell and method (first episodes)"})
+    videos: int = field(default=1, metadata={"help": "mp4 + MCAP per cell and method (first episodes, rendered)"})
+    long_horizon: LongHorizonConfig = field(default_factory=LongHorizonConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+    progress: bool = True
+
+    def validate(self) -> None:
+        super().validate()
+        check_run_name(self.run_name)
+        if not self.scenes:
+            raise ConfigError("eval.scenes: expected at least one scene")
+        check_episode_grid(self.scenes, self.densities, self.episodes, self.workers)
+        if not self.methods:
+            raise ConfigError("eval.methods: expected at least one method")
+        if self.figures < 0 or self.videos < 0:
+            raise ConfigError(f"eval.figures/videos: expected >= 0, got {self.figures}/{self.videos}")
+        lh = self.long_horizon
+        if lh.runs < 0 or lh.min_path_m <= 0 or lh.max_episode_s <= self.sim.dt_s:
+            raise ConfigError("eval.long_horizon: expected runs >= 0, min_path_m > 0, max_episode_s > dt_s")
+        if lh.runs:
+            check_episode_grid(lh.maps, [lh.density], lh.runs, self.workers)
+
+
+def output_dir(cfg: EvalConfig) -> Path:
+    return Path(cfg.data_dir) / "eval" / cfg.run_name
+
+
+def _inputs(cfg: EvalConfig) -> list[Path]:
+    specs = resolve_methods(cfg.methods, Path(cfg.data_dir))  # unknown / missing -> one clear error, nothing written
+    return [p for m in specs if m.checkpoint is not None
+            for p in (m.checkpoint / "policy.json", m.checkpoint / "policy.safetensors")]
+
+
+def seeds_of(cfg: EvalConfig) -> list[int]:
+    return [cfg.seed_base + cfg.seed + k for k in range(cfg.episodes)]
+
+
+def benchmark_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path) -> list:
+    from evaluation.harness import Job
+
+    jobs = []
+    for s in cfg.scenes:
+        for d in cfg.densities:
+            for k, seed in enumerate(seeds_of(cfg)):
+                for m in specs:  # methods interleaved: a killed or slow run has every method on the same seeds
+                    jobs.append(Job(m, cfg.sim, s, float(d), seed, out, figure=k < cfg.figures,
+                                    video=k < cfg.videos, mcap=k < cfg.videos))
+    return jobs
+
+
+def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:
+    """Per map and run: the seed, a start node, a goal among the candidate goals, the GVG waypoints."""
+    from sim.env import CrowdNavEnv
+    from sim.planners.topomap import build_gvg
+
+    lh = cfg.long_horizon
+    plans = []
+    for name in lh.maps:
+        env = CrowdNavEnv(config=replace(cfg.sim, scene=name, density=0.0, obs_mode="state", info_level="basic"))
+        env.reset(seed=cfg.seed_base + cfg.seed)
+        topo = build_gvg(env.layout, env.cfg.robot.radius_m)
+        for k in range(lh.runs):
+            seed = cfg.seed_base + 50_000 + cfg.seed + k
+            rng = np.random.default_rng(seed)
+            start = topo.nodes_xy[rng.integers(len(topo.nodes_xy))]
+            for _ in range(50):  # a start with goals far enough along the graph
+                d = topo.graph_distances(start)
+                if np.sum(np.isfinite(d) & (d >= lh.min_path_m)):
+                    break
+                start = topo.nodes_xy[rng.integers(len(topo.nodes_xy))]
+            goal = topo.candidate_goals(rng, 1, lh.min_path_m, start)[0]
+            wps = topo.plan(start, goal)
+            plans.append({"map": name, "seed": seed, "start": start, "goal": goal, "waypoints": wps, "topo": topo,
+                          "layout": env.layout})
+        env.close()
+    return plans
+
+
+def _body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
+    from evaluation.harness import Job, run_jobs
+    from evaluation.report import paired, plot_sr, report_markdown, results, results_csv
+
+    specs = resolve_methods(cfg.methods, Path(cfg.data_dir))
+    labels = {m.name: m.label for m in specs}
+    seeds = seeds_of(cfg)
+    rows = run_jobs(benchmark_jobs(cfg, specs, out), cfg.workers, "eval: benchmark", cfg.progress)
+    lh_rows: list[dict[str, Any]] = []
+    lh_seeds: dict[str, list[int]] = {}
+    if cfg.long_horizon.runs:
+        lh = cfg.long_horizon
+        plans = long_horizon_plans(cfg)
+        sim_lh = replace(cfg.sim, max_episode_s=lh.max_episode_s)
+        jobs = [Job(m, sim_lh, p["map"], lh.density, p["seed"], out / "long_horizon", figure=False, tag="lh_",
+                    waypoints=p["waypoints"], start=p["start"], goal=p["goal"],
+                    extra={"graph_path_m": float(np.sum(np.hypot(*np.diff(
+                        np.vstack([p["start"], p["waypoints"]]), axis=0).T)))})
+                for p in plans for m in specs]
+        lh_rows = run_jobs(jobs, cfg.workers, "eval: long horizon", cfg.progress)
+        _plot_long_horizon(plans, lh_rows, out / "long_horizon", labels)
+        for p in plans:
+            lh_seeds.setdefault(p["map"], []).append(p["seed"])
+        atomic_write_text(out / "long_horizon" / "episodes.jsonl",
+                          "".join(json.dumps(r) + "\n" for r in _finite(lh_rows)))
+    atomic_write_json(out / "seeds.json", {"benchmark": {"seeds": seeds, "scenes": cfg.scenes,
+                                                         "densities": cfg.densities},
+                                           "long_horizon": lh_seeds})
+    atomic_write_text(out / "episodes.jsonl", "".join(json.dumps(r) + "\n" for r in _finite(rows)))
+    res = results(rows)
+    atomic_write_json(out / "results.json", _finite(res))
+    atomic_write_text(out / "results.csv", results_csv(res))
+    atomic_write_json(out / "paired.json", _finite(paired(rows)))
+    plot_sr(res, labels, out / "figures" / "sr_by_cell.png")
+    header = (f"# Benchmark `{cfg.run_name}`\n\n{cfg.episodes} episodes per cell (seeds {seeds[0]}..{seeds[-1]}, "
+              f"the same for every method; the paper uses 75 = 25 goals × 3 trials), "
+              f"{len(specs)} methods: " + ", ".join(f"`{m.name}` = {m.label}" for m in specs) + ".")
+    refs = [m.name for m in specs if m.reference]
+    atomic_write_text(out / "report.md", report_markdown(rows, labels, header, lh_rows, refs))
+    counts: dict[str, Any] = {"episodes": len(rows), "long_horizon_episodes": len(lh_rows)}
+    for cell, by in res.items():
+        for m, agg in by.items():
+            counts[f"sr_{m}_{cell}"] = round(float(agg["success"]["mean"]), 3)
+    return counts
+
+
+def _finite(obj):
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def _plot_long_horizon(plans: list[dict[str, Any]], rows: list[dict[str, Any]], out: Path,
+                       labels: dict[str, str]) -> None:
+    from sim.planners.topomap import plot_topomap
+    from sim.trace import EpisodeTrace
+
+    by_map: dict[str, list[dict[str, Any]]] = {}
+    for p in plans:
+        by_map.setdefault(p["map"], []).append(p)
+    for name, ps in by_map.items():
+        first = ps[0]
+        paths = {}
+        for r in rows:
+            if r["scene"] == name and r["seed"] == first["seed"]:
+                tr = EpisodeTrace.load_npz(out / "traces" / f"lh_{name}_d{r['density']:g}_s{r['seed']}_{r['method']}.npz")
+                paths[f"{labels.get(r['method'], r['method'])} ({r['outcome']})"] = tr.robot_xy
+        plot_topomap(first["layout"], first["topo"], out / f"{name}_gvg.png", paths=paths, start_xy=first["start"],
+                     goals_xy=np.array([p["goal"] for p in ps]), waypoints=first["waypoints"],
+                     title=f"{name}: paths of run seed {first['seed']}, every run's goal")
+
+
+STAGE = Stage(
+    name="eval",
+    config_cls=EvalConfig,
+    help="the benchmark: scenes x densities x methods x seeded episodes + long-horizon runs -> DATA_DIR/eval/",
+    output_dir=output_dir,
+    inputs=_inputs,
+    body=_body,
+    code=("pipeline", "sim", "rl", "evaluation", "pretrain", "recorder"),
+)
+
+
+def run(cfg: EvalConfig):
+    """Run the stage (library entry point); returns its :class:`pipeline.manifest.Manifest`."""
+    return run_stage(STAGE, cfg)

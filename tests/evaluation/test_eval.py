@@ -1,0 +1,136 @@
+"""The benchmark harness: same seeds → same episodes, report generation from fixture rows, long-horizon start/goal,
+one episode through the harness (trace, figure, MCAP), bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evaluation.harness import Job, initial_state, make_env, reset_episode, run_episode
+from evaluation.methods import MethodSpec, resolve_methods, state_toward
+from evaluation.report import mcnemar_exact, paired, report_markdown, results, results_csv, shape_checks
+from pipeline.errors import ConfigError, InputMissingError
+from sim.env import CrowdNavEnv, SimConfig
+
+TINY = SimConfig(max_episode_s=2.0, camera=replace(SimConfig().camera, width_px=64, height_px=48))
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_same_seed_list_gives_the_same_episodes_for_two_methods(tmp_path):
+    expert, dwa = resolve_methods(["expert", "dwa"], tmp_path)
+    assert expert.obs_mode != dwa.obs_mode  # privileged vs rendered envs
+    for seed in (20_000, 20_001):
+        states = []
+        for m in (expert, dwa):
+            env = make_env(Job(m, TINY, "office_lobby", 0.2, seed, tmp_path))
+            reset_episode(env, Job(m, TINY, "office_lobby", 0.2, seed, tmp_path))
+            states.append(initial_state(env))
+            env.close()
+        assert len(states[0]["peds"]) > 0
+        for k in states[0]:
+            np.testing.assert_array_equal(states[0][k], states[1][k], err_msg=k)
+
+
+def test_given_start_and_goal_override_the_sampled_pair():
+    env = CrowdNavEnv(config=replace(TINY, scene="office_floor", density=0.0, obs_mode="state"))
+    env.reset(seed=1, options={"start": [3.0, 10.0], "goal": [27.0, 10.0]})
+    np.testing.assert_allclose(env.robot[:2], [3.0, 10.0])
+    np.testing.assert_allclose(env.goal, [27.0, 10.0])
+    assert env.shortest_path_m == pytest.approx(24.0, abs=0.3)
+    s = state_toward(env, np.array([env.robot[0] + np.cos(env.robot[2]) * 2, env.robot[1] + np.sin(env.robot[2]) * 2]))
+    np.testing.assert_allclose(s[:3], [2.0, 0.0, 2.0], atol=1e-5)  # a point 2 m straight ahead
+    env.close()
+
+
+def test_one_episode_writes_trace_figure_and_a_readable_mcap(tmp_path):
+    from mcap.reader import make_reader
+
+    (dwa,) = resolve_methods(["dwa"], tmp_path)
+    row = run_episode(Job(dwa, TINY, "office_lobby", 0.1, 7, tmp_path, figure=True, mcap=True))
+    name = "office_lobby_d0.1_s7_dwa"
+    assert row["method"] == "dwa" and row["seed"] == 7 and row["steps"] > 0
+    assert {"success", "collision", "timeout", "tpz_s", "path_length_m", "nav_time_s"} <= set(row)
+    assert (tmp_path / "traces" / f"{name}.npz").is_file() and (tmp_path / "figures" / f"{name}.png").is_file()
+    with open(tmp_path / "mcap" / f"{name}.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        topics = {c.topic for c in reader.get_summary().channels.values()}
+        n = sum(1 for _ in reader.iter_messages(topics=["/robot/state"]))
+    assert "/robot/state" in topics and n == row["steps"] + 1
+
+
+def _rows() -> list[dict]:
+    """Hand-built episodes: full succeeds on seeds 0..7 of 10, no_i2 on 0..3, dwa on none (collisions)."""
+    rows = []
+    for seed in range(10):
+        for m, ok in (("full", seed < 8), ("no_i2", seed < 4), ("dwa", False)):
+            rows.append({"method": m, "scene": "office_lobby", "density": 0.2, "seed": seed, "outcome": "x",
+                         "success": int(ok), "collision": int(not ok), "timeout": 0,
+                         "nav_time_s": 10.0 + seed if ok else float("nan"),
+                         "path_length_m": 6.0 if ok else float("nan"),
+                         "tpz_s": 1.0 if m == "full" else 2.0})
+    return rows
+
+
+def test_report_from_fixture_rows():
+    rows = _rows()
+    res = results(rows)
+    assert res["office_lobby@0.2"]["full"]["success"]["mean"] == pytest.approx(0.8)
+    assert res["office_lobby@0.2"]["full"]["success"]["n"] == 10
+    pr = paired(rows)["office_lobby@0.2"]
+    assert pr["no_i2"]["sr"]["a_only"] == 4 and pr["no_i2"]["sr"]["b_only"] == 0
+    assert pr["no_i2"]["sr"]["p_value"] == pytest.approx(0.125)  # exact McNemar: 2 * 0.5^4
+    assert pr["dwa"]["sr"]["p_value"] == pytest.approx(2 * 0.5 ** 8)
+    assert pr["no_i2"]["tpz_s"]["mean_diff"] == pytest.approx(-1.0)
+    checks = "\n".join(shape_checks(res))
+    assert "SR full 0.80 ≥ no_i2 0.40 — as in the paper" in checks
+    assert "TPZ full 1.00 s < w/o I² 2.00 s — as in the paper" in checks
+    md = report_markdown(rows, {"full": "iCrowdNav (full)"}, "# test")
+    assert "| iCrowdNav (full) | 10 | 80.0%" in md and "## Paired comparisons" in md
+    assert "office_lobby@0.2,full,success,10,0.8" in results_csv(res)
+
+
+def test_mcnemar_without_discordant_pairs_has_no_p_value():
+    assert np.isnan(mcnemar_exact([1, 0, 1], [1, 0, 1])["p_value"])
+
+
+def test_unknown_method_and_missing_checkpoint_are_clear_errors(tmp_path):
+    with pytest.raises(ConfigError, match="unknown method 'sarl'"):
+        resolve_methods(["sarl"], tmp_path)
+    with pytest.raises(InputMissingError, match="no finished policy checkpoint"):
+        resolve_methods(["full"], tmp_path)
+    assert isinstance(resolve_methods(["expert"], tmp_path)[0], MethodSpec)
+
+
+@pytest.mark.parametrize("args,match", [
+    (["--methods", "[expert, nosuch]"], "unknown method 'nosuch'"),
+    (["--methods", "[full]"], "no finished policy checkpoint"),
+    (["--scenes", "[]"], "eval.scenes: expected at least one scene"),
+])
+def test_eval_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, args, match):
+    r = subprocess.run([sys.executable, "-m", "pipeline", "eval", "--profile", "smoke", "--data-dir", str(tmp_path),
+                        *args], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode != 0
+    assert match in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "eval").exists()
+
+
+def test_results_json_is_written_by_a_tiny_run(tmp_path):
+    from evaluation.stage import EvalConfig, run
+
+    cfg = EvalConfig(data_dir=str(tmp_path), methods=["expert"], scenes=["office_lobby"], densities=[0.1],
+                     episodes=2, workers=1, figures=0, videos=0, sim=TINY, progress=False)
+    cfg.long_horizon = replace(cfg.long_horizon, maps=["office_floor"], runs=1, max_episode_s=2.0)
+    run(cfg)
+    out = tmp_path / "eval" / "benchmark"
+    res = json.loads((out / "results.json").read_text())
+    assert res["office_lobby@0.1"]["expert"]["episodes"] == 2
+    seeds = json.loads((out / "seeds.json").read_text())
+    assert seeds["benchmark"]["seeds"] == [20_000, 20_001] and len(seeds["long_horizon"]["office_floor"]) == 1
+    assert (out / "long_horizon" / "office_floor_gvg.png").is_file() and (out / "report.md").is_file()
+    assert len((out / "episodes.jsonl").read_text().splitlines()) == 2
