@@ -1,53 +1,55 @@
 """The Dynamic Window Approach (Fox, Burgard & Thrun 1997) on the robot's own RGB-D depth and odometry.
 
-What: the paper's model-based baseline (Table 1, "DWA"). It uses only what a real robot has: the depth images of
-its two RGB-D cameras (intrinsics/extrinsics from :class:`sim.cameras.CameraSpec`), its odometry (pose and
+What: the paper's model-based baseline (Table 1, "DWA"). It uses only what a real robot has: the depth images
+of its two RGB-D cameras (intrinsics/extrinsics from :class:`sim.cameras.CameraSpec`), its odometry (pose and
 velocity) and the goal or a waypoint. No pedestrian states, no map.
 
 How, each control step (:meth:`DWAController.command`):
 
 1. *Perception* (:func:`depth_to_points`): every ``pixel_stride``-th valid depth pixel (0 = invalid) is
    back-projected with the camera intrinsics into the camera frame and moved into the robot's base frame (x
-   forward, y left, z up, origin on the floor under the robot centre) with ``T_base_cam``; points whose height is
-   outside ``[min_height_m, max_height_m]`` (the floor, the ceiling) are dropped.
+   forward, y left, z up, origin on the floor under the robot centre) with ``T_base_cam``; points whose height
+   is outside ``[min_height_m, max_height_m]`` (the floor, the ceiling) are dropped.
 2. *Memory* (:class:`ObstacleMemory`): obstacle points are kept in the odometry (world) frame for ``memory_s``
    seconds on a voxel grid, so obstacles leaving the cameras' 140° view (beside the robot while it turns, or
    closer than the 0.3 m minimum depth) are not forgotten at once. A remembered point that a camera now sees
    *through* (valid depth clearly behind it at its pixel) is deleted at once, so pedestrians that walked away
    leave no ghost in view.
-3. *Costmap* (:func:`build_costmap`): the points are rasterised into a robot-centred, robot-aligned grid
-   (``costmap_size_m`` square, ``costmap_res_m`` cells); a Euclidean distance transform
-   (``scipy.ndimage.distance_transform_edt``) gives each cell its distance to the nearest occupied cell, and the
-   cells closer than the robot radius + ``safety_margin_m`` form the inflated obstacle region.
+3. *Costmap* (:func:`build_costmap`, :func:`rasterise_costmap`): the points are rasterised into a
+   robot-centred, robot-aligned grid (``costmap_size_m`` square, ``costmap_res_m`` cells); a Euclidean
+   distance transform (``scipy.ndimage.distance_transform_edt``) gives each cell its distance to the nearest
+   occupied cell, and the cells closer than the robot radius + ``safety_margin_m`` form the inflated obstacle
+   region.
 4. *Dynamic window*: ``n_v x n_omega`` velocities (v, ω) reachable within one control period from the current
    odometry velocity under ``acc_v_mps2`` / ``acc_omega_radps2``, clipped to the robot's limits
    (v ∈ [0, v_max], ω ∈ [−ω_max, ω_max]).
-5. *Curvatures*: as in Fox et al., each (v, ω) is judged along its circle of curvature ω/v, sampled by arc length
-   up to ``arc_length_m`` (not by time, so a slow arc still sees the obstacle it is heading for); the distance
-   field is looked up bilinearly along all arcs at once. ``dist`` is the free arc length before the robot centre
-   enters the inflated region.
+5. *Curvatures*: as in Fox et al., each (v, ω) is judged along its circle of curvature ω/v, sampled by arc
+   length up to ``arc_length_m`` (not by time, so a slow arc still sees the obstacle it is heading for); the
+   distance field is looked up bilinearly along all arcs at once. ``dist`` is the free arc length before the
+   robot centre enters the inflated region.
 6. *Admissibility*: the robot must be able to stop before that point: ``v·dt + v²/(2·acc_v_mps2) +
    obstacle_speed_mps·(dt + v/acc_v_mps2) <= dist`` (Fox et al.'s ``v <= sqrt(2·dist·v̇_b)`` plus one control
    period of reaction, plus the ground an obstacle walking towards the robot covers meanwhile). If nothing is
    admissible the robot brakes as hard as the window allows, steering to the arc with the longest free length.
-7. *Objective* (Fox et al.'s three terms, each in [0, 1]): ``w_heading·heading + w_dist·dist + w_velocity·velocity``
-   with heading = 1 − |angle between the robot's heading and the bearing of the waypoint|/π, both taken at the
-   pose reached by holding (v, ω) for ``heading_horizon_s``; dist = free arc length / ``min(dist_cap_m, distance
-   to the waypoint)`` capped at 1 (the clearance along the arc; obstacles beyond the waypoint do not
-   count); velocity = v / v_max.
+7. *Objective* (Fox et al.'s three terms, each in [0, 1]): ``w_heading·heading + w_dist·dist +
+   w_velocity·velocity`` with heading = 1 − |angle between the robot's heading and the bearing of the
+   waypoint|/π, both taken at the pose reached by holding (v, ω) for ``heading_horizon_s``; dist = free arc
+   length / ``min(dist_cap_m, distance to the waypoint)`` capped at 1 (the clearance along the arc; obstacles
+   beyond the waypoint do not count); velocity = v / v_max.
 
-Deviations from Fox et al. (1997), each found necessary on our scenes (office/hospital doorways, pillars, crowds):
+Deviations from Fox et al. (1997), each found necessary on our scenes (office/hospital doorways, pillars,
+crowds):
 
-* heading is judged after ``heading_horizon_s`` of constant (v, ω), not after one period plus braking: the short
-  look-ahead hardly separates the candidates, and the robot overshot every turn into a doorway;
-* a turn on the spot (v = 0) has no curvature; its ``dist`` is that of the straight ray it faces after
-  ``heading_horizon_s`` (Fox et al. give it "a large constant", which made stopping in front of a pillar the
-  best choice forever);
-* ``obstacle_speed_mps`` (0 gives the original rule) makes admissibility hold against obstacles that approach —
-  the world has walking people and the costmap has no velocities;
+* heading is judged after ``heading_horizon_s`` of constant (v, ω), not after one period plus braking: the
+  short look-ahead hardly separates the candidates, and the robot overshot every turn into a doorway;
+* a turn on the spot (v = 0) has no curvature; its ``dist`` is that of the straight ray it would face after
+  turning for ``spin_ray_s`` (Fox et al. give it "a large constant", which made stopping in front of a pillar
+  the best choice forever; a short turn only looks at the same pillar, so the robot stayed stuck at its edge);
+* ``obstacle_speed_mps`` (0 gives the original rule) makes admissibility hold against obstacles that approach
+  — the world has walking people and the costmap has no velocities;
 * scores are normalised by fixed ranges, not per step, and not smoothed over neighbouring velocities; near the
-  final goal (not at intermediate waypoints) velocity rewards closeness to the speed from which the robot can still
-  stop at the goal, ``min(v_max, sqrt(2·acc_v·d_goal))``, instead of plain speed.
+  final goal (not at intermediate waypoints) velocity rewards closeness to the speed from which the robot can
+  still stop at the goal, ``min(v_max, sqrt(2·acc_v·d_goal))``, instead of plain speed.
 
 Unseen space counts as free: the cameras look forward (±70°), and a disc robot that never reverses only needs
 what lies ahead; the memory covers what it turns away from. There is no recovery behaviour: in a local minimum
@@ -85,7 +87,7 @@ class DWAConfig:
     # dynamic window
     acc_v_mps2: float = 1.0  # linear acceleration and braking limit
     acc_omega_radps2: float = 4.0  # angular acceleration limit
-    obstacle_speed_mps: float = 0.3  # admissibility assumes obstacles ahead may approach this fast (0 = Fox et al.)
+    obstacle_speed_mps: float = 0.3  # admissibility holds against obstacles approaching this fast (0: Fox)
     n_v: int = 9  # sampled linear velocities in the window
     n_omega: int = 21  # sampled angular velocities in the window
     arc_length_m: float = 2.5  # each arc (constant curvature ω/v) is checked this far ahead
@@ -93,7 +95,7 @@ class DWAConfig:
     # objective (each term is normalised to [0, 1])
     w_heading: float = 1.0  # alignment with the waypoint at the pose reached after heading_horizon_s
     heading_horizon_s: float = 1.0  # how far ahead (holding v, ω) the heading to the waypoint is judged
-    spin_ray_s: float = 4.0  # a turn on the spot (v = 0) is judged by the ray it faces after turning this long
+    spin_ray_s: float = 4.0  # a turn on the spot (v = 0) is judged by the ray it faces after this long
     w_dist: float = 1.0  # free arc length before the inflated obstacles (Fox et al.'s dist), up to dist_cap_m
     dist_cap_m: float = 1.5  # free arc lengths above this score the same
     w_velocity: float = 0.5  # forward speed (near the final goal: closeness to the speed that stops there)
@@ -108,8 +110,9 @@ class DWAConfig:
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
                 raise ConfigError(f"dwa.{f.name}: expected a finite number, got {v!r}")
-        positive = ("max_height_m", "costmap_size_m", "costmap_res_m", "memory_voxel_m", "acc_v_mps2",
-                    "acc_omega_radps2", "heading_horizon_s", "spin_ray_s", "arc_length_m", "arc_step_m", "dist_cap_m", "see_through_tol_m")
+        positive = ("max_height_m", "costmap_size_m", "costmap_res_m", "memory_voxel_m", "see_through_tol_m",
+                    "acc_v_mps2", "acc_omega_radps2", "heading_horizon_s", "spin_ray_s", "arc_length_m",
+                    "arc_step_m", "dist_cap_m")
         for k in positive:
             if getattr(self, k) <= 0:
                 raise ConfigError(f"dwa.{k}: expected > 0, got {getattr(self, k)}")
@@ -124,10 +127,11 @@ class DWAConfig:
             if not isinstance(v, int) or v < lo:
                 raise ConfigError(f"dwa.{k}: expected an integer >= {lo}, got {v!r}")
         if self.costmap_size_m < 4 * self.costmap_res_m:
-            raise ConfigError(f"dwa.costmap_size_m: expected >= 4 cells of costmap_res_m ({self.costmap_res_m}), "
-                              f"got {self.costmap_size_m}")
+            raise ConfigError(f"dwa.costmap_size_m: expected >= 4 cells of costmap_res_m "
+                              f"({self.costmap_res_m}), got {self.costmap_size_m}")
         if self.arc_step_m > self.arc_length_m:
-            raise ConfigError(f"dwa.arc_step_m: expected <= arc_length_m ({self.arc_length_m}), got {self.arc_step_m}")
+            raise ConfigError(f"dwa.arc_step_m: expected <= arc_length_m ({self.arc_length_m}), got "
+                              f"{self.arc_step_m}")
         if self.w_heading + self.w_dist + self.w_velocity <= 0:
             raise ConfigError("dwa.w_heading: expected the three weights to sum to > 0, got all zero")
 
@@ -146,8 +150,8 @@ def depth_to_points(depth: np.ndarray, spec: CameraSpec, stride: int = 1) -> np.
     """
     d = np.asarray(depth, dtype=np.float64)
     if d.shape != (spec.height_px, spec.width_px):
-        raise ValueError(f"depth image of camera {spec.name!r}: expected shape {(spec.height_px, spec.width_px)}, "
-                         f"got {d.shape}")
+        raise ValueError(f"depth image of camera {spec.name!r}: expected shape "
+                         f"{(spec.height_px, spec.width_px)}, got {d.shape}")
     rows = np.arange(0, spec.height_px, stride)
     cols = np.arange(0, spec.width_px, stride)
     z = d[np.ix_(rows, cols)]
@@ -169,8 +173,8 @@ class LocalCostmap:
 
     Attributes:
         occupied: ``H x W`` bool, an obstacle point fell in the cell.
-        distance_m: ``H x W`` distance from each cell centre to the nearest occupied cell centre, m (a large value
-            where there is none).
+        distance_m: ``H x W`` distance from each cell centre to the nearest occupied cell centre, m (a large
+            value where there is none).
         inflated: ``H x W`` bool, ``distance_m < inflation_m`` (the robot centre may not enter).
         origin: base-frame (x, y) of the centre of cell ``[0, 0]``, m.
         res_m: cell size, m.
@@ -228,7 +232,8 @@ def rasterise_costmap(points_xy: np.ndarray, size_m: float, res_m: float, inflat
 
 
 def build_costmap(depths: Sequence[np.ndarray], cameras: Sequence[CameraSpec], robot_pose: Sequence[float],
-                  cfg: DWAConfig, robot_radius_m: float, memory_xyz: np.ndarray | None = None) -> LocalCostmap:
+                  cfg: DWAConfig, robot_radius_m: float,
+                  memory_xyz: np.ndarray | None = None) -> LocalCostmap:
     """The local costmap from depth images, camera specs and the robot pose (a pure function).
 
     Args:
@@ -310,7 +315,7 @@ class ObstacleMemory:
 
     def seen_through(self, depths: Sequence[np.ndarray], cameras: Sequence[CameraSpec], pose: Sequence[float],
                      tol_m: float) -> np.ndarray:
-        """``M`` bool: which remembered points some camera now sees through (valid depth > point depth + tol)."""
+        """``M`` bool: remembered points some camera now sees through (valid depth > point depth + tol)."""
         out = np.zeros(len(self.xyz), dtype=bool)
         if not len(self.xyz):
             return out
@@ -331,7 +336,7 @@ class ObstacleMemory:
         return out
 
 
-# --------------------------------------------------------------------------------------------------- controller
+# ------------------------------------------------------------------------------------------------- controller
 class DWAController:
     """The Dynamic Window Approach on depth + odometry (see the module docstring).
 
@@ -341,7 +346,7 @@ class DWAController:
         obs, info = env.reset(seed=0)
         dwa.reset(env.unwrapped)
         action = env.unwrapped.encode_command(*dwa.command(env.unwrapped))
-        # with a visual observation, pass its depth to avoid rendering twice; with a topological map, a waypoint:
+        # with a visual observation pass its depth (no second rendering); with a topological map, a waypoint:
         v, w = dwa.command(env.unwrapped, waypoint_xy=follower.current(env.unwrapped.robot[:2]),
                            depths=(obs["depth_left"], obs["depth_right"]))
 
@@ -390,8 +395,8 @@ class DWAController:
         Args:
             env: the unwrapped env (odometry and, without ``depths``, rendering).
             waypoint_xy: the point to head for (world frame, m); the goal by default.
-            depths: the current depth images, one per camera in ``env.cameras`` order (e.g. ``obs["depth_left"],
-                obs["depth_right"]``); rendered with ``env.render_cameras()`` if omitted.
+            depths: the current depth images, one per camera in ``env.cameras`` order (e.g.
+                ``obs["depth_left"], obs["depth_right"]``); rendered with ``env.render_cameras()`` if omitted.
         """
         if not self._ready:
             raise RuntimeError("DWAController: call reset(env) after env.reset() and before command()")
@@ -402,8 +407,8 @@ class DWAController:
         return self.command_from(depths, pose, v0, w0, waypoint_xy)
 
     def command_from(self, depths: Sequence[np.ndarray], pose: np.ndarray, v0: float, w0: float,
-             waypoint_xy: Sequence[float] | None = None) -> tuple[float, float]:
-        """One DWA step from raw inputs (what :meth:`command` calls; usable without an env after :meth:`reset`).
+                     waypoint_xy: Sequence[float] | None = None) -> tuple[float, float]:
+        """One DWA step from raw inputs (what :meth:`command` calls; needs no env after :meth:`reset`).
 
         Args:
             depths: one ``H x W`` z-depth image (m, 0 = invalid) per camera of :meth:`reset`'s env.
@@ -448,8 +453,8 @@ class DWAController:
         v = vv.ravel()[:, None]  # C x 1
         w = ww.ravel()[:, None]
 
-        # --- arcs of constant curvature ω/v in the base frame, sampled by arc length (C x S). A turn on the spot
-        # (v = 0) has no arc: it is scored by the straight ray in the direction it faces after heading_horizon_s
+        # --- arcs of constant curvature ω/v in the base frame, sampled by arc length (C x S). A turn on the
+        # spot (v = 0) has no arc: it is scored by the straight ray in the direction it faces after spin_ray_s
         # (where it will drive next), so stopping in front of an obstacle does not look free
         s_arc = self.arc_s[None, :]
         moving = v > 1e-9
@@ -457,18 +462,21 @@ class DWAController:
         straight = np.abs(kappa) < 1e-6
         ks = np.where(straight, 1.0, kappa)
         face = w * c.spin_ray_s
-        px = np.where(moving, np.where(straight, s_arc, np.sin(kappa * s_arc) / ks), s_arc * np.cos(face))
-        py = np.where(moving, np.where(straight, 0.0, (1.0 - np.cos(kappa * s_arc)) / ks), s_arc * np.sin(face))
+        arc_x = np.where(straight, s_arc, np.sin(kappa * s_arc) / ks)
+        arc_y = np.where(straight, 0.0, (1.0 - np.cos(kappa * s_arc)) / ks)
+        px = np.where(moving, arc_x, s_arc * np.cos(face))
+        py = np.where(moving, arc_y, s_arc * np.sin(face))
         clear = cm.lookup(np.stack([px, py], -1)) - cm.inflation_m  # C x S, < 0 inside the inflated region
         c0 = float(cm.lookup(np.zeros(2))) - cm.inflation_m
-        # already inside the inflated region (a pedestrian stepped close): arcs that do not go deeper are allowed
+        # already inside the inflated region (a pedestrian stepped close): arcs not going deeper are allowed
         hit = clear < min(0.0, c0) - 1e-6
         any_hit = hit.any(1)
         first = np.where(any_hit, hit.argmax(1), hit.shape[1])
         free_len = np.where(any_hit, np.concatenate([[0.0], self.arc_s])[first], np.inf)  # last free sample
         # stopping distance, plus the distance an obstacle moving towards the robot covers meanwhile
-        t_stop = self.dt + v[:, 0] / c.acc_v_mps2
-        need = v[:, 0] * self.dt + v[:, 0] ** 2 / (2.0 * c.acc_v_mps2) + c.obstacle_speed_mps * t_stop * (v[:, 0] > 0)
+        vc = v[:, 0]
+        t_stop = self.dt + vc / c.acc_v_mps2
+        need = vc * self.dt + vc**2 / (2.0 * c.acc_v_mps2) + c.obstacle_speed_mps * t_stop * (vc > 0)
         admissible = need <= free_len + 1e-9
 
         # --- objective

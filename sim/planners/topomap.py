@@ -1,45 +1,46 @@
 """A generalized-Voronoi-graph (GVG) topological map of a scene, planning on it, and following its waypoints.
 
-What: the paper's long-horizon setting (§IV-C, Fig. "long-distance navigation") builds a topological map of each
-large map with a generalized Voronoi graph, picks a start point, waypoints and candidate goals on it, plans on it,
-and lets the local policy follow the waypoints. This module does the same on the occupancy grid of a
-:class:`sim.scene.SceneLayout`:
+What: the paper's long-horizon setting (§IV-C, Fig. "long-distance navigation") builds a topological map of
+each large map with a generalized Voronoi graph, picks a start point, waypoints and candidate goals on it,
+plans on it, and lets the local policy follow the waypoints. This module does the same on the occupancy grid
+of a :class:`sim.scene.SceneLayout`:
 
-* :func:`build_gvg` -> :class:`TopoMap`: nodes (junctions of degree >= 3 and endpoints of degree 1), edges (the
-  skeleton branches between them, with their polylines and lengths) and the adjacency;
+* :func:`build_gvg` -> :class:`TopoMap`: nodes (junctions of degree >= 3 and endpoints of degree 1), edges
+  (the skeleton branches between them, with their polylines and lengths) and the adjacency;
 * :meth:`TopoMap.plan`: start and goal are attached to every graph point they can see, Dijkstra runs on the
   graph, and the path comes back as waypoints spaced at most ``spacing_m`` apart along the edge polylines;
 * :meth:`TopoMap.candidate_goals`: goals drawn among the graph nodes far (along the graph) from a start;
-* :class:`WaypointFollower`: hands any local controller (DWA, the expert, a learned policy that takes the goal in
-  its robot state) the waypoint to head for;
+* :class:`WaypointFollower`: hands any local controller (DWA, the expert, a learned policy that takes the goal
+  in its robot state) the waypoint to head for;
 * :func:`plot_topomap`: a figure of the map, the graph and planned paths.
 
 How (grid frame and units of :class:`sim.scene.SceneLayout`: cell ``[i, j]`` has its centre at
 ``grid_origin + (j, i) * GRID_RES_M``, 0.05 m cells):
 
 1. *Medial axis* of the free space with the integer medial axis (IMA) of Hesselink & Roerdink (2008): the
-   Euclidean feature transform (``scipy.ndimage.distance_transform_edt(..., return_indices=True)``) gives every
-   free cell its nearest obstacle cell; a pair of 4-neighbouring free cells whose nearest obstacle cells lie more
-   than ``feature_sep_m`` apart straddles the bisector of two different obstacle stretches, and the cell closer to
-   that bisector is kept. This is the GVG in the sense of Choset & Burdick (points with two or more nearest
-   obstacle points), with every stretch of wall counted as its own "obstacle" — walls of a building are all one
-   connected solid, so labelling obstacles by connected component (the textbook GVG) would lose every corridor.
-2. *Thinning* to a one-cell-wide, 8-connected curve with the parallel, topology-preserving algorithm of Lam, Lee &
-   Suen (1992) (two sub-iterations with 256-entry lookup tables, the algorithm behind
+   Euclidean feature transform (``scipy.ndimage.distance_transform_edt(..., return_indices=True)``) gives
+   every free cell its nearest obstacle cell; a pair of 4-neighbouring free cells whose nearest obstacle cells
+   lie more than ``feature_sep_m`` apart straddles the bisector of two different obstacle stretches, and the
+   cell closer to that bisector is kept. This is the GVG in the sense of Choset & Burdick (points with two or
+   more nearest obstacle points), with every stretch of wall counted as its own "obstacle" — walls of a
+   building are all one connected solid, so labelling obstacles by connected component (the textbook GVG)
+   would lose every corridor.
+2. *Thinning* to a one-cell-wide, 8-connected curve with the parallel, topology-preserving algorithm of Lam,
+   Lee & Suen (1992) (two sub-iterations with 256-entry lookup tables, the algorithm behind
    ``skimage.morphology.thin``; written here because scikit-image is not a dependency of this project).
-3. *Clearance*: cells whose exact clearance (``layout.clearance``) is below ``min_clearance_m`` are dropped, so
-   every graph point keeps the robot radius plus a margin; passages too narrow for the robot disconnect.
+3. *Clearance*: cells whose exact clearance (``layout.clearance``) is below ``min_clearance_m`` are dropped,
+   so every graph point keeps the robot radius plus a margin; passages too narrow for the robot disconnect.
 4. *Graph*: skeleton cells with >= 3 neighbours form junction clusters (one node each, at the cluster cell of
    largest clearance), cells with one neighbour are endpoints; the remaining cells split into branches, each
    walked into an ordered polyline between its two nodes. Degree-2 nodes are merged away.
 5. *Spur pruning*: a terminal edge (endpoint to junction) whose length is below
-   ``spur_ratio * clearance(junction) + min_spur_m`` ends inside (about) the free disc around its junction — the
-   medial-axis branches into room corners and into the two corners of every dead end — and is removed; then
-   degree-2 nodes are merged again (repeated until nothing changes).
+   ``spur_ratio * clearance(junction) + min_spur_m`` ends inside (about) the free disc around its junction —
+   the medial-axis branches into room corners and into the two corners of every dead end — and is removed;
+   then degree-2 nodes are merged again (repeated until nothing changes).
 
-Deviations from the paper: the paper does not say how its GVG is computed or pruned (Isaac Sim maps); the pruning
-rule above and the attach-to-every-visible-graph-point planning are ours. Waypoints lie on the GVG (maximal
-clearance), not on the shortest path; the local controller cuts corners between them.
+Deviations from the paper: the paper does not say how its GVG is computed or pruned (Isaac Sim maps); the
+pruning rule above and the attach-to-every-visible-graph-point planning are ours. Waypoints lie on the GVG
+(maximal clearance), not on the shortest path; the local controller cuts corners between them.
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ from sim.scene import GRID_RES_M, SceneLayout
 _EIGHT = np.ones((3, 3), dtype=bool)
 
 
-# ----------------------------------------------------------------------------------------------------- thinning
+# --------------------------------------------------------------------------------------------------- thinning
 def _thin_luts() -> tuple[np.ndarray, np.ndarray]:
     """Deletion tables of the Lam-Lee-Suen (1992) thinning, indexed by the 8-bit neighbourhood code.
 
@@ -97,7 +98,7 @@ _NEIGHBOUR_CODE = np.array([[8, 4, 2], [16, 0, 1], [32, 64, 128]], dtype=np.int3
 
 
 def thin(mask: np.ndarray, max_iter: int = 10_000) -> np.ndarray:
-    """Thin a binary image to one-cell-wide 8-connected curves, preserving its topology (Lam, Lee & Suen 1992).
+    """Thin a binary image to one-cell-wide 8-connected curves, keeping its topology (Lam, Lee & Suen 1992).
 
     Args:
         mask: ``H x W`` bool foreground.
@@ -122,8 +123,8 @@ def medial_axis_ima(free: np.ndarray, feature_sep_cells: float) -> np.ndarray:
 
     Args:
         free: ``H x W`` bool, True where free.
-        feature_sep_cells: a 4-neighbour pair counts only if its nearest obstacle cells are more than this apart
-            (cells); larger values drop ridges caused by small boundary wiggles.
+        feature_sep_cells: a 4-neighbour pair counts only if its nearest obstacle cells are more than this
+            apart (cells); larger values drop ridges caused by small boundary wiggles.
 
     Returns:
         ``H x W`` bool ridge cells (up to two cells thick; thin with :func:`thin`).
@@ -148,7 +149,7 @@ def medial_axis_ima(free: np.ndarray, feature_sep_cells: float) -> np.ndarray:
     return out
 
 
-# -------------------------------------------------------------------------------------------------------- graph
+# ------------------------------------------------------------------------------------------------------ graph
 @dataclass
 class TopoEdge:
     """One skeleton branch between two nodes.
@@ -170,18 +171,19 @@ class TopoMap:
     """A GVG topological map (see the module docstring). Build it with :func:`build_gvg`.
 
     Attributes:
+        layout: the scene's static world the map was built from (visibility checks use its clearance grid).
         nodes_xy: ``N x 2`` node positions, world frame, m.
         degree: ``N`` number of edge ends at each node (1 = endpoint, >= 3 = junction; a loop counts twice).
         clearance_m: ``N`` obstacle clearance of each node, m.
         edges: the branches.
         adjacency: per node, ``(neighbour node, edge index)`` pairs.
         skeleton: ``H x W`` bool skeleton cells on the layout's grid, after the clearance cut (for figures).
-        robot_radius_m: the robot the map was built for (visibility checks keep this clearance).
+        robot_radius_m: radius of the robot the map was built for, m.
         min_clearance_m: clearance every graph point keeps, m.
         build_s: wall time of :func:`build_gvg`, s.
         graph_step_m: spacing of the planning points along the edges, m.
-        attach_radius_m: start and goal attach to the graph points they see within this distance (all they see if
-            none is that close), m.
+        attach_radius_m: start and goal attach to the graph points they see within this distance (all they see
+            if none is that close), m.
         attach_clearance_m: clearance an attaching segment keeps (less only where its ends have less), m.
     """
 
@@ -198,8 +200,7 @@ class TopoMap:
     graph_step_m: float = 0.25
     attach_radius_m: float = 5.0
     attach_clearance_m: float = 0.6
-    _pts: np.ndarray = field(init=False, repr=False)
-    _csr: object = field(init=False, repr=False)
+    _pts: np.ndarray = field(init=False, repr=False)  # planning points: the nodes, then points along edges
     _is_node: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -246,11 +247,12 @@ class TopoMap:
     def _visible(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Planning-graph points that ``xy`` attaches to, and their distances (m).
 
-        A point is seen if the straight segment to it keeps ``attach_clearance_m`` from obstacles, or less where
-        ``xy`` itself or the graph point has less clearance (so that points near a wall still attach, and doorway
-        points are reached straight through the door); the seen points within ``attach_radius_m`` are used, or
-        all seen points if none is that close. The margin above the graph's own ``min_clearance_m`` keeps
-        attachments from grazing door jambs: paths through doorways follow the graph through their middle.
+        A point is seen if the straight segment to it keeps ``attach_clearance_m`` from obstacles, or less
+        where ``xy`` itself or the graph point has less clearance (so that points near a wall still attach,
+        and doorway points are reached straight through the door); the seen points within ``attach_radius_m``
+        are used, or all seen points if none is that close. The margin above the graph's own
+        ``min_clearance_m`` keeps attachments from grazing door jambs: paths through doorways follow the graph
+        through their middle.
         """
         d = np.hypot(*(self._pts - xy).T)
         own = float(self.layout.clearance_fast(xy)[0])
@@ -262,8 +264,8 @@ class TopoMap:
         return np.nonzero(ok)[0], d[ok]
 
     def _dijkstra_from(self, start_xy: np.ndarray, goal_xy: np.ndarray | None = None):
-        """Dijkstra from a virtual start vertex (index M) attached to every visible point; with a goal, a virtual
-        goal vertex (index M + 1) attached likewise, plus a direct start-goal edge if it is clear."""
+        """Dijkstra from a virtual start vertex (index M) attached to every visible point; with a goal, a
+        virtual goal vertex (index M + 1) attached likewise, plus a direct start-goal edge if it is clear."""
         m = len(self._pts)
         r, c, w = self._edges_rc
         rr, cc, ww = [r], [c], [w]
@@ -276,8 +278,9 @@ class TopoMap:
             rr.append(vg)
             cc.append(np.full(len(vg), m + 1))
             ww.append(dg)
-            own = min(float(self.layout.clearance_fast(start_xy)[0]), float(self.layout.clearance_fast(goal_xy)[0]))
-            if self.layout.segments_clear(start_xy, goal_xy, min(self.attach_clearance_m, own - 1e-3), step=0.05)[0]:
+            own = float(self.layout.clearance_fast(np.stack([start_xy, goal_xy]))[0].min())
+            margin = min(self.attach_clearance_m, own) - 1e-3
+            if self.layout.segments_clear(start_xy, goal_xy, margin, step=0.05)[0]:
                 rr.append(np.array([m]))
                 cc.append(np.array([m + 1]))
                 ww.append(np.array([float(np.hypot(*(goal_xy - start_xy)))]))
@@ -290,18 +293,18 @@ class TopoMap:
     def plan(self, start_xy: Sequence[float], goal_xy: Sequence[float], spacing_m: float = 1.0) -> np.ndarray:
         """Waypoints from ``start_xy`` to ``goal_xy`` along the graph.
 
-        Start and goal are attached to every graph point they see (a straight segment that keeps the robot
-        radius); Dijkstra finds the shortest route through the graph (or the direct segment if it is clear and
-        shorter).
+        Start and goal are attached to the graph points they see (straight segments keeping
+        ``attach_clearance_m``, see :meth:`_visible`); Dijkstra finds the shortest route through the graph (or
+        the direct segment if it is that clear and shorter).
 
         Args:
             start_xy, goal_xy: world positions, m.
-            spacing_m: largest arc length along the path between consecutive waypoints, m (graph nodes the path
-                passes are always kept).
+            spacing_m: largest arc length along the path between consecutive waypoints, m (graph nodes the
+                path passes are always kept).
 
         Returns:
-            ``K x 2`` waypoints, world frame, m, excluding the start and ending with the goal; ``0 x 2`` if the goal
-            cannot be reached on the graph.
+            ``K x 2`` waypoints, world frame, m, excluding the start and ending with the goal; ``0 x 2`` if
+            the goal cannot be reached on the graph.
         """
         if spacing_m <= 0:
             raise ValueError(f"spacing_m: expected > 0, got {spacing_m}")
@@ -328,10 +331,10 @@ class TopoMap:
 
     def candidate_goals(self, rng: np.random.Generator, n: int, min_dist_m: float,
                         start_xy: Sequence[float]) -> np.ndarray:
-        """``n`` distinct graph nodes whose distance from ``start_xy`` along the graph is at least ``min_dist_m``.
+        """``n`` distinct graph nodes at least ``min_dist_m`` from ``start_xy`` along the graph.
 
-        The paper's long-horizon runs pick a start point and candidate goals on the topological map; each run then
-        draws one of the candidates.
+        The paper's long-horizon runs pick a start point and candidate goals on the topological map; each run
+        then draws one of the candidates.
 
         Raises:
             ConfigError: fewer than ``n`` nodes qualify (the message says how many do).
@@ -339,8 +342,9 @@ class TopoMap:
         d = self.graph_distances(start_xy)
         ok = np.nonzero(np.isfinite(d) & (d >= min_dist_m))[0]
         if len(ok) < n:
-            raise ConfigError(f"candidate_goals: asked for {n} goals at >= {min_dist_m} m along the graph from "
-                              f"{tuple(np.round(start_xy, 2))}, but only {len(ok)} nodes qualify")
+            x, y = (float(v) for v in np.asarray(start_xy, dtype=np.float64).reshape(2))
+            raise ConfigError(f"candidate_goals: asked for {n} goals at >= {min_dist_m} m along the graph "
+                              f"from ({x:.2f}, {y:.2f}), but only {len(ok)} nodes qualify")
         return self.nodes_xy[rng.choice(ok, size=n, replace=False)].copy()
 
 
@@ -373,10 +377,11 @@ def _space_waypoints(route: np.ndarray, keep: np.ndarray, spacing_m: float) -> n
     return np.array(out)
 
 
-# -------------------------------------------------------------------------------------------------- extraction
+# ------------------------------------------------------------------------------------------------- extraction
 def _cell_xy(layout: SceneLayout, ij: np.ndarray) -> np.ndarray:
     ij = np.asarray(ij).reshape(-1, 2)
-    return np.stack([layout.grid_origin[0] + ij[:, 1] * GRID_RES_M, layout.grid_origin[1] + ij[:, 0] * GRID_RES_M], -1)
+    x0, y0 = layout.grid_origin
+    return np.stack([x0 + ij[:, 1] * GRID_RES_M, y0 + ij[:, 0] * GRID_RES_M], -1)
 
 
 _OFFS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
@@ -386,8 +391,8 @@ def _raw_graph(sk: np.ndarray, clearance: np.ndarray):
     """Nodes (as grid cells) and edges (as ordered cell lists) of a thin skeleton.
 
     Returns:
-        ``(node_cells, edges)``: ``N x 2`` (row, col) node cells and a list of ``(u, v, cells)`` where ``cells`` is
-        the ``K x 2`` ordered branch from ``u``'s side to ``v``'s side (node cells not included).
+        ``(node_cells, edges)``: ``N x 2`` (row, col) node cells and a list of ``(u, v, cells)`` where
+        ``cells`` is the ``K x 2`` ordered branch from ``u``'s side to ``v``'s side (node cells not included).
     """
     h, w = sk.shape
     nbr = ndimage.correlate(sk.astype(np.int32), _EIGHT.astype(np.int32), mode="constant") - sk
@@ -550,25 +555,30 @@ class _Graph:
         """Drop nodes without edges and renumber; returns positions, edges and the kept node ids."""
         used = sorted({n for u, v, _ in self.edges.values() for n in (u, v)})
         new = {n: i for i, n in enumerate(used)}
-        edges = [TopoEdge(new[u], new[v], poly, float(_arclength(poly)[-1])) for u, v, poly in self.edges.values()]
+        edges = [TopoEdge(new[u], new[v], poly, float(_arclength(poly)[-1]))
+                 for u, v, poly in self.edges.values()]
         return self.xy[used].reshape(-1, 2), edges, np.array(used, dtype=np.int64)
 
 
 def build_gvg(layout: SceneLayout, robot_radius_m: float, min_clearance_m: float | None = None, *,
               spur_ratio: float = 1.5, min_spur_m: float = 0.3, feature_sep_m: float | None = None,
-              graph_step_m: float = 0.25) -> TopoMap:
+              graph_step_m: float = 0.25, attach_radius_m: float = 5.0,
+              attach_clearance_m: float | None = None) -> TopoMap:
     """The GVG topological map of a layout (method in the module docstring).
 
     Args:
         layout: the scene's static world (its 0.05 m occupancy and clearance grids are used).
-        robot_radius_m: robot footprint radius, m (start/goal attachments keep this clearance).
-        min_clearance_m: clearance every graph point keeps, m; default robot radius + 0.2 m (a 1.2 m doorway still
-            passes; local controllers inflate obstacles by less than that, so the plan stays feasible for them).
-        spur_ratio, min_spur_m: a terminal edge shorter than ``spur_ratio * clearance(junction) + min_spur_m`` is
-            pruned (m).
+        robot_radius_m: robot footprint radius, m (the default clearances below build on it).
+        min_clearance_m: clearance every graph point keeps, m; default robot radius + 0.2 m (a 1.2 m doorway
+            still passes; local controllers inflate obstacles by less than that, so the plan stays feasible
+            for them).
+        spur_ratio, min_spur_m: a terminal edge shorter than ``spur_ratio * clearance(junction) + min_spur_m``
+            is pruned (m).
         feature_sep_m: nearest-obstacle separation below which a ridge is ignored (m); default
             ``min_clearance_m`` (a corridor the robot fits through has separation >= 2 * min_clearance).
         graph_step_m: spacing of the planning points along the edges, m.
+        attach_radius_m, attach_clearance_m: how :meth:`TopoMap.plan` attaches start and goal (see
+            :class:`TopoMap`); the clearance defaults to ``min_clearance_m`` + 0.1 m.
 
     Returns:
         The :class:`TopoMap`.
@@ -581,10 +591,12 @@ def build_gvg(layout: SceneLayout, robot_radius_m: float, min_clearance_m: float
         raise ConfigError(f"build_gvg: robot_radius_m: expected > 0, got {robot_radius_m}")
     min_clear = robot_radius_m + 0.2 if min_clearance_m is None else float(min_clearance_m)
     if min_clear < robot_radius_m:
-        raise ConfigError(f"build_gvg: min_clearance_m: expected >= robot_radius_m ({robot_radius_m}), got {min_clear}")
-    if spur_ratio < 0 or min_spur_m < 0 or graph_step_m <= 0:
-        raise ConfigError(f"build_gvg: expected spur_ratio >= 0, min_spur_m >= 0, graph_step_m > 0, got "
-                          f"{spur_ratio}, {min_spur_m}, {graph_step_m}")
+        raise ConfigError(f"build_gvg: min_clearance_m: expected >= robot_radius_m ({robot_radius_m}), got "
+                          f"{min_clear}")
+    if spur_ratio < 0 or min_spur_m < 0 or graph_step_m <= 0 or attach_radius_m <= 0:
+        raise ConfigError(f"build_gvg: expected spur_ratio >= 0, min_spur_m >= 0, graph_step_m > 0, "
+                          f"attach_radius_m > 0, got {spur_ratio}, {min_spur_m}, {graph_step_m}, "
+                          f"{attach_radius_m}")
     sep = min_clear if feature_sep_m is None else float(feature_sep_m)
     clearance = layout.clearance
     ridge = medial_axis_ima(~layout.occupancy, sep / GRID_RES_M)
@@ -593,7 +605,7 @@ def build_gvg(layout: SceneLayout, robot_radius_m: float, min_clearance_m: float
     xy = _cell_xy(layout, node_cells)
     g = _Graph(xy, [[u, v, np.concatenate([xy[u:u + 1], _cell_xy(layout, cells), xy[v:v + 1]])]
                     for u, v, cells in raw])
-    node_clear = clearance[node_cells[:, 0], node_cells[:, 1]].astype(np.float64) if len(node_cells) else np.zeros(0)
+    node_clear = clearance[node_cells[:, 0], node_cells[:, 1]].astype(np.float64)
     g.merge_degree_two()
     for _ in range(20):
         if not g.prune_spurs(node_clear, spur_ratio, min_spur_m):
@@ -609,18 +621,21 @@ def build_gvg(layout: SceneLayout, robot_radius_m: float, min_clearance_m: float
         if e.u != e.v:
             adjacency[e.v].append((e.u, k))
     return TopoMap(layout=layout, nodes_xy=nodes_xy, degree=degree, clearance_m=node_clear[kept], edges=edges,
-                   adjacency=adjacency, skeleton=sk, robot_radius_m=float(robot_radius_m), min_clearance_m=min_clear,
-                   build_s=time.perf_counter() - t0, graph_step_m=graph_step_m)
+                   adjacency=adjacency, skeleton=sk, robot_radius_m=float(robot_radius_m),
+                   min_clearance_m=min_clear, build_s=time.perf_counter() - t0, graph_step_m=graph_step_m,
+                   attach_radius_m=attach_radius_m,
+                   attach_clearance_m=min_clear + 0.1 if attach_clearance_m is None else attach_clearance_m)
 
 
 # -------------------------------------------------------------------------------------------------- following
 class WaypointFollower:
     """Which waypoint a local controller should head for, given the robot position.
 
-    The current waypoint advances (never back) when the robot is within ``reach_radius_m`` of it, or when the next
-    waypoint is closer than the current one (and, with a ``layout``, seen); with a ``layout`` it also jumps ahead to the farthest of the next
-    waypoints within ``lookahead_m`` that the robot sees (a straight segment keeping ``robot_radius_m + margin_m``
-    from obstacles, and every waypoint in between seen too), so the controller cuts corners where that is safe.
+    The current waypoint advances (never back) when the robot is within ``reach_radius_m`` of it, or when the
+    next waypoint is closer than the current one (and, with a ``layout``, seen); with a ``layout`` it also
+    jumps ahead to the farthest of the next waypoints within ``lookahead_m`` that the robot sees (a straight
+    segment keeping ``robot_radius_m + margin_m`` from obstacles, and every waypoint in between seen too), so
+    the controller cuts corners where that is safe.
 
     Usage::
 
@@ -635,8 +650,8 @@ class WaypointFollower:
         if len(wp) == 0:
             raise ValueError("WaypointFollower: expected at least one waypoint (the goal), got none")
         if reach_radius_m <= 0 or lookahead_m < 0 or margin_m < 0:
-            raise ValueError(f"WaypointFollower: expected reach_radius_m > 0, lookahead_m >= 0 and margin_m >= 0, "
-                             f"got {reach_radius_m}, {lookahead_m}, {margin_m}")
+            raise ValueError(f"WaypointFollower: expected reach_radius_m > 0, lookahead_m >= 0 and margin_m "
+                             f">= 0, got {reach_radius_m}, {lookahead_m}, {margin_m}")
         self.waypoints = wp
         self.reach_radius_m = reach_radius_m
         self.layout = layout
@@ -662,7 +677,8 @@ class WaypointFollower:
         while self.index < last:
             d_cur = float(np.hypot(*(wp[self.index] - p)))
             d_next = float(np.hypot(*(wp[self.index + 1] - p)))
-            if d_cur <= self.reach_radius_m or (d_next < d_cur and self._seen(p, wp[self.index + 1 : self.index + 2])[0]):
+            closer = d_next < d_cur and self._seen(p, wp[self.index + 1][None])[0]
+            if d_cur <= self.reach_radius_m or closer:
                 self.index += 1
             else:
                 break
@@ -686,7 +702,7 @@ class WaypointFollower:
         return self.layout.segments_clear(np.repeat(p[None], len(targets), 0), targets, margin, step=0.05)
 
 
-# ------------------------------------------------------------------------------------------------------ figure
+# ----------------------------------------------------------------------------------------------------- figure
 def plot_topomap(layout: SceneLayout, topomap: TopoMap, out_png: str | os.PathLike[str], *,
                  paths: Mapping[str, np.ndarray] | None = None, start_xy: Sequence[float] | None = None,
                  goals_xy: np.ndarray | None = None, waypoints: np.ndarray | None = None, title: str = "",
@@ -694,8 +710,8 @@ def plot_topomap(layout: SceneLayout, topomap: TopoMap, out_png: str | os.PathLi
     """Figure of a topological map, saved as PNG (written atomically).
 
     Draws obstacles in black, the GVG edges in light blue, junctions (dark blue squares) and endpoints (grey
-    dots), and optionally paths coloured by method (legend), the start (red dot), candidate goals (green dots) and
-    waypoints (blue dots) — the paper's colour code.
+    dots), and optionally paths coloured by method (legend), the start (red dot), candidate goals (green dots)
+    and waypoints (blue dots) — the paper's colour code.
 
     Args:
         layout: the scene's static world.
@@ -743,7 +759,8 @@ def plot_topomap(layout: SceneLayout, topomap: TopoMap, out_png: str | os.PathLi
     if waypoints is not None and len(waypoints):
         ax.scatter(*np.asarray(waypoints).reshape(-1, 2).T, s=12, c="tab:blue", zorder=5, label="waypoints")
     if goals_xy is not None and len(goals_xy):
-        ax.scatter(*np.asarray(goals_xy).reshape(-1, 2).T, s=40, c="tab:green", zorder=6, label="candidate goals")
+        ax.scatter(*np.asarray(goals_xy).reshape(-1, 2).T, s=40, c="tab:green", zorder=6,
+                   label="candidate goals")
     if start_xy is not None:
         ax.scatter([start_xy[0]], [start_xy[1]], s=60, c="tab:red", zorder=7, label="start")
     ax.set_xlim(x0 - m, x1 + m)
@@ -752,7 +769,8 @@ def plot_topomap(layout: SceneLayout, topomap: TopoMap, out_png: str | os.PathLi
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    ax.set_title(f"{title + ' — ' if title else ''}{layout.spec.name}: GVG with {len(topomap.nodes_xy)} nodes, "
+    head = f"{title} — " if title else ""
+    ax.set_title(f"{head}{layout.spec.name}: GVG with {len(topomap.nodes_xy)} nodes, "
                  f"{len(topomap.edges)} edges, {topomap.total_length_m:.0f} m", fontsize=9)
     tmp = _atomic_target(path, ".png")
     try:
