@@ -40,6 +40,7 @@ class Job:
     goal: np.ndarray | None = None  # long horizon: start/goal chosen on the map (overrides the sampled pair)
     start: np.ndarray | None = None
     tag: str = ""  # a prefix for file names (e.g. "lh")
+    save_trace: bool = True  # traces/<name>.npz
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -51,9 +52,10 @@ _DRIVERS: dict[str, Any] = {}
 
 
 def _driver(spec: MethodSpec):
-    if spec.name not in _DRIVERS:  # one driver per method per process (weights loaded once)
-        _DRIVERS[spec.name] = spec.driver()
-    return _DRIVERS[spec.name]
+    key = f"{spec.name}:{spec.checkpoint}"
+    if key not in _DRIVERS:  # one driver per method and checkpoint per process (weights loaded once)
+        _DRIVERS[key] = spec.driver()
+    return _DRIVERS[key]
 
 
 def make_env(job: Job) -> CrowdNavEnv:
@@ -130,8 +132,9 @@ def run_episode(job: Job) -> dict[str, Any]:
     env.close()
     row = {"method": job.method.name, "scene": Path(job.scene).stem, "density": job.density, "seed": job.seed,
            "outcome": trace.outcome, "steps": trace.n_steps, **episode_metrics(trace), **job.extra}
-    (job.out / "traces").mkdir(parents=True, exist_ok=True)
-    trace.save_npz(job.out / "traces" / f"{job.name}.npz")
+    if job.save_trace:
+        (job.out / "traces").mkdir(parents=True, exist_ok=True)
+        trace.save_npz(job.out / "traces" / f"{job.name}.npz")
     if job.figure:
         from sim.viz import plot_episode_topdown
 

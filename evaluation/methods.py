@@ -32,7 +32,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -118,22 +118,19 @@ def state_toward(env, target_xy: np.ndarray | None) -> np.ndarray:
     return np.array([c * dx + s * dy, -s * dx + c * dy, math.hypot(dx, dy), env.robot_v[0], 0.0], np.float32)
 
 
-class Driver:
+class Driver(Protocol):
     """Drives one episode at a time (see the module docstring)."""
 
-    def reset(self, env, obs: dict[str, np.ndarray]) -> None:
-        raise NotImplementedError
+    def reset(self, env, obs: dict[str, np.ndarray]) -> None: ...
 
-    def act(self, env, obs: dict[str, np.ndarray], waypoint: np.ndarray | None = None):
-        raise NotImplementedError
+    def act(self, env, obs: dict[str, np.ndarray], waypoint: np.ndarray | None = None): ...
 
     def bev_panel(self) -> np.ndarray | None:
         """An ``H x W`` map of what the method's BEV input held at the last step (videos), or None."""
-        return None
 
 
 @dataclass
-class ExpertDriver(Driver):
+class ExpertDriver:
     expert: Any = field(default=None)
 
     def reset(self, env, obs):
@@ -145,9 +142,12 @@ class ExpertDriver(Driver):
     def act(self, env, obs, waypoint=None):
         return env.encode_command(*self.expert.command(env))
 
+    def bev_panel(self):
+        return None
+
 
 @dataclass
-class DWADriver(Driver):
+class DWADriver:
     dwa: Any = field(default=None)
 
     def reset(self, env, obs):
@@ -165,7 +165,7 @@ class DWADriver(Driver):
         return None if cm is None else np.asarray(cm.occupied, np.float32)
 
 
-class PolicyDriver(Driver):
+class PolicyDriver:
     """A saved teacher (privileged observation) or student (rendered observation through the frozen encoder)."""
 
     def __init__(self, spec: MethodSpec) -> None:

@@ -64,7 +64,7 @@ class TeacherConfig:
     mirror: bool = True  # left-right mirror augmentation while cloning
     dagger_iterations: int = 4  # DAgger on privileged states: the teacher drives, the expert labels (no rendering)
     dagger_episodes: int = 100  # episodes per DAgger iteration
-    dagger_beta0: float = 0.5  # probability that the expert drives in iteration 0 (0 afterwards)
+    dagger_beta0: float = 0.5  # probability that the expert drives a step in the first DAgger iteration (0 later)
     dagger_epochs: int = 10  # cloning epochs on the aggregate after each iteration
     ppo_steps: int = 200_000  # PPO env steps after the warm start (0 = the teacher is the cloned expert)
     n_envs: int = 8  # vectorised envs
