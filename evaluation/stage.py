@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -40,6 +39,7 @@ from pipeline.config import BaseStageConfig, check_run_name
 from pipeline.errors import ConfigError
 from pipeline.stage import Stage, run_stage
 from sim.env import SimConfig
+from sim.rollout import _finite
 from sim.scene import check_episode_grid
 
 log = logging.getLogger("icrowdnav")
@@ -190,16 +190,6 @@ def _body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
         for m, agg in by.items():
             counts[f"sr_{m}_{cell}"] = round(float(agg["success"]["mean"]), 3)
     return counts
-
-
-def _finite(obj):
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
 
 
 def _plot_long_horizon(plans: list[dict[str, Any]], rows: list[dict[str, Any]], out: Path,

@@ -110,38 +110,10 @@ class SceneMixEnv(gym.Env):
 
 # ------------------------------------------------------------------------------------------------ expert warm start
 def expert_episode(args: tuple[SimConfig, str, float, int, float]) -> dict[str, np.ndarray]:
-    """One privileged expert episode: observations, the expert's action indices, rewards, discounted returns."""
-    from sim.expert import PrivilegedExpert
-
+    """One privileged expert episode: observations, the expert's action indices and its cost of every action,
+    rewards, discounted returns (a DAgger episode in which the expert always drives)."""
     sim_cfg, scene, density, seed, gamma = args
-    env = CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, obs_mode="privileged",
-                                     action_type="discrete", info_level="basic"))
-    expert = PrivilegedExpert()
-    obs, _ = env.reset(seed=seed)
-    expert.reset(env)
-    rows: dict[str, list] = {k: [] for k in obs}
-    actions, rewards, costs = [], [], []
-    outcome = "timeout"
-    while True:
-        cost = expert_grid_costs(expert, env)
-        a = int(np.argmin(cost))
-        expert._prev_w = float(env.decode_action(a)[1])
-        for k, v in obs.items():
-            rows[k].append(v)
-        actions.append(a)
-        costs.append(cost)
-        obs, r, term, trunc, info = env.step(a)
-        rewards.append(r)
-        if term or trunc:
-            outcome = info["outcome"] or "timeout"
-            break
-    out = {k: np.stack(v).astype(np.float32) for k, v in rows.items()}
-    out["action"] = np.asarray(actions, np.int64)
-    out["costs"] = np.stack(costs).astype(np.float32)
-    out["return"] = _discounted(rewards, gamma)
-    out["success"] = np.array([outcome == "success"])
-    env.close()
-    return out
+    return expert_dagger_episode((sim_cfg, scene, density, seed, 1.0, gamma))
 
 
 def expert_grid_costs(expert, env: CrowdNavEnv) -> np.ndarray:
@@ -203,7 +175,7 @@ def expert_dagger_episode(args: tuple[SimConfig, str, float, int, float, float])
     from sim.expert import PrivilegedExpert
 
     sim_cfg, scene, density, seed, beta, gamma = args
-    policy = _WORKER_POLICY["policy"]
+    policy = _WORKER_POLICY["policy"] if beta < 1.0 else None
     env = CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, obs_mode="privileged",
                                      action_type="discrete", info_level="basic"))
     rng = np.random.default_rng(seed + 7_919)
@@ -216,7 +188,7 @@ def expert_dagger_episode(args: tuple[SimConfig, str, float, int, float, float])
     while True:
         cost = expert_grid_costs(expert, env)
         label = int(np.argmin(cost))
-        a = label if rng.random() < beta else act(policy, obs)
+        a = label if policy is None or rng.random() < beta else act(policy, obs)
         expert._prev_w = float(env.decode_action(a)[1])  # smoothness relative to what was executed
         for k, v in obs.items():
             rows[k].append(v)
