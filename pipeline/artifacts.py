@@ -27,7 +27,7 @@ log = logging.getLogger("icrowdnav")
 OutputMode = Literal["new", "overwrite", "resume"]
 OUTPUT_MODES: tuple[str, ...] = ("new", "overwrite", "resume")
 
-_FILE_MODE = 0o644
+FILE_MODE = 0o644  # published files are world-readable (mkstemp would leave 0600)
 
 
 def fsync_dir(directory: Path) -> None:
@@ -67,7 +67,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> Path:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, _FILE_MODE)
+        os.chmod(tmp, FILE_MODE)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

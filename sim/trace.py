@@ -21,6 +21,8 @@ from typing import ClassVar
 
 import numpy as np
 
+from pipeline.artifacts import FILE_MODE
+
 OUTCOMES: tuple[str, ...] = ("success", "collision_pedestrian", "collision_obstacle", "timeout")
 """Every value :attr:`EpisodeTrace.outcome` may take."""
 
@@ -206,6 +208,7 @@ class EpisodeTrace:
         try:
             with os.fdopen(fd, "wb") as fh:
                 np.savez_compressed(fh, **payload)
+            os.chmod(tmp, FILE_MODE)
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)

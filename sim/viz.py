@@ -27,6 +27,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Polygon, Wedge
 
+from pipeline.artifacts import FILE_MODE
 from sim.geometry import Box, Cylinder
 from sim.metrics import episode_metrics
 from sim.trace import EpisodeTrace
@@ -73,6 +74,7 @@ def _atomic_target(path: Path, suffix: str) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
     os.close(fd)
+    os.chmod(tmp, FILE_MODE)  # mkstemp makes 0600; writers that truncate the file keep this mode
     return Path(tmp)
 
 

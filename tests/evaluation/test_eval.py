@@ -56,7 +56,8 @@ def test_one_episode_writes_trace_figure_and_a_readable_mcap(tmp_path):
     name = "office_lobby_d0.1_s7_dwa"
     assert row["method"] == "dwa" and row["seed"] == 7 and row["steps"] > 0
     assert {"success", "collision", "timeout", "tpz_s", "path_length_m", "nav_time_s"} <= set(row)
-    assert (tmp_path / "traces" / f"{name}.npz").is_file() and (tmp_path / "figures" / f"{name}.png").is_file()
+    for f in (tmp_path / "traces" / f"{name}.npz", tmp_path / "figures" / f"{name}.png"):
+        assert f.stat().st_mode & 0o777 == 0o644, f  # shareable outputs (mkstemp alone would leave 0600)
     with open(tmp_path / "mcap" / f"{name}.mcap", "rb") as fh:
         reader = make_reader(fh)
         topics = {c.topic for c in reader.get_summary().channels.values()}
