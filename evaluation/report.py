@@ -212,8 +212,7 @@ def plot_sr(res: dict[str, dict[str, Any]], labels: dict[str, str], path: Path) 
     ax.set_ylabel("success rate (95 % CI)")
     ax.legend(fontsize=7, ncol=min(len(methods), 4), loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=120)
+    from sim.viz import save_figure
+
+    save_figure(fig, path, 120)
     plt.close(fig)
-    tmp.replace(path)

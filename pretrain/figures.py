@@ -10,6 +10,7 @@ import numpy as np
 
 from pretrain.geometry import BEVGrid, bev_to_image
 from pretrain.model import TARGETS
+from sim.viz import save_figure
 
 
 def _plt():
@@ -66,7 +67,7 @@ def plot_sample(path: Path, grid: BEVGrid, camera_names: list[str], rgb: np.ndar
                 ax.set_xlabel("lateral y (m), left ←", fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, 90)
     plt.close(fig)
 
 
@@ -100,7 +101,7 @@ def plot_curves(path: Path, log_csv: Path, history: list[dict[str, Any]]) -> Non
     b.legend(fontsize=8)
     b.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, 100)
     plt.close(fig)
 
 
@@ -113,5 +114,5 @@ def plot_fov(path: Path, grid: BEVGrid, fov: np.ndarray) -> None:
     ax.set_xlabel("lateral y (m)")
     ax.set_ylabel("forward x (m)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, 100)
     plt.close(fig)

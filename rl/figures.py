@@ -36,7 +36,7 @@ def plot_training(log_csv: Path, out: Path, title: str) -> None:
         ax.axis("off")
     fig.suptitle(f"train {title}")
     fig.tight_layout()
-    tmp = Path(out).with_name(Path(out).name + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    from sim.viz import save_figure
+
+    save_figure(fig, out, 110)
     plt.close(fig)
-    tmp.replace(out)

@@ -91,8 +91,9 @@ def plot_example(sim: dict[str, np.ndarray], path: Path, ped: int = 0, seconds: 
     ax.set_title("head turns before the walk turns (dotted: decisions)")
     ax.legend(loc="best")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    from sim.viz import save_figure
+
+    save_figure(fig, path, 110)
     plt.close(fig)
     return path
 

@@ -78,6 +78,19 @@ def _atomic_target(path: Path, suffix: str) -> Path:
     return Path(tmp)
 
 
+def save_figure(fig, path: str | os.PathLike[str], dpi: int = 120) -> Path:
+    """Saves a matplotlib figure as PNG atomically (temp file beside it, then rename; mode 0644)."""
+    path = Path(path)
+    tmp = _atomic_target(path, ".png")
+    try:
+        fig.savefig(tmp, format="png", dpi=dpi)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
 def plot_episode_topdown(
     obstacles: Sequence[Box | Cylinder],
     trace: EpisodeTrace,
@@ -281,15 +294,7 @@ def plot_episode_topdown(
         f"min ped clr {m['min_ped_clearance_m']:.2f} m, SPL {m['spl']:.2f}"
     )
     ax.set_title("\n".join(x for x in (title, ident, summary) if x), fontsize=9)
-
-    tmp = _atomic_target(path, ".png")
-    try:
-        fig.savefig(tmp, format="png", dpi=dpi)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return save_figure(fig, path, dpi)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -733,7 +733,7 @@ def plot_topomap(layout: SceneLayout, topomap: TopoMap, out_png: str | os.PathLi
     from matplotlib.patches import Circle, Polygon
 
     from sim.geometry import Box
-    from sim.viz import _atomic_target, box_corners
+    from sim.viz import box_corners, save_figure
 
     path = Path(out_png)
     x0, x1, y0, y1 = layout.spec.bounds
@@ -772,11 +772,4 @@ def plot_topomap(layout: SceneLayout, topomap: TopoMap, out_png: str | os.PathLi
     head = f"{title} — " if title else ""
     ax.set_title(f"{head}{layout.spec.name}: GVG with {len(topomap.nodes_xy)} nodes, "
                  f"{len(topomap.edges)} edges, {topomap.total_length_m:.0f} m", fontsize=9)
-    tmp = _atomic_target(path, ".png")
-    try:
-        fig.savefig(tmp, format="png", dpi=dpi)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return save_figure(fig, path, dpi)
