@@ -21,7 +21,9 @@ no_bev     ablation w/o BEV (occupancy CNN from depth)                          
 dwa        Dynamic Window Approach on a depth costmap (:mod:`sim.planners.dwa`)  depth + odom  no
 =========  ====================================================================  ============  ==========
 
-Learned baselines (issue 7) register themselves with :func:`register_method`. Waypoints (long-horizon runs): a
+Learned baselines (:mod:`rl.baselines`: ``drl_vo``, ``sarl_om``, ``vint``) are methods of kind ``baseline``
+(checkpoints in ``checkpoints/policy/<name>``, drivers from their modules); other methods can be added with
+:func:`register_method`. Waypoints (long-horizon runs): a
 learned policy sees the waypoint instead of the goal in its robot state s; DWA heads for it; the expert plans on the
 full map to the final goal and ignores it (it is a reference, not a competitor).
 """
@@ -45,7 +47,7 @@ class MethodSpec:
 
     name: str
     label: str
-    kind: str  # expert | dwa | policy
+    kind: str  # expert | dwa | policy | baseline
     obs_mode: str  # the env's obs mode the driver needs: privileged | visual
     reference: bool = False  # an upper reference (privileged information), not a competitor
     checkpoint: Path | None = None  # policy checkpoint directory (kind == policy)
@@ -80,27 +82,55 @@ def register_method(name: str, make_spec: Callable[[Path], MethodSpec], make_dri
 
 
 def available_methods() -> list[str]:
-    return [*METHOD_NAMES, *_REGISTERED]
+    from rl.baselines import BASELINES
+
+    return [*METHOD_NAMES, *BASELINES, *_REGISTERED]
+
+
+def _checkpoint(data_dir: Path, name: str) -> Path:
+    ckpt = Path(data_dir) / "checkpoints" / "policy" / name
+    if not (ckpt / "policy.json").is_file() or not (ckpt / "manifest.json").is_file():
+        raise InputMissingError(f"method {name!r}: no finished policy checkpoint in {ckpt} (run "
+                                f"`icrowdnav train --variant {name}` or `make train`)")
+    return ckpt
+
+
+def spec_from_checkpoint(ckpt: Path, name: str | None = None) -> MethodSpec:
+    """The spec of the policy or baseline saved in ``ckpt`` (for ``train``'s acceptance run), named ``name``."""
+    from rl.baselines import BASELINES
+    from rl.policy import read_policy_json
+
+    desc = read_policy_json(Path(ckpt))
+    name = name or Path(ckpt).name
+    if desc["kind"] == "baseline":
+        info = BASELINES[desc["variant"]]
+        return MethodSpec(name, info.label, "baseline", info.obs_mode, False, Path(ckpt), info.action_type)
+    return MethodSpec(name, name, "policy", "visual" if desc["kind"] == "student" else "privileged",
+                      checkpoint=Path(ckpt), action_type="discrete")
 
 
 def resolve_methods(names: list[str], data_dir: Path) -> list[MethodSpec]:
     """Specs of ``names``; an unknown name is a ConfigError, a missing or unfinished checkpoint InputMissingError."""
     if not names:
         raise ConfigError("eval.methods: expected at least one method")
+    from rl.baselines import BASELINES
+
     out = []
     for name in names:
         if name in _REGISTERED:
             out.append(_REGISTERED[name](Path(data_dir)))
+            continue
+        if name in BASELINES:
+            info = BASELINES[name]
+            out.append(MethodSpec(name, info.label, "baseline", info.obs_mode, False, _checkpoint(data_dir, name),
+                                  info.action_type))
             continue
         if name not in _BUILTIN:
             raise ConfigError(f"eval.methods: unknown method {name!r}; known: {available_methods()}")
         label, kind, obs_mode, ref = _BUILTIN[name]
         ckpt = None
         if kind == "policy":
-            ckpt = Path(data_dir) / "checkpoints" / "policy" / name
-            if not (ckpt / "policy.json").is_file() or not (ckpt / "manifest.json").is_file():
-                raise InputMissingError(f"method {name!r}: no finished policy checkpoint in {ckpt} (run "
-                                        f"`icrowdnav train --variant {name}` or `make train`)")
+            ckpt = _checkpoint(data_dir, name)
         out.append(MethodSpec(name, label, kind, obs_mode, ref, ckpt,
                               "discrete" if kind == "policy" else "continuous"))
     if len({m.name for m in out}) != len(out):
@@ -214,8 +244,20 @@ class PolicyDriver:
         return None
 
 
+def baseline_driver(spec: MethodSpec) -> Driver:
+    """The driver of a learned baseline (its module's ``Driver`` on the checkpoint)."""
+    import torch
+
+    from rl.baselines import baseline_module
+    from rl.policy import read_policy_json
+
+    torch.set_num_threads(1)
+    return baseline_module(read_policy_json(spec.checkpoint)["variant"]).Driver(spec.checkpoint)
+
+
 _DRIVER_FACTORIES: dict[str, Callable[[MethodSpec], Driver]] = {
     "expert": lambda spec: ExpertDriver(),
     "dwa": lambda spec: DWADriver(),
     "policy": PolicyDriver,
+    "baseline": baseline_driver,
 }

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -131,6 +132,15 @@ def shape_checks(res: dict[str, dict[str, Any]]) -> list[str]:
                     ok2 = _sr(by[ab]) >= _sr(by["dwa"])
                     lines.append(f"- {cell}: SR {ab} {_sr(by[ab]):.2f} {'≥' if ok2 else '<'} DWA "
                                  f"{_sr(by['dwa']):.2f} — {'as in the paper' if ok2 else 'differs from the paper'}")
+    for cell, by in res.items():  # the paper's Tables I-III: full has the highest SR of every learned baseline
+        if "full" not in by:
+            continue
+        f = _sr(by["full"])
+        for bl in ("drl_vo", "sarl_om", "vint"):
+            if bl in by:
+                ok = f >= _sr(by[bl])
+                lines.append(f"- {cell}: SR full {f:.2f} {'≥' if ok else '<'} {bl} {_sr(by[bl]):.2f} — "
+                             f"{'as in the paper' if ok else 'differs from the paper'}")
     for cell, by in res.items():
         if "full" in by and "no_i2" in by:
             a, b = _tpz(by["full"]), _tpz(by["no_i2"])
@@ -140,13 +150,38 @@ def shape_checks(res: dict[str, dict[str, Any]]) -> list[str]:
     return lines
 
 
+def training_budget(ckpt: Path) -> dict[str, Any]:
+    """What produced a checkpoint: ``produced_by`` of its ``policy.json`` and ``train_seconds`` of its
+    ``metrics.json`` (when the train stage wrote one)."""
+    desc = json.loads((Path(ckpt) / "policy.json").read_text())
+    out = {"produced_by": desc.get("produced_by", {})}
+    metrics = Path(ckpt) / "metrics.json"
+    if metrics.is_file():
+        out["train_seconds"] = json.loads(metrics.read_text()).get("train_seconds")
+    return out
+
+
+def _budget_text(produced_by: dict[str, Any]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(produced_by.items())) or "n/a"
+
+
 def report_markdown(rows: Sequence[dict[str, Any]], labels: dict[str, str], header: str,
-                    lh_rows: Sequence[dict[str, Any]] = (), references: Sequence[str] = ()) -> str:
+                    lh_rows: Sequence[dict[str, Any]] = (), references: Sequence[str] = (),
+                    budgets: dict[str, dict[str, Any]] | None = None) -> str:
     res = results(rows)
     parts = [header, ""]
     if references:
         parts.append("Upper references (privileged information, not competitors): "
                      + ", ".join(labels.get(m, m) for m in references) + ".\n")
+    if budgets:
+        parts.append("## Training budgets (what produced each checkpoint)\n")
+        parts.append("| method | produced by | train wall [s] |")
+        parts.append("|---|---|---|")
+        for m, b in budgets.items():
+            secs = b.get("train_seconds")
+            parts.append(f"| {labels.get(m, m)} | {_budget_text(b.get('produced_by', {}))} | "
+                         f"{'n/a' if secs is None else f'{float(secs):.0f}'} |")
+        parts.append("")
     parts.append("SR, collision and timeout: percent with the 95 % Wilson interval. NT, PL, TPZ: mean ± std over "
                  "successful episodes (their count in parentheses).\n")
     for cell in res:

@@ -148,7 +148,7 @@ def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:
 
 def _body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
     from evaluation.harness import Job, run_jobs
-    from evaluation.report import paired, plot_sr, report_markdown, results, results_csv
+    from evaluation.report import paired, plot_sr, report_markdown, results, results_csv, training_budget
 
     specs = resolve_methods(cfg.methods, Path(cfg.data_dir))
     labels = {m.name: m.label for m in specs}
@@ -184,7 +184,8 @@ def _body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
               f"the same for every method; the paper uses 75 = 25 goals × 3 trials), "
               f"{len(specs)} methods: " + ", ".join(f"`{m.name}` = {m.label}" for m in specs) + ".")
     refs = [m.name for m in specs if m.reference]
-    atomic_write_text(out / "report.md", report_markdown(rows, labels, header, lh_rows, refs))
+    budgets = {m.name: training_budget(m.checkpoint) for m in specs if m.checkpoint is not None}
+    atomic_write_text(out / "report.md", report_markdown(rows, labels, header, lh_rows, refs, budgets))
     counts: dict[str, Any] = {"episodes": len(rows), "long_horizon_episodes": len(lh_rows)}
     for cell, by in res.items():
         for m, agg in by.items():

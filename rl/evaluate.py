@@ -16,13 +16,10 @@ def evaluate(policy_dir: Path, sim_cfg: SimConfig, cells: list[tuple[str, float]
     """Every (scene, density) of ``cells`` x ``seeds`` (the same seeds for every method), run by the benchmark
     harness (:mod:`evaluation.harness`) in a process pool; one metrics row per episode."""
     from evaluation.harness import Job, run_jobs
-    from evaluation.methods import MethodSpec
-    from rl.policy import read_policy_json
+    from evaluation.methods import spec_from_checkpoint
 
-    desc = read_policy_json(Path(policy_dir))
-    name = method or Path(policy_dir).name
-    spec = MethodSpec(name, name, "policy", "visual" if desc["kind"] == "student" else "privileged",
-                      checkpoint=Path(policy_dir), action_type="discrete")
+    spec = spec_from_checkpoint(Path(policy_dir), method)
+    name = spec.name
     jobs = [Job(spec, sim_cfg, s, d, k, Path(policy_dir), save_trace=False) for s, d in cells for k in seeds]
     return run_jobs(jobs, workers, f"evaluate {name}", progress)
 

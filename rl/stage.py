@@ -44,12 +44,16 @@ from pipeline.artifacts import atomic_write_json
 from pipeline.config import BaseStageConfig
 from pipeline.errors import ConfigError
 from pipeline.stage import Stage, run_stage
+from rl.baselines import BASELINES, baseline_module
+from rl.baselines.drl_vo import Config as DRLVOConfig
+from rl.baselines.sarl_om import Config as SARLOMConfig
+from rl.baselines.vint import Config as ViNTConfig
 from rl.networks import VARIANTS
 from rl.teacher import CurriculumStage, check_curriculum
 from sim.env import SimConfig
 
 log = logging.getLogger("icrowdnav")
-TRAIN_VARIANTS = ("teacher", *VARIANTS)
+TRAIN_VARIANTS = ("teacher", *VARIANTS, *BASELINES)
 
 
 @dataclass
@@ -115,7 +119,7 @@ class AcceptanceConfig:
 class TrainConfig(BaseStageConfig):
     """Config of the ``train`` stage (one variant per run)."""
 
-    variant: str = "full"  # teacher | full | no_i2 | no_bev
+    variant: str = "full"  # teacher | full | no_i2 | no_bev | a learned baseline: drl_vo | sarl_om | vint
     encoder: str = "bev"  # pretrained encoder: DATA_DIR/checkpoints/<encoder>/
     sim: SimConfig = field(default_factory=SimConfig)
     teacher: TeacherConfig = field(default_factory=TeacherConfig)
@@ -123,6 +127,9 @@ class TrainConfig(BaseStageConfig):
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
     acceptance: AcceptanceConfig = field(default_factory=AcceptanceConfig)
     net: dict[str, Any] = field(default_factory=dict)  # student network sizes (rl.networks.StudentExtractor)
+    drl_vo: DRLVOConfig = field(default_factory=DRLVOConfig)  # the learned baselines (rl.baselines.<name>)
+    sarl_om: SARLOMConfig = field(default_factory=SARLOMConfig)
+    vint: ViNTConfig = field(default_factory=ViNTConfig)
     workers: int = 2  # processes for rollouts and evaluation
     threads: int = 0  # torch threads for cloning / PPO updates (0 = every core)
     progress: bool = True
@@ -173,6 +180,8 @@ def _inputs(cfg: TrainConfig) -> list[Path]:
     """The teacher and the encoder a student needs; checked here, before any output exists."""
     if cfg.variant == "teacher":
         return []
+    if cfg.variant in BASELINES:
+        return list(baseline_module(cfg.variant).inputs(cfg))
     from pretrain.checkpoint import read_encoder_json
     from rl.policy import read_policy_json
 
@@ -511,7 +520,12 @@ def _body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
 
     dump_yaml(cfg, out / "config.yaml")
     t0 = time.perf_counter()
-    summary = _train_teacher(cfg, out) if cfg.variant == "teacher" else _train_student(cfg, out)
+    if cfg.variant == "teacher":
+        summary = _train_teacher(cfg, out)
+    elif cfg.variant in BASELINES:
+        summary = baseline_module(cfg.variant).train(cfg, out, _Log(out))
+    else:
+        summary = _train_student(cfg, out)
     train_s = time.perf_counter() - t0
     method = "teacher" if cfg.variant == "teacher" else cfg.variant
     acc = _acceptance(cfg, out, method)

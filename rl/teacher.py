@@ -59,16 +59,17 @@ def check_curriculum(stages: list[CurriculumStage]) -> None:
 
 
 class SceneMixEnv(gym.Env):
-    """Discrete-action crowd env (privileged by default) drawing (scene, density) from a pool at every reset.
+    """Crowd env (privileged, discrete actions by default) drawing (scene, density) from a pool at every reset.
 
     One :class:`sim.env.CrowdNavEnv` per pair is built lazily; :meth:`set_pool` changes the pool (curriculum).
     """
 
     metadata = {"render_modes": []}
 
-    def __init__(self, sim_cfg: SimConfig, pairs: list[tuple[str, float]], obs_mode: str = "privileged") -> None:
+    def __init__(self, sim_cfg: SimConfig, pairs: list[tuple[str, float]], obs_mode: str = "privileged",
+                 action_type: str = "discrete") -> None:
         super().__init__()
-        self.sim_cfg = replace(sim_cfg, obs_mode=obs_mode, action_type="discrete", info_level="basic")
+        self.sim_cfg = replace(sim_cfg, obs_mode=obs_mode, action_type=action_type, info_level="basic")
         self._envs: dict[tuple[str, float], CrowdNavEnv] = {}
         self.pairs = list(pairs)
         probe = self._env(self.pairs[0])

@@ -1,0 +1,34 @@
+"""Learned baselines, trained and benchmarked like our policies: DRL-VO, SARL*-OM and a ViNT-style policy.
+
+``icrowdnav train --variant <name>`` trains one (``make train`` trains every name of ``TRAIN_VARIANTS``);
+``icrowdnav eval --methods '[..., <name>]'`` benchmarks it through the same harness, seeds and metrics as the
+paper's methods. Each lives in its own module ``rl.baselines.<name>`` (the contract is in
+:mod:`rl.baselines.common`); this table is what the pipeline needs without importing them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class BaselineInfo:
+    label: str  # the label of tables and figures
+    obs_mode: str  # the env obs mode its driver needs at evaluation: privileged (no rendering) | visual
+    action_type: str  # the env action space its driver returns actions in: continuous | discrete
+    cite: str  # the original paper
+
+
+BASELINES: dict[str, BaselineInfo] = {
+    "drl_vo": BaselineInfo("DRL-VO", "privileged", "continuous", "Xie & Dames, T-RO 2023"),
+    "sarl_om": BaselineInfo("SARL*-OM", "privileged", "discrete",
+                            "Chen et al. ICRA 2019 + Liu et al. IROS 2020 + Samsani & Muhammad RA-L 2021"),
+    "vint": BaselineInfo("ViNT-style (trained on our data)", "visual", "continuous", "Shah et al. CoRL 2023"),
+}
+
+
+def baseline_module(name: str):
+    """The module of baseline ``name`` (imported on first use)."""
+    import importlib
+
+    return importlib.import_module(f"rl.baselines.{name}")

@@ -1,0 +1,286 @@
+"""What every learned baseline shares: the module contract, checkpoints, expert data, sensors and the sub-goal.
+
+A baseline is a module ``rl.baselines.<name>`` (listed in :data:`rl.baselines.BASELINES`) with::
+
+    Config                            dataclass of its training options (``TrainConfig.<name>``; profiles set it)
+    inputs(cfg) -> list[Path]         files it reads besides the simulator, checked before any output exists
+                                      (missing -> InputMissingError naming the file and the command that makes it)
+    train(cfg, out, log) -> dict      trains into ``out`` (resumable where it is long), writes the final weights with
+                                      :func:`save_baseline` and returns a summary with a ``"budget"`` dict (expert
+                                      episodes / frames, env steps, rendered frames, epochs: what it consumed)
+    Driver(ckpt)                      ``reset(env, obs)``, ``act(env, obs, waypoint) -> env action``,
+                                      ``bev_panel() -> H x W array | None`` (what its map input held, for videos)
+
+``cfg`` is the ``train`` stage's :class:`rl.stage.TrainConfig` (``cfg.sim``, ``cfg.seed``, ``cfg.workers``,
+``cfg.teacher.curriculum`` for the training scenes, ``cfg.<name>`` for its own options); ``log.add(phase, step,
+**values)`` appends to ``train_log.csv`` and TensorBoard (``curves.png`` is drawn from it).
+
+A driver builds its observation from the ``env`` object (the true state it is allowed to see, e.g. tracks within
+sensor range), not from the ``obs`` dict: the harness renders cameras for videos and MCAP logs, which changes
+``obs`` but must not change what a privileged baseline sees. A waypoint (long-horizon runs) replaces the goal.
+
+Checkpoint (in ``DATA_DIR/checkpoints/policy/<name>/``): ``policy.safetensors`` (every parameter and buffer) and
+``policy.json`` (``kind: baseline``, ``variant: <name>``, ``net``: what to build, ``observation_space``: a
+description of the inputs, ``produced_by``: the budget). :func:`load_baseline` rebuilds and loads it; a missing
+file or one that does not fit gives one error naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.artifacts import atomic_write_text
+from pipeline.errors import CorruptArtifactError
+from sim.env import CrowdNavEnv, SimConfig
+
+POLICY_JSON = "policy.json"
+POLICY_WEIGHTS = "policy.safetensors"
+
+
+# ------------------------------------------------------------------------------------------------- checkpoints
+def save_baseline(out: Path, name: str, model: torch.nn.Module, net: dict[str, Any], inputs: dict[str, Any],
+                  produced_by: dict[str, Any], **extra: Any) -> None:
+    """Writes ``policy.safetensors`` and ``policy.json`` (each atomically) for baseline ``name``."""
+    from pretrain.checkpoint import save_safetensors
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_safetensors(model, out / POLICY_WEIGHTS, {"kind": "baseline", "variant": name})
+    desc = {"kind": "baseline", "variant": name, "net": net, "observation_space": inputs,
+            "produced_by": produced_by, **extra}
+    atomic_write_text(out / POLICY_JSON, json.dumps(desc, indent=2, sort_keys=True, default=_json) + "\n")
+
+
+def _json(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(type(o).__name__)
+
+
+def load_baseline(ckpt: Path, name: str, build: Callable[[dict[str, Any]], torch.nn.Module]
+                  ) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """The model of baseline ``name`` saved in ``ckpt`` (eval mode) and its description; ``build(net)`` makes the
+    network from ``policy.json``'s ``net``."""
+    from pretrain.checkpoint import load_safetensors
+    from rl.policy import read_policy_json
+
+    ckpt = Path(ckpt)
+    desc = read_policy_json(ckpt)
+    if desc.get("kind") != "baseline" or desc.get("variant") != name:
+        raise CorruptArtifactError(f"{ckpt / POLICY_JSON}: expected a {name!r} baseline checkpoint, found kind "
+                                   f"{desc.get('kind')!r} variant {desc.get('variant')!r}")
+    try:
+        model = build(desc["net"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CorruptArtifactError(f"{ckpt / POLICY_JSON}: cannot build {name} ({type(e).__name__}: {e})") from None
+    load_safetensors(model, ckpt / POLICY_WEIGHTS)
+    model.eval()
+    return model, desc
+
+
+# ------------------------------------------------------------------------------------------------- training data
+def training_pairs(cfg) -> list[tuple[str, float]]:
+    """The (scene, density) pairs of the training scenes (the teacher's curriculum, every stage)."""
+    from rl.teacher import stage_pairs_all
+
+    return stage_pairs_all(cfg.teacher.curriculum)
+
+
+def _expert_episode(args: tuple) -> dict[str, np.ndarray]:
+    from sim.expert import PrivilegedExpert
+
+    sim_cfg, scene, density, seed, gamma, make_observer, obs_mode, action_type = args
+    env = CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, obs_mode=obs_mode,
+                                     action_type=action_type, info_level="basic"))
+    observer = make_observer()
+    expert = PrivilegedExpert()
+    obs, _ = env.reset(seed=seed)
+    expert.reset(env)
+    observer.reset(env, obs)
+    rows: dict[str, list] = {}
+    cmds, actions, rewards = [], [], []
+    outcome = "timeout"
+    while True:
+        for k, v in observer(env, obs).items():
+            rows.setdefault(k, []).append(np.asarray(v))
+        v, w = expert.command(env)
+        a = env.encode_command(v, w)
+        cmds.append((v, w))
+        actions.append(a)
+        obs, r, term, trunc, info = env.step(a)
+        rewards.append(r)
+        if term or trunc:
+            outcome = info["outcome"] or "timeout"
+            break
+    env.close()
+    from rl.teacher import _discounted
+
+    out = {k: np.stack(v) for k, v in rows.items()}
+    out["command"] = np.asarray(cmds, np.float32)
+    out["action"] = np.asarray(actions)
+    out["reward"] = np.asarray(rewards, np.float32)
+    out["return"] = _discounted(rewards, gamma)
+    done = np.zeros(len(rewards), bool)
+    done[-1] = True
+    out["done"] = done
+    out["success"] = np.full(len(rewards), outcome == "success")
+    return out
+
+
+def collect_expert_episodes(sim_cfg: SimConfig, pairs: list[tuple[str, float]], episodes: int, seed: int,
+                            make_observer: Callable[[], Any], workers: int, gamma: float = 0.99,
+                            obs_mode: str = "privileged", action_type: str = "continuous", progress: bool = True,
+                            desc: str = "expert episodes") -> dict[str, np.ndarray]:
+    """``episodes`` episodes of the privileged expert spread evenly over ``pairs`` (seeds ``seed + k``), each
+    step observed by ``make_observer()`` (a picklable factory; the observer has ``reset(env, obs)`` and
+    ``__call__(env, obs) -> dict of arrays``) — concatenated over episodes, plus ``command`` (the expert's
+    (v, ω)), ``action`` (that command in the env's action space), ``reward`` (the paper's), ``return``
+    (discounted with ``gamma``), ``done`` (last step of an episode), ``success`` (the episode's outcome, per
+    step) and ``episode`` (its index)."""
+    from tqdm import tqdm
+
+    jobs = [(sim_cfg, *pairs[k % len(pairs)], seed + k, gamma, make_observer, obs_mode, action_type)
+            for k in range(episodes)]
+    parts = []
+    if workers <= 1:
+        it = map(_expert_episode, jobs)
+        parts = list(tqdm(it, total=len(jobs), desc=desc, unit="ep", disable=not progress, dynamic_ncols=True))
+    else:
+        import multiprocessing as mp
+
+        with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
+            parts = list(tqdm(pool.map(_expert_episode, jobs), total=len(jobs), desc=desc, unit="ep",
+                              disable=not progress, dynamic_ncols=True))
+    data = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    data["episode"] = np.concatenate([np.full(len(p["reward"]), i) for i, p in enumerate(parts)])
+    return data
+
+
+# ------------------------------------------------------------------------------------------------------ sensors
+def lidar_scan(env: CrowdNavEnv, n_rays: int, fov_rad: float, max_range_m: float) -> np.ndarray:
+    """A 2D lidar at the robot centre that sees obstacles *and* pedestrians (their body discs): ``n_rays`` ranges
+    (m, capped at ``max_range_m``) evenly over ``fov_rad`` centred on the heading, right to left."""
+    x, y, yaw = env.robot
+    if fov_rad >= 2 * math.pi - 1e-9:
+        ang = yaw - math.pi + (np.arange(n_rays) + 0.5) * (2 * math.pi / n_rays)
+    else:
+        ang = yaw + np.linspace(-fov_rad / 2, fov_rad / 2, n_rays)
+    r = np.asarray(env.layout.geometry.raycast(np.array([x, y]), ang, max_range_m), np.float64)
+    crowd = env.crowd
+    if crowd.n:
+        d = np.stack([np.cos(ang), np.sin(ang)], -1)  # R x 2
+        rel = crowd.pos - np.array([x, y])  # N x 2
+        b = d @ rel.T  # R x N: projection of each centre on each ray
+        c = (rel ** 2).sum(-1)[None, :] - crowd.radius[None, :] ** 2
+        disc = b ** 2 - c
+        hit = np.sqrt(np.clip(disc, 0.0, None))
+        t = np.where(c < 0, 0.0, b - hit)  # inside a disc: range 0
+        t = np.where((disc >= 0) & ((b > 0) | (c < 0)) & (t >= 0), t, np.inf)
+        r = np.minimum(r, t.min(1))
+    return np.minimum(r, max_range_m).astype(np.float32)
+
+
+def tracked_pedestrians(env: CrowdNavEnv, range_m: float) -> np.ndarray:
+    """Pedestrian tracks a robot's tracker would report: ``M x 5`` [x, y, vx, vy, radius] in the robot frame of
+    every pedestrian whose centre is within ``range_m`` (true positions and velocities: a perfect tracker), nearest
+    first."""
+    x, y, yaw = env.robot
+    crowd = env.crowd
+    if not crowd.n:
+        return np.zeros((0, 5), np.float32)
+    rel = crowd.pos - np.array([x, y])
+    dist = np.hypot(*rel.T)
+    idx = np.argsort(dist, kind="stable")
+    idx = idx[dist[idx] <= range_m]
+    c, s = math.cos(yaw), math.sin(yaw)
+    r, v = rel[idx], crowd.vel[idx]
+    out = np.stack([c * r[:, 0] + s * r[:, 1], -s * r[:, 0] + c * r[:, 1],
+                    c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1], crowd.radius[idx]], -1)
+    return out.astype(np.float32)
+
+
+class GlobalPath:
+    """The global planner's path on the static map (what DRL-VO and the long-horizon runs follow): the shortest
+    path from the robot to the target on the occupancy grid inflated by the robot radius, and a pure-pursuit
+    sub-goal ``lookahead_m`` along it. Replanned when the target changes or the robot strays ``replan_m`` from
+    the path."""
+
+    def __init__(self, lookahead_m: float = 2.0, replan_m: float = 0.75) -> None:
+        self.lookahead_m = lookahead_m
+        self.replan_m = replan_m
+        self.path: np.ndarray | None = None
+        self.target: np.ndarray | None = None
+
+    def reset(self, env: CrowdNavEnv) -> None:
+        self.nav = env.layout.nav(env.cfg.robot.radius_m + 0.05)
+        self.layout = env.layout
+        self.path = None
+        self.target = None
+
+    def _plan(self, xy: np.ndarray, target: np.ndarray) -> None:
+        try:
+            path = np.asarray(self.nav.shortest_path(self.layout, xy, target), float).reshape(-1, 2)
+        except (ValueError, IndexError):
+            path = np.zeros((0, 2))
+        if len(path) == 0 or not np.all(np.isfinite(path)):
+            path = np.stack([xy, target])
+        self.path = path
+        self.target = np.asarray(target, float).copy()
+
+    def subgoal(self, env: CrowdNavEnv, target: np.ndarray | None = None) -> np.ndarray:
+        """The sub-goal (world frame) toward ``target`` (default: the env's goal)."""
+        xy = np.asarray(env.robot[:2], float)
+        target = np.asarray(env.goal if target is None else target, float)
+        if self.path is None or self.target is None or np.hypot(*(self.target - target)) > 1e-6:
+            self._plan(xy, target)
+        seg_d = _distance_to_polyline(xy, self.path)
+        if seg_d[0] > self.replan_m:
+            self._plan(xy, target)
+            seg_d = _distance_to_polyline(xy, self.path)
+        # walk lookahead_m along the path from the closest point
+        k = int(seg_d[1])
+        p = self.path
+        pos = seg_d[2]
+        left = self.lookahead_m
+        while k < len(p) - 1:
+            step = float(np.hypot(*(p[k + 1] - pos)))
+            if step >= left:
+                return pos + (p[k + 1] - pos) * (left / max(step, 1e-9))
+            left -= step
+            pos = p[k + 1]
+            k += 1
+        return p[-1].copy()
+
+
+def _distance_to_polyline(xy: np.ndarray, path: np.ndarray) -> tuple[float, int, np.ndarray]:
+    """(distance, index of the closest segment's start, closest point) of ``xy`` to the polyline ``path``."""
+    if len(path) == 1:
+        return float(np.hypot(*(xy - path[0]))), 0, path[0].copy()
+    a, b = path[:-1], path[1:]
+    ab = b - a
+    t = np.clip(((xy - a) * ab).sum(-1) / np.maximum((ab ** 2).sum(-1), 1e-12), 0.0, 1.0)
+    q = a + t[:, None] * ab
+    d = np.hypot(*(q - xy).T)
+    k = int(np.argmin(d))
+    return float(d[k]), k, q[k]
+
+
+def to_robot_frame(env: CrowdNavEnv, xy: np.ndarray) -> np.ndarray:
+    """A world-frame point in the robot frame (x forward, y left)."""
+    x, y, yaw = env.robot
+    dx, dy = float(xy[0]) - x, float(xy[1]) - y
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([c * dx + s * dy, -s * dx + c * dy], np.float32)
