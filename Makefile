@@ -14,7 +14,7 @@ ROLLOUT_ARGS ?=
 EVAL_ARGS ?=
 PRETRAIN_ARGS ?=
 TRAIN_ARGS ?=
-TRAIN_VARIANTS ?= teacher full no_i2 no_bev
+TRAIN_VARIANTS ?= teacher full no_i2 no_bev drl_vo sarl_om vint
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export HF_HUB_OFFLINE := 1
@@ -47,7 +47,8 @@ pretrain: install
 	$(PY) -m pipeline pretrain --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(PRETRAIN_ARGS)
 
 # train: the privileged teacher, then each visual student variant (DAgger from the teacher through the recorder,
-# optional PPO fine-tuning) -> DATA_DIR/checkpoints/policy/<variant>/ (TRAIN_VARIANTS; a killed run: TRAIN_ARGS=--resume)
+# optional PPO fine-tuning), then the learned baselines (DRL-VO, SARL*-OM, ViNT-style)
+# -> DATA_DIR/checkpoints/policy/<variant>/ (TRAIN_VARIANTS; a killed run: TRAIN_ARGS=--resume)
 train: install
 	@set -e; for v in $(TRAIN_VARIANTS); do \
 	  $(PY) -m pipeline train --profile $(PROFILE) --data-dir $(DATA_DIR) --variant $$v $(ARGS) $(TRAIN_ARGS); done

@@ -61,7 +61,8 @@ class EvalConfig(BaseStageConfig):
     """Config of the ``eval`` stage."""
 
     run_name: str = field(default="benchmark", metadata={"help": "output folder under DATA_DIR/eval/"})
-    methods: list[str] = field(default_factory=lambda: ["expert", "teacher", "full", "no_i2", "no_bev", "dwa"],
+    methods: list[str] = field(default_factory=lambda: ["expert", "teacher", "full", "no_i2", "no_bev", "dwa",
+                                                        "drl_vo", "sarl_om", "vint"],
                                metadata={"help": "methods (evaluation.methods)"})
     scenes: list[str] = field(default_factory=lambda: ["office_lobby", "hospital_corridor", "warehouse"])
     densities: list[float] = field(default_factory=lambda: [0.1, 0.2])

@@ -5,9 +5,11 @@
     icrowdnav train --variant teacher            # expert cloning + DAgger, then PPO (privileged, no rendering)
     icrowdnav train --variant full               # DAgger from the teacher, then PPO fine-tuning (rendered)
     icrowdnav train --variant no_i2 --resume     # continue a killed run
-    make train                                   # teacher, full, no_i2, no_bev in turn (TRAIN_VARIANTS)
+    icrowdnav train --variant drl_vo             # a learned baseline: drl_vo | sarl_om | vint (rl.baselines)
+    make train                                   # teacher, full, no_i2, no_bev, the baselines (TRAIN_VARIANTS)
 
-Inputs: the teacher needs nothing but the simulator; a student needs ``DATA_DIR/checkpoints/policy/teacher`` and,
+Inputs: the teacher, DRL-VO and SARL*-OM need nothing but the simulator; ViNT-style needs the recorded dataset
+(``DATA_DIR/datasets/<vint.repo_id>``); a student needs ``DATA_DIR/checkpoints/policy/teacher`` and,
 for ``full`` and ``no_i2``, the pretrained encoder ``DATA_DIR/checkpoints/<encoder>``. Output
 ``DATA_DIR/checkpoints/policy/<variant>/``::
 
@@ -21,6 +23,8 @@ for ``full`` and ``no_i2``, the pretrained encoder ``DATA_DIR/checkpoints/<encod
               checkpoint for --resume); metrics.json also has the acceptance run of the policy before PPO
     student:  dagger/iter_<k>/{raw/*.mcap, dataset/ (LeRobot), features/*.npz, episodes.jsonl, policy/, done.json}
               ppo/ (SB3 checkpoint of the fine-tuning for --resume)
+    baseline: policy.json has kind "baseline"; its own resume state (drl_vo: bc/, ppo/; sarl_om: rl/) — see
+              rl.baselines.<name>
 
 Every policy.json states which steps produced it (``produced_by``). Runs write in place (resumable, like
 ``record``/``pretrain``); ``manifest.json`` comes last.

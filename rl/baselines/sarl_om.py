@@ -88,6 +88,7 @@ Deviations from the papers (and why):
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import os
 import time
@@ -594,6 +595,10 @@ def regress(model: SarlOMValue, data: dict[str, np.ndarray], epochs: int, batch:
     y = torch.as_tensor(np.concatenate([data["target"]] * 2), dtype=torch.float32)
     n = len(y)
     mean = math.nan
+    if n == 0:  # no expert episode reached the goal (timeouts are dropped, as CrowdNav does)
+        logging.getLogger("icrowdnav").warning("SARL*-OM: no imitation targets (no expert episode succeeded); "
+                                               "imitation skipped")
+        return mean
     model.train()
     for epoch in range(epochs):
         perm = torch.as_tensor(rng.permutation(n))

@@ -153,3 +153,15 @@ def test_report_states_each_methods_training_budget(tmp_path):
             for s in range(4)]
     md = report_markdown(rows, {"drl_vo": "DRL-VO"}, "# t", budgets={"drl_vo": b})
     assert "| DRL-VO | expert_episodes 200, ppo_steps 50000 | 612 |" in md
+
+
+def test_train_cli_vint_without_a_dataset_is_one_clear_error(tmp_path):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "pipeline", "train", "--profile", "smoke", "--data-dir", str(tmp_path),
+                        "--variant", "vint"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    err = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "icrowdnav/smoke" in err[0] and "make record" in err[0], r.stderr
+    assert not (tmp_path / "checkpoints").exists()  # nothing written
