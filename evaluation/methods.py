@@ -230,7 +230,7 @@ class PolicyDriver:
         from rl.observe import teacher_observation
         from rl.policy import act
 
-        o = self.observer(obs) if self.student else teacher_observation(env)
+        o = self.observer(obs) if self.student else teacher_observation(env, waypoint)
         o["state"] = state_toward(env, waypoint)
         self.last_obs = o
         return act(self.policy, o)

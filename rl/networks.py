@@ -37,6 +37,7 @@ VARIANT_LABELS = {"full": "iCrowdNav (full)", "no_i2": "w/o I²", "no_bev": "w/o
 
 
 TEACHER_ENCODERS = ("set", "flat")
+SUBGOAL_SCALE_M = 2.0  # the privileged sub-goal's scale (its lookahead along the global path)
 
 
 def teacher_extractor_class(encoder: str) -> type[BaseFeaturesExtractor]:
@@ -163,7 +164,9 @@ class SetTeacherExtractor(BaseFeaturesExtractor):
         self.scan_range_m = float(scan_range_m)
         self.register_buffer("ped_scale", torch.tensor([ped_scale_m, ped_scale_m, 1.0, 1.0, 1.0]))
         self.ped_scale_m = float(ped_scale_m)
-        self.phi_s = mlp([5, state_dim, state_dim])
+        # the privileged sub-goal on the global path (teachers trained before it existed have no "subgoal" input)
+        self.subgoal = "subgoal" in observation_space.spaces
+        self.phi_s = mlp([5 + 2 * self.subgoal, state_dim, state_dim])
         self.phi_ped = mlp([5 + 1 + 5, ped_dim, ped_dim])
         self.pool = AttnPool(ped_dim)
         self.empty = nn.Parameter(torch.zeros(ped_dim))
@@ -177,6 +180,7 @@ class SetTeacherExtractor(BaseFeaturesExtractor):
         s = normalise_state(obs["state"])
         peds = obs["peds"]
         present = peds[..., 5] > 0.5
+        s_in = torch.cat([s, obs["subgoal"] / SUBGOAL_SCALE_M], -1) if self.subgoal else s
         rel = peds[..., :5] / self.ped_scale
         dist = torch.linalg.vector_norm(peds[..., :2], dim=-1, keepdim=True) / self.ped_scale_m
         x = self.phi_ped(torch.cat([rel, dist, s.unsqueeze(1).expand(-1, peds.shape[1], -1)], -1))
@@ -186,4 +190,4 @@ class SetTeacherExtractor(BaseFeaturesExtractor):
         mx = torch.where(anyone, x.masked_fill(~present.unsqueeze(-1), float("-inf")).amax(1).nan_to_num(0.0),
                          self.empty)
         scan = self.scan((obs["scan"] / self.scan_range_m).unsqueeze(1))
-        return torch.cat([self.phi_s(s), attn, mx, scan], -1)
+        return torch.cat([self.phi_s(s_in), attn, mx, scan], -1)

@@ -145,10 +145,11 @@ class StudentObserver:
         return F.max_pool2d((count > 0).float(), BEV_POOL)
 
 
-def teacher_observation(env) -> dict[str, np.ndarray]:
-    """The privileged observation of an unwrapped env in any obs mode (what ``obs_mode="privileged"`` returns)."""
+def teacher_observation(env, target: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The privileged observation of an unwrapped env in any obs mode (what ``obs_mode="privileged"`` returns);
+    with ``target`` (a world-frame waypoint) the sub-goal leads there instead of to the goal."""
     return {"state": env.robot_state(), "odom": env.robot.astype(np.float32), "peds": env.privileged_peds(),
-            "scan": env.static_scan().astype(np.float32)}
+            "scan": env.static_scan().astype(np.float32), "subgoal": env.privileged_subgoal(target)}
 
 
 class StudentEnv(gym.Wrapper):

@@ -302,8 +302,8 @@ def policy_logits_values(policy, obs: dict[str, torch.Tensor]) -> tuple[torch.Te
 
 def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch.Tensor | None, flip: torch.Tensor,
                  n_rot: int) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor | None]:
-    """Reflects the samples where ``flip`` about the robot's x axis: y, v_y of the goal state and of every
-    pedestrian change sign, scan ray k becomes ray −k, and yaw-rate index j of the action grid becomes n_rot−1−j."""
+    """Reflects the samples where ``flip`` about the robot's x axis: y, v_y of the goal state, of the sub-goal and
+    of every pedestrian change sign, scan ray k becomes ray −k, and yaw-rate index j of the action grid becomes n_rot−1−j."""
     out = dict(obs)
     f = flip.view(-1, 1)
     if "state" in obs:  # [g_x, g_y, d_g, v_x, v_y]
@@ -312,6 +312,8 @@ def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch
     if "peds" in obs:  # [x, y, vx, vy, r, present]
         sign = obs["peds"].new_tensor([1.0, -1.0, 1.0, -1.0, 1.0, 1.0])
         out["peds"] = torch.where(f.unsqueeze(-1), obs["peds"] * sign, obs["peds"])
+    if "subgoal" in obs:  # [x, y]
+        out["subgoal"] = torch.where(f, obs["subgoal"] * obs["subgoal"].new_tensor([1.0, -1.0]), obs["subgoal"])
     if "scan" in obs:  # rays at heading + k·2π/n → heading − k·2π/n
         rev = torch.roll(torch.flip(obs["scan"], [-1]), 1, -1)
         out["scan"] = torch.where(f, rev, obs["scan"])

@@ -14,7 +14,9 @@ Observations (``obs_mode``):
   joints in the robot frame, m), ``pose_mask`` (6 x 17 uint8), ``state`` and ``odom``;
 * ``state``: ``state`` and ``odom`` only (no rendering; the fastest mode);
 * ``privileged`` (for the teacher): ``state``, ``odom``, ``peds`` (K x 6: x, y, vx, vy in the robot frame,
-  radius, present — nearest first) and ``scan`` (a range scan of the static map, m).
+  radius, present — nearest first), ``scan`` (a range scan of the static map, m) and ``subgoal`` (the point
+  ``subgoal_lookahead_m`` ahead on the global shortest path to the goal, robot frame, m: what a global planner on
+  the map knows about the route).
 
 ``state`` is the paper's s = [g_x, g_y, d_g, v_x, v_y]: the goal in the robot frame (m), its distance (m) and
 the robot's velocity in the robot frame (m/s). ``odom`` is the robot pose [x, y, yaw] in the world frame.
@@ -102,6 +104,7 @@ class SimConfig:
     action_type: Literal["continuous", "discrete"] = "continuous"  # Box([-1, 1]²) or the 5 × 21 grid
     privileged_peds: int = 10  # pedestrians in the privileged observation
     scan_rays: int = 72  # rays of the static-map range scan (360°)
+    subgoal_lookahead_m: float = 2.0  # privileged sub-goal: this far along the global path (sim.planners.global_path)
     scan_range_m: float = 10.0  # range of the scan
     spawn_clearance_m: float = 1.0  # no pedestrian spawns closer than this to the robot's start or goal
     info_level: Literal["full", "basic"] = "full"  # basic: info without keypoints and scan (fast RL)
@@ -127,8 +130,9 @@ class SimConfig:
             raise ConfigError(f"obs_mode: expected visual, state or privileged, got {self.obs_mode!r}")
         if self.action_type not in ("continuous", "discrete"):
             raise ConfigError(f"action_type: expected continuous or discrete, got {self.action_type!r}")
-        if self.goal_radius_m <= 0 or self.scan_rays < 4 or self.privileged_peds < 1:
-            raise ConfigError("goal_radius_m must be > 0, scan_rays >= 4 and privileged_peds >= 1")
+        if self.goal_radius_m <= 0 or self.scan_rays < 4 or self.privileged_peds < 1 or self.subgoal_lookahead_m <= 0:
+            raise ConfigError("goal_radius_m must be > 0, scan_rays >= 4, privileged_peds >= 1 and "
+                              "subgoal_lookahead_m > 0")
         for sub in (self.robot, self.camera, self.detector, self.crowd, self.body):
             sub.validate()
 
@@ -196,6 +200,7 @@ class CrowdNavEnv(gym.Env):
         elif c.obs_mode == "privileged":
             d["peds"] = spaces.Box(-big, big, (c.privileged_peds, 6), np.float32)
             d["scan"] = spaces.Box(0.0, np.float32(c.scan_range_m), (c.scan_rays,), np.float32)
+            d["subgoal"] = spaces.Box(-big, big, (2,), np.float32)
         return spaces.Dict(d)
 
     # ------------------------------------------------------------------------------------------------- reset
@@ -229,6 +234,7 @@ class CrowdNavEnv(gym.Env):
         self.bodies.head_yaw[:] = self.bodies.body_yaw
         self.det_rng = r_det
         self.t = 0
+        self._global_path = None  # built on the first privileged_subgoal() of the episode
         self.d_goal = float(np.hypot(*(goal - start)))
         self._skel = None
         if c.obs_mode == "visual":
@@ -373,6 +379,7 @@ class CrowdNavEnv(gym.Env):
         elif c.obs_mode == "privileged":
             obs["peds"] = self.privileged_peds()
             obs["scan"] = self.static_scan().astype(np.float32)
+            obs["subgoal"] = self.privileged_subgoal()
         return obs
 
     def privileged_peds(self) -> np.ndarray:
@@ -395,6 +402,20 @@ class CrowdNavEnv(gym.Env):
         out[:m, 4] = self.crowd.radius[order]
         out[:m, 5] = 1.0
         return out
+
+    def privileged_subgoal(self, target: np.ndarray | None = None) -> np.ndarray:
+        """The point ``subgoal_lookahead_m`` ahead on the global shortest path to ``target`` (default: the goal) on
+        the static map, in the robot frame (m)."""
+        if self._global_path is None:
+            from sim.planners.global_path import GlobalPath
+
+            self._global_path = GlobalPath(self.cfg.subgoal_lookahead_m)
+            self._global_path.reset(self)
+        p = self._global_path.subgoal(self, target)
+        x, y, yaw = self.robot
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = p[0] - x, p[1] - y
+        return np.array([c * dx + s * dy, -s * dx + c * dy], np.float32)
 
     def static_scan(self) -> np.ndarray:
         """Range scan of the static map from the robot centre, rays evenly over 360° from the robot heading."""

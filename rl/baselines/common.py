@@ -41,6 +41,7 @@ import torch
 from pipeline.artifacts import atomic_write_text
 from pipeline.errors import CorruptArtifactError
 from sim.env import CrowdNavEnv, SimConfig
+from sim.planners.global_path import GlobalPath, _distance_to_polyline  # noqa: F401 - re-exported
 
 POLICY_JSON = "policy.json"
 POLICY_WEIGHTS = "policy.safetensors"
@@ -210,72 +211,6 @@ def tracked_pedestrians(env: CrowdNavEnv, range_m: float) -> np.ndarray:
     out = np.stack([c * r[:, 0] + s * r[:, 1], -s * r[:, 0] + c * r[:, 1],
                     c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1], crowd.radius[idx]], -1)
     return out.astype(np.float32)
-
-
-class GlobalPath:
-    """The global planner's path on the static map (what DRL-VO and the long-horizon runs follow): the shortest
-    path from the robot to the target on the occupancy grid inflated by the robot radius, and a pure-pursuit
-    sub-goal ``lookahead_m`` along it. Replanned when the target changes or the robot strays ``replan_m`` from
-    the path."""
-
-    def __init__(self, lookahead_m: float = 2.0, replan_m: float = 0.75) -> None:
-        self.lookahead_m = lookahead_m
-        self.replan_m = replan_m
-        self.path: np.ndarray | None = None
-        self.target: np.ndarray | None = None
-
-    def reset(self, env: CrowdNavEnv) -> None:
-        self.nav = env.layout.nav(env.cfg.robot.radius_m + 0.05)
-        self.layout = env.layout
-        self.path = None
-        self.target = None
-
-    def _plan(self, xy: np.ndarray, target: np.ndarray) -> None:
-        try:
-            path = np.asarray(self.nav.shortest_path(self.layout, xy, target), float).reshape(-1, 2)
-        except (ValueError, IndexError):
-            path = np.zeros((0, 2))
-        if len(path) == 0 or not np.all(np.isfinite(path)):
-            path = np.stack([xy, target])
-        self.path = path
-        self.target = np.asarray(target, float).copy()
-
-    def subgoal(self, env: CrowdNavEnv, target: np.ndarray | None = None) -> np.ndarray:
-        """The sub-goal (world frame) toward ``target`` (default: the env's goal)."""
-        xy = np.asarray(env.robot[:2], float)
-        target = np.asarray(env.goal if target is None else target, float)
-        if self.path is None or self.target is None or np.hypot(*(self.target - target)) > 1e-6:
-            self._plan(xy, target)
-        seg_d = _distance_to_polyline(xy, self.path)
-        if seg_d[0] > self.replan_m:
-            self._plan(xy, target)
-            seg_d = _distance_to_polyline(xy, self.path)
-        # walk lookahead_m along the path from the closest point
-        k = int(seg_d[1])
-        p = self.path
-        pos = seg_d[2]
-        left = self.lookahead_m
-        while k < len(p) - 1:
-            step = float(np.hypot(*(p[k + 1] - pos)))
-            if step >= left:
-                return pos + (p[k + 1] - pos) * (left / max(step, 1e-9))
-            left -= step
-            pos = p[k + 1]
-            k += 1
-        return p[-1].copy()
-
-
-def _distance_to_polyline(xy: np.ndarray, path: np.ndarray) -> tuple[float, int, np.ndarray]:
-    """(distance, index of the closest segment's start, closest point) of ``xy`` to the polyline ``path``."""
-    if len(path) == 1:
-        return float(np.hypot(*(xy - path[0]))), 0, path[0].copy()
-    a, b = path[:-1], path[1:]
-    ab = b - a
-    t = np.clip(((xy - a) * ab).sum(-1) / np.maximum((ab ** 2).sum(-1), 1e-12), 0.0, 1.0)
-    q = a + t[:, None] * ab
-    d = np.hypot(*(q - xy).T)
-    k = int(np.argmin(d))
-    return float(d[k]), k, q[k]
 
 
 def to_robot_frame(env: CrowdNavEnv, xy: np.ndarray) -> np.ndarray:

@@ -251,3 +251,19 @@ def test_corrupt_policy_checkpoint_names_the_file(tmp_path, teacher_dir):
     (bad / "policy.json").write_text("{")
     with pytest.raises(CorruptArtifactError, match="policy.json"):
         load_policy(bad)
+
+
+def test_mirror_batch_reflects_every_lateral_quantity():
+    from rl.teacher import mirror_batch
+
+    obs = {"state": torch.tensor([[3.0, 1.0, 3.2, 0.5, 0.2]]), "subgoal": torch.tensor([[1.5, 0.7]]),
+           "peds": torch.tensor([[[2.0, -1.0, 0.3, 0.4, 0.25, 1.0]]]), "scan": torch.arange(8.0)[None]}
+    cost = torch.arange(105.0)[None]
+    out, act_, cost_ = mirror_batch(obs, torch.tensor([3 * 21 + 4]), cost, torch.tensor([True]), 21)
+    assert torch.allclose(out["state"], torch.tensor([[3.0, -1.0, 3.2, 0.5, -0.2]]))
+    assert torch.allclose(out["subgoal"], torch.tensor([[1.5, -0.7]]))
+    assert torch.allclose(out["peds"], torch.tensor([[[2.0, 1.0, 0.3, -0.4, 0.25, 1.0]]]))
+    assert out["scan"].tolist() == [[0.0, 7.0, 6.0, 5.0, 4.0, 3.0, 2.0, 1.0]]  # ray k -> ray -k
+    assert int(act_) == 3 * 21 + 16 and float(cost_[0, 3 * 21 + 16]) == 3 * 21 + 4
+    same, act2, _ = mirror_batch(obs, torch.tensor([5]), cost, torch.tensor([False]), 21)
+    assert all(torch.equal(same[k], obs[k]) for k in obs) and int(act2) == 5

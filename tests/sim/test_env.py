@@ -424,3 +424,33 @@ def test_same_seed_same_episode_whatever_ran_before_in_the_process():
     again = run(11)
     np.testing.assert_array_equal(first.ped_xy, again.ped_xy)
     np.testing.assert_array_equal(first.robot_pose, again.robot_pose)
+
+
+def test_privileged_subgoal_follows_the_global_path():
+    env = CrowdNavEnv(scene="corner", density=0.0, obs_mode="privileged")
+    obs, _ = env.reset(seed=1)
+    sub = obs["subgoal"]
+    assert sub.shape == (2,) and np.hypot(*sub) <= env.cfg.subgoal_lookahead_m + 1e-5
+    x, y, yaw = env.robot
+    c, s = math.cos(yaw), math.sin(yaw)
+    world = np.array([x + c * sub[0] - s * sub[1], y + s * sub[0] + c * sub[1]])
+    # on a collision-free straight segment from the robot (the path is string-pulled)
+    assert env.layout.segments_min_clearance(env.robot[None, :2], world[None])[0] > env.cfg.robot.radius_m
+    # the shortest path is shorter through the sub-goal than from anywhere else 2 m away in the open direction
+    d_via = np.hypot(*(world - env.robot[:2])) + env.layout.path_length(world, env.goal, env.cfg.robot.radius_m)
+    assert d_via <= env.shortest_path_m + 0.1
+    # in line of sight and nearer than the lookahead, the sub-goal is the target itself
+    near = env.robot[:2] + np.array([c, s]) * 0.6
+    if env.layout.segments_min_clearance(env.robot[None, :2], near[None])[0] > 0.4:
+        np.testing.assert_allclose(env.privileged_subgoal(near), [0.6, 0.0], atol=1e-4)
+
+
+def test_privileged_subgoal_in_an_open_room_points_at_the_goal():
+    env = CrowdNavEnv(scene="open_crowd", density=0.0, obs_mode="privileged")
+    for seed in range(6):
+        obs, _ = env.reset(seed=seed)
+        if env.layout.segments_min_clearance(env.robot[None, :2], env.goal[None])[0] > 0.5:
+            break
+    g = obs["state"][:2]
+    expected = g / np.hypot(*g) * min(env.cfg.subgoal_lookahead_m, float(np.hypot(*g)))
+    np.testing.assert_allclose(obs["subgoal"], expected, atol=0.05)
