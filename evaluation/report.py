@@ -161,8 +161,14 @@ def training_budget(ckpt: Path) -> dict[str, Any]:
     return out
 
 
-def _budget_text(produced_by: dict[str, Any]) -> str:
-    return ", ".join(f"{k} {v}" for k, v in sorted(produced_by.items())) or "n/a"
+def _budget_text(produced_by: dict[str, Any], prefix: str = "") -> str:
+    parts = []
+    for k, v in sorted(produced_by.items()):
+        if isinstance(v, dict):
+            parts.append(_budget_text(v, f"{prefix}{k}."))
+        else:
+            parts.append(f"{prefix}{k} {v}")
+    return ", ".join(p for p in parts if p) or ("" if prefix else "n/a")
 
 
 def report_markdown(rows: Sequence[dict[str, Any]], labels: dict[str, str], header: str,
