@@ -61,6 +61,10 @@ density) pools, resumable from ``ppo/last.zip``. Output (``out``)::
   is still seen (kernel ≥ stride).
 * GroupNorm (8 channels a group) instead of BatchNorm: SB3 PPO evaluates the rollout's log-probabilities in eval mode
   and the update's in train mode, which BatchNorm makes disagree (a biased ratio); GroupNorm has no mode.
+* PPO starts with a critic warm-up (``critic_warmup_steps`` = 4096: only the value head learns, the actor is
+  frozen) and ``target_kl`` 0.02: measured on 12 seeded episodes per scene, the cloned policy reached SR 0.50 in
+  the office lobby and 0.25 in the hallway at 0.1 ped/m², and 16k PPO steps straight after cloning brought it to
+  0.08 and 0.00 — the cloned critic (value MSE ≈ 330 on returns of ±20) steered the first updates.
 * The velocity-obstacle heading search uses 60 headings evenly spaced from the sub-goal direction instead of 60
   uniform random samples (same resolution; the reward is deterministic and exact when the sub-goal direction is
   free); angles are compared modulo 2π (the original's unwrapped comparison misses cones across ±π); the cone of a
@@ -152,11 +156,12 @@ class Config:
     bc_epochs: int = 15  # cloning epochs
     bc_batch: int = 128
     bc_lr: float = 1e-3
-    ppo_steps: int = 16_384  # PPO env steps after the warm start
+    ppo_steps: int = 16_384  # PPO env steps after the warm start (the critic warm-up included)
+    critic_warmup_steps: int = 4096  # first PPO steps train only the value head (the actor is frozen)
     n_envs: int = 4  # vectorised envs
     subprocess: bool = True  # SubprocVecEnv (both cores) instead of DummyVecEnv
     ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 128, "batch_size": 128, "n_epochs": 4,
-                                                           "learning_rate": 5e-5})
+                                                           "learning_rate": 5e-5, "target_kl": 0.02})
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     def validate(self) -> None:
@@ -180,8 +185,9 @@ class Config:
         for key in ("bc_epochs", "bc_batch", "n_envs"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"drl_vo.{key}: expected an integer >= 1, got {getattr(self, key)}")
-        if self.ppo_steps < 0:
-            raise ConfigError(f"drl_vo.ppo_steps: expected >= 0, got {self.ppo_steps}")
+        if self.ppo_steps < 0 or self.critic_warmup_steps < 0:
+            raise ConfigError(f"drl_vo.ppo_steps / critic_warmup_steps: expected >= 0, got {self.ppo_steps} / "
+                              f"{self.critic_warmup_steps}")
         if self.reward.vo_headings < 2 or self.reward.vo_range_m <= 0:
             raise ConfigError(f"drl_vo.reward: expected vo_headings >= 2 and vo_range_m > 0, got "
                               f"{self.reward.vo_headings}, {self.reward.vo_range_m}")
@@ -627,7 +633,13 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
         t0 = time.perf_counter()
         cb = [curriculum_callback(cfg.teacher.curriculum, c.ppo_steps), _checkpoint_callback(out / "ppo", model, 5_000),
               _progress_callback(c.ppo_steps, "drl_vo PPO", cfg.progress), _log_callback(log)]
-        model.learn(max(0, c.ppo_steps - done), callback=cb, reset_num_timesteps=False)
+        warm = min(c.critic_warmup_steps, c.ppo_steps)
+        if done < warm:  # the cloned critic is poor: fit it on-policy before the actor moves (measured below)
+            frozen = freeze_actor(model.policy)
+            model.learn(warm - done, callback=cb, reset_num_timesteps=False)
+            for p in frozen:
+                p.requires_grad_(True)
+        model.learn(max(0, c.ppo_steps - model.num_timesteps), callback=cb, reset_num_timesteps=False)
         wall["ppo_s"] = round(time.perf_counter() - t0, 1)
         summary["ppo_steps_per_s"] = round((model.num_timesteps - done) / max(wall["ppo_s"], 1e-9), 1)
         ppo_steps = int(model.num_timesteps)
@@ -644,6 +656,16 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
                   reward=asdict(c.reward))
     summary["budget"] = budget
     return summary
+
+
+def freeze_actor(policy: ActorCriticPolicy) -> list[nn.Parameter]:
+    """Stops gradients into everything but the value branch (``mlp_extractor.value_net``, ``value_net``): the
+    shared extractor, the policy MLP, the action head and its log-std. Returns the parameters it froze."""
+    critic = {id(p) for m in (policy.mlp_extractor.value_net, policy.value_net) for p in m.parameters()}
+    frozen = [p for p in policy.parameters() if id(p) not in critic and p.requires_grad]
+    for p in frozen:
+        p.requires_grad_(False)
+    return frozen
 
 
 def describe_inputs(policy: ActorCriticPolicy) -> dict[str, Any]:

@@ -142,6 +142,17 @@ def test_config_validate_names_the_field():
     drl_vo.Config().validate()
 
 
+def test_freeze_actor_leaves_only_the_value_branch_trainable():
+    c = replace(drl_vo.Config(), width=8, features_dim=32, pi=[16], vf=[16])
+    policy = drl_vo.build_policy(c.net())
+    frozen = drl_vo.freeze_actor(policy)
+    trainable = {n for n, p in policy.named_parameters() if p.requires_grad}
+    assert trainable and all(n.startswith(("mlp_extractor.value_net.", "value_net.")) for n in trainable)
+    assert {n for n, p in policy.named_parameters() if not p.requires_grad} >= {"log_std", "action_net.weight"}
+    assert any(n.startswith("features_extractor.") for n, p in policy.named_parameters() if not p.requires_grad)
+    assert len(frozen) + len(trainable) == len(list(policy.parameters()))
+
+
 # ------------------------------------------------------------------------------------------------------- training
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
@@ -152,7 +163,7 @@ def trained(tmp_path_factory):
     sim = replace(SimConfig(), max_episode_s=8.0)
     teacher = TeacherConfig(bc_episodes=8, curriculum=[CurriculumStage(1.0, [str(scene)], [0.0])])
     c = replace(drl_vo.Config(), width=8, features_dim=64, pi=[64], vf=[64], bc_epochs=30, bc_batch=32, bc_lr=1e-3,
-                ppo_steps=256, n_envs=2, subprocess=False,
+                ppo_steps=256, critic_warmup_steps=128, n_envs=2, subprocess=False,
                 ppo={"n_steps": 128, "batch_size": 128, "n_epochs": 2, "learning_rate": 5e-5})
     cfg = TrainConfig(variant="drl_vo", sim=sim, teacher=teacher, drl_vo=c, workers=1, threads=1, progress=False)
     torch.manual_seed(0)
