@@ -41,6 +41,7 @@ class Job:
     start: np.ndarray | None = None
     tag: str = ""  # a prefix for file names (e.g. "lh")
     save_trace: bool = True  # traces/<name>.npz
+    row_cache: Path | None = None  # write the finished row to <row_cache>/<name>.json (last: eval --resume skips it)
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -150,6 +151,13 @@ def run_episode(job: Job) -> dict[str, Any]:
 
         (job.out / "videos").mkdir(parents=True, exist_ok=True)
         write_video(frames, job.out / "videos" / f"{job.name}.mp4", fps=1.0 / job.sim.dt_s)
+    if job.row_cache is not None:  # last: a row on disk means every file of the episode is complete
+        import json
+
+        from pipeline.artifacts import atomic_write_text
+
+        job.row_cache.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(job.row_cache / f"{job.name}.json", json.dumps(row) + "\n")
     return row
 
 
@@ -175,6 +183,30 @@ def _heat(a: np.ndarray) -> np.ndarray:
     a = (a - a.min()) / max(float(a.max() - a.min()), 1e-6)
     img = cv2.applyColorMap((a * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[..., ::-1]
     return np.ascontiguousarray(np.flipud(img))  # row 0 = far / top
+
+
+def run_jobs_cached(jobs: list[Job], cache: Path, workers: int, desc: str, progress: bool = True
+                    ) -> list[dict[str, Any]]:
+    """:func:`run_jobs` that keeps each finished row in ``cache`` and runs only the jobs without one (a killed run
+    continues where it stopped); rows in job order."""
+    import json
+
+    from pipeline.errors import CorruptArtifactError
+
+    jobs = [replace(j, row_cache=cache) for j in jobs]
+    todo = [j for j in jobs if not (cache / f"{j.name}.json").is_file()]
+    if len(todo) < len(jobs):
+        log.info("%s: %d of %d episodes already done (%s)", desc, len(jobs) - len(todo), len(jobs), cache)
+    run_jobs(todo, workers, desc, progress)
+    rows = []
+    for j in jobs:
+        path = cache / f"{j.name}.json"
+        try:
+            rows.append(json.loads(path.read_text()))
+        except (OSError, ValueError) as e:
+            raise CorruptArtifactError(f"{path}: unreadable episode row ({type(e).__name__}: {e}); delete it and "
+                                       "rerun with --resume") from None
+    return rows
 
 
 def run_jobs(jobs: list[Job], workers: int, desc: str, progress: bool = True) -> list[dict[str, Any]]:

@@ -245,8 +245,8 @@ def plot_sr(res: dict[str, dict[str, Any]], labels: dict[str, str], path: Path) 
                 continue
             xs.append(i + (k - (len(methods) - 1) / 2) * w)
             ys.append(s["mean"])
-            lo.append(s["mean"] - s["ci95_low"])
-            hi.append(s["ci95_high"] - s["mean"])
+            lo.append(max(0.0, s["mean"] - s["ci95_low"]))  # the Wilson bounds can miss 0 or 1 by rounding
+            hi.append(max(0.0, s["ci95_high"] - s["mean"]))
         ax.bar(xs, ys, w, yerr=[lo, hi], capsize=2, label=labels.get(m, m), color=cmap(k))
     ax.set_xticks(range(len(cells)), cells, rotation=15)
     ax.set_ylim(0, 1.05)

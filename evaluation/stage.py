@@ -3,6 +3,7 @@ runs on a topological map — with tables, paired tests, figures, videos and MCA
 
     icrowdnav eval                                   # the profile's methods, scenes, densities, episodes
     icrowdnav eval --methods '[full, dwa]' --episodes 5 --run_name quick
+    icrowdnav eval --resume                          # a killed run: only the episodes without a row run again
     make eval                                        # the same on the default profile
 
 Inputs: ``DATA_DIR/checkpoints/policy/<name>/`` of every learned method (``make train``); the expert and DWA need
@@ -18,6 +19,8 @@ nothing. Output ``DATA_DIR/eval/<run_name>/``::
     videos/<episode>.mp4         both cameras, depth, the method's BEV input, top-down
     mcap/<episode>.mcap          the same episodes as MCAP logs (open in Foxglove)
     traces/<episode>.npz         every episode's trace (sim.trace.EpisodeTrace)
+    rows/<episode>.json          each finished episode's row, written last (``--resume`` skips those episodes; it
+                                 assumes the same config and checkpoints, as ``train --resume`` does)
     long_horizon/episodes.jsonl, long_horizon/<map>_gvg.png (the map, its GVG and every method's paths)
 
 ``<episode>`` is ``[lh_]<scene>_d<density>_s<seed>_<method>``.
@@ -148,13 +151,13 @@ def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:
 
 
 def _body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
-    from evaluation.harness import Job, run_jobs
+    from evaluation.harness import Job, run_jobs_cached
     from evaluation.report import paired, plot_sr, report_markdown, results, results_csv, training_budget
 
     specs = resolve_methods(cfg.methods, Path(cfg.data_dir))
     labels = {m.name: m.label for m in specs}
     seeds = seeds_of(cfg)
-    rows = run_jobs(benchmark_jobs(cfg, specs, out), cfg.workers, "eval: benchmark", cfg.progress)
+    rows = run_jobs_cached(benchmark_jobs(cfg, specs, out), out / "rows", cfg.workers, "eval: benchmark", cfg.progress)
     lh_rows: list[dict[str, Any]] = []
     lh_seeds: dict[str, list[int]] = {}
     if cfg.long_horizon.runs:
@@ -166,7 +169,7 @@ def _body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
                     extra={"graph_path_m": float(np.sum(np.hypot(*np.diff(
                         np.vstack([p["start"], p["waypoints"]]), axis=0).T)))})
                 for p in plans for m in specs]
-        lh_rows = run_jobs(jobs, cfg.workers, "eval: long horizon", cfg.progress)
+        lh_rows = run_jobs_cached(jobs, out / "rows", cfg.workers, "eval: long horizon", cfg.progress)
         _plot_long_horizon(plans, lh_rows, out / "long_horizon", labels)
         for p in plans:
             lh_seeds.setdefault(p["map"], []).append(p["seed"])
@@ -221,6 +224,8 @@ STAGE = Stage(
     output_dir=output_dir,
     inputs=_inputs,
     body=_body,
+    resumable=True,
+    in_place=True,
     code=("pipeline", "sim", "rl", "evaluation", "pretrain", "recorder"),
 )
 

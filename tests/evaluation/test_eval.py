@@ -135,3 +135,26 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
     assert seeds["benchmark"]["seeds"] == [20_000, 20_001] and len(seeds["long_horizon"]["office_floor"]) == 1
     assert (out / "long_horizon" / "office_floor_gvg.png").is_file() and (out / "report.md").is_file()
     assert len((out / "episodes.jsonl").read_text().splitlines()) == 2
+    # a killed run: the manifest never came and one episode's row is missing; --resume runs only that episode
+    (out / "manifest.json").unlink()
+    rows = sorted((out / "rows").glob("office_lobby_*.json"))
+    assert len(rows) == 2 and len(list((out / "rows").glob("lh_*.json"))) == 1
+    kept = rows[0].stat().st_mtime_ns
+    rows[1].unlink()
+    from pipeline.errors import OutputExistsError
+
+    with pytest.raises(OutputExistsError, match="--resume"):
+        run(cfg)
+    run(replace(cfg, resume=True))
+    assert rows[0].stat().st_mtime_ns == kept and rows[1].is_file() and (out / "manifest.json").is_file()
+    res2 = json.loads((out / "results.json").read_text())
+    assert res2["office_lobby@0.1"]["expert"]["success"] == res["office_lobby@0.1"]["expert"]["success"]
+
+
+def test_sr_figure_tolerates_intervals_that_miss_the_mean_by_rounding(tmp_path):
+    from evaluation.report import plot_sr
+
+    res = {"a@0.1": {"m": {"success": {"mean": 1.0, "ci95_low": 0.7, "ci95_high": 1.0 - 1e-12}},
+                     "n": {"success": {"mean": 0.0, "ci95_low": 1e-17, "ci95_high": 0.3}}}}
+    plot_sr(res, {}, tmp_path / "sr.png")
+    assert (tmp_path / "sr.png").stat().st_size > 0
