@@ -56,8 +56,10 @@ def _success_rate(policy, sim_cfg, seeds):
 def test_teacher_ppo_learns_a_trivial_scene(tmp_path):
     """PPO from scratch (no warm start) learns to reach a nearby goal in an empty room within 8k steps.
 
-    Measured: deterministic SR on 10 seeds 0.1 -> 0.4 after 8k steps, 0.6 after 25k (the 105-action grid makes
-    exploration slow; the real teacher starts from the cloned expert instead)."""
+    The default teacher network (set encoder + privileged sub-goal), one torch thread (results depend on the thread
+    count through float reductions). Measured: deterministic successes on 10 seeds 2 -> 6 after 8k steps (the
+    flat network: 1 -> 3; the 105-action grid makes exploration slow; the real teacher starts from the cloned
+    expert instead)."""
     from stable_baselines3 import PPO
 
     from rl.policy import policy_kwargs
@@ -66,16 +68,24 @@ def test_teacher_ppo_learns_a_trivial_scene(tmp_path):
     scene = tmp_path / "empty_room.yaml"
     scene.write_text(yaml.safe_dump(EMPTY_ROOM))
     sim_cfg = replace(SimConfig(), scene=str(scene), density=0.0, max_episode_s=8.0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
     torch.manual_seed(0)
     venv = make_vec_env(sim_cfg, [(str(scene), 0.0)], 4, 0, subprocess=False)
-    model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs("teacher", None, {}), seed=0, device="cpu",
+    from rl.stage import TeacherConfig
+
+    net = {"encoder": TeacherConfig().net["encoder"]}
+    model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs("teacher", None, net), seed=0, device="cpu",
                 **ppo_kwargs({"n_steps": 256, "batch_size": 256, "n_epochs": 10, "learning_rate": 1e-3,
                               "gamma": 0.95}))
     seeds = list(range(100, 110))
-    before = _success_rate(model.policy, sim_cfg, seeds)
-    model.learn(8192)
-    after = _success_rate(model.policy, sim_cfg, seeds)
-    assert after >= before + 0.2, (before, after)
+    try:
+        before = round(_success_rate(model.policy, sim_cfg, seeds) * len(seeds))
+        model.learn(8192)
+        after = round(_success_rate(model.policy, sim_cfg, seeds) * len(seeds))
+    finally:
+        torch.set_num_threads(threads)
+    assert after >= before + 3, (before, after)
 
 
 def test_dagger_iteration_writes_a_loadable_dataset_and_lowers_bc_loss(tmp_path, teacher_dir):
