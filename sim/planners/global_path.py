@@ -74,16 +74,3 @@ def _distance_to_polyline(xy: np.ndarray, path: np.ndarray) -> tuple[float, int,
     d = np.hypot(*(q - xy).T)
     k = int(np.argmin(d))
     return float(d[k]), k, q[k]
-
-
-def _distance_to_polyline(xy: np.ndarray, path: np.ndarray) -> tuple[float, int, np.ndarray]:
-    """(distance, index of the closest segment's start, closest point) of ``xy`` to the polyline ``path``."""
-    if len(path) == 1:
-        return float(np.hypot(*(xy - path[0]))), 0, path[0].copy()
-    a, b = path[:-1], path[1:]
-    ab = b - a
-    t = np.clip(((xy - a) * ab).sum(-1) / np.maximum((ab ** 2).sum(-1), 1e-12), 0.0, 1.0)
-    q = a + t[:, None] * ab
-    d = np.hypot(*(q - xy).T)
-    k = int(np.argmin(d))
-    return float(d[k]), k, q[k]
