@@ -25,8 +25,8 @@ import torch
 def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_cfg: Any, seconds: float) -> dict:
     from stable_baselines3 import PPO
 
-    from rl.policy import policy_kwargs
-    from rl.teacher import make_vec_env, ppo_kwargs
+    from rl.policy import policy_class, policy_kwargs
+    from rl.teacher import make_vec_env, ppo_kwargs, teacher_net
 
     t = train_cfg.teacher
     out = {}
@@ -36,7 +36,8 @@ def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_c
         for key, n_envs, sub in (("teacher_env_steps_per_s", t.n_envs, t.subprocess),
                                  ("teacher_env_steps_per_s_1env", 1, False)):
             venv = make_vec_env(sim_cfg, [(scene, density)], n_envs, seed, sub)
-            model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs("teacher", None, dict(t.net)),
+            net = teacher_net(dict(t.net), sim_cfg)
+            model = PPO(policy_class("teacher", net), venv, policy_kwargs=policy_kwargs("teacher", None, net),
                         seed=seed, device="cpu", **ppo_kwargs(t.ppo))
             chunk = model.n_steps * n_envs
             model.learn(chunk)  # warm-up: one rollout + update

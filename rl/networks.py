@@ -36,7 +36,7 @@ VARIANTS = ("full", "no_i2", "no_bev")
 VARIANT_LABELS = {"full": "iCrowdNav (full)", "no_i2": "w/o I²", "no_bev": "w/o BEV"}
 
 
-TEACHER_ENCODERS = ("set", "flat")
+TEACHER_ENCODERS = ("set", "flat", "lookahead")
 SUBGOAL_SCALE_M = 2.0  # the privileged sub-goal's scale (its lookahead along the global path)
 
 
@@ -46,7 +46,7 @@ def teacher_extractor_class(encoder: str) -> type[BaseFeaturesExtractor]:
         from pipeline.errors import ConfigError
 
         raise ConfigError(f"teacher.net.encoder: expected one of {list(TEACHER_ENCODERS)}, got {encoder!r}")
-    return SetTeacherExtractor if encoder == "set" else TeacherExtractor
+    return {"set": SetTeacherExtractor, "flat": TeacherExtractor, "lookahead": LookaheadTeacherExtractor}[encoder]
 
 
 def variant_keys(variant: str) -> tuple[str, ...]:
@@ -191,3 +191,158 @@ class SetTeacherExtractor(BaseFeaturesExtractor):
                          self.empty)
         scan = self.scan((obs["scan"] / self.scan_range_m).unsqueeze(1))
         return torch.cat([self.phi_s(s_in), attn, mx, scan], -1)
+
+
+# ---------------------------------------------------------------------------------------- lookahead teacher
+LOOKAHEAD_HORIZON_S = 2.0  # rollout horizon of the lookahead layer
+LOOKAHEAD_STEP_S = 0.2  # its resolution (plus the next control step itself)
+LOOKAHEAD_DISCOUNT_S = 1.5  # time constant of the discount on predicted intrusions
+CLEAR_CAP_M = 3.0  # clearances are clipped to [-0.5, this]
+SCORE_SCALE = 10.0  # logits = this x the linear path's output + the MLP's: the expert's costs differ by tens of
+# nats at τ = 0.1, which the linear path reaches with weights of order one
+SCAN_POINTS = 24
+N_LINEAR = 10  # rollout features of the linear cost (the last ones of action_features)
+NEAR_GOAL_M = 0.5  # closer than this to the goal, the cost rewards reaching it instead of the route's heading  # nearest scan hits the lookahead measures obstacle clearance against
+
+
+def unicycle_arcs(grid: torch.Tensor, times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Robot-frame positions ``A x S x 2`` and headings ``A x S`` of constant (v, ω) commands ``A x 2`` after
+    ``times`` (``S``) from the origin facing +x (exact arcs; straight lines where ω = 0)."""
+    v, w = grid[:, :1], grid[:, 1:]
+    t = times[None, :]
+    straight = w.abs() < 1e-6
+    ws = torch.where(straight, torch.ones_like(w), w)
+    th = w * t
+    x = torch.where(straight, v * t, v / ws * torch.sin(th))
+    y = torch.where(straight, torch.zeros_like(th), v / ws * (1.0 - torch.cos(th)))
+    return torch.stack([x, y], -1), th
+
+
+class LookaheadTeacherExtractor(SetTeacherExtractor):
+    """The set encoder's context plus a kinematic *lookahead layer* that scores every action of the grid.
+
+    For each of the A = 5 x 21 commands the layer rolls the robot forward along its unicycle arc (a fixed buffer) for
+    2 s, predicts every observed pedestrian with constant velocity (their true robot-frame velocity, privileged),
+    and measures per action: the clearance to the nearest pedestrian and to the nearest static-scan point at each
+    of the S lookahead times, discounted intrusion sums (below a 0.15 m gap and within the 0.8 m private zone, the
+    same for obstacles), the progress towards the privileged sub-goal and the goal, the heading error to the
+    sub-goal at the end of the arc, and the command itself. These parameter-free features (computed from the
+    observation alone) plus a learned context vector go through one shared MLP that outputs each action's logit —
+    the policy network is a learned cost over rollouts, like the expert it imitates, but its weights are fitted by
+    cloning and PPO. The first ``A`` outputs of :meth:`forward` are the logits (:class:`ScoredPolicy` reads them);
+    the rest is the set encoder's embedding, which the critic uses.
+    """
+
+    def __init__(self, observation_space: gym.spaces.Dict, scan_range_m: float = 10.0, ped_scale_m: float = 5.0,
+                 robot: dict[str, Any] | None = None, dt_s: float = 0.1, path_spacing_m: float = 0.25, score_dim: int = 64,
+                 context_dim: int = 32) -> None:
+        from sim.robot import RobotConfig, action_grid
+
+        super().__init__(observation_space, scan_range_m, ped_scale_m)
+        base_dim = self._features_dim
+        rc = RobotConfig(**(robot or {}))
+        self.radius_m = float(rc.radius_m)
+        grid = torch.as_tensor(action_grid(rc), dtype=torch.float32)
+        self.n_actions = len(grid)
+        times = torch.cat([torch.tensor([float(dt_s)]),
+                           torch.arange(1, int(round(LOOKAHEAD_HORIZON_S / LOOKAHEAD_STEP_S)) + 1) * LOOKAHEAD_STEP_S])
+        arcs, heading = unicycle_arcs(grid, times)
+        self.register_buffer("grid_norm", grid / grid.new_tensor([rc.v_max_mps, rc.omega_max_radps]), persistent=False)
+        self.register_buffer("times", times, persistent=False)
+        self.register_buffer("arcs", arcs, persistent=False)  # A x S x 2
+        self.register_buffer("end_heading", heading[:, -1], persistent=False)  # A
+        self.register_buffer("disc", torch.exp(-times / LOOKAHEAD_DISCOUNT_S), persistent=False)
+        self.path = "path" in observation_space.spaces
+        if self.path:  # arc length of each path point (the env's spacing, recovered from its count and the space)
+            spacing = float(path_spacing_m)
+            n_path = observation_space["path"].shape[0]
+            self.register_buffer("path_s", spacing * torch.arange(1, n_path + 1, dtype=torch.float32), persistent=False)
+            self.path_lead = max(1, int(round(1.0 / spacing)))  # heading target: 1 m further along the path
+        rays = observation_space["scan"].shape[0]
+        ang = torch.arange(rays) * (2 * torch.pi / rays)
+        self.register_buffer("ray_dir", torch.stack([torch.cos(ang), torch.sin(ang)], -1), persistent=False)
+        self.n_feat = 2 * len(times) + 4 + 4 + 2 + N_LINEAR
+        self.context = nn.Sequential(nn.Linear(base_dim, context_dim), nn.ReLU())
+        self.scorer = mlp([self.n_feat + context_dim, score_dim, score_dim, 1], last_act=False)
+        self.linear = nn.Linear(N_LINEAR, 1)  # the linear cost over the last N_LINEAR rollout features
+        self._features_dim = self.n_actions + base_dim
+
+    @torch.no_grad()
+    def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``B x A x F`` parameter-free rollout features of every action (class docstring)."""
+        arcs, disc = self.arcs, self.disc  # A S 2, S
+        b = obs["state"].shape[0]
+        a, s = arcs.shape[:2]
+        # pedestrians, constant velocity: B K S 2
+        peds = obs["peds"]
+        present = peds[..., 5] > 0.5
+        pp = peds[:, :, None, :2] + self.times[None, None, :, None] * peds[:, :, None, 2:4]
+        d = torch.linalg.vector_norm(arcs[None, :, None] - pp[:, None], dim=-1)  # B A K S
+        d = d - peds[:, None, :, None, 4] - self.radius_m
+        d = d.masked_fill(~present[:, None, :, None], CLEAR_CAP_M + 1.0)
+        ped_min = d.amin(2).clamp(-0.5, CLEAR_CAP_M)  # B A S
+        ped_contact = ((0.15 - d).clamp_min(0.0) * disc).sum((2, 3))
+        ped_comfort = ((0.8 - d).clamp_min(0.0) ** 2 * disc).sum((2, 3)) * LOOKAHEAD_STEP_S
+        # static obstacles: the end points of the nearest scan hits (farther ones cannot be the nearest obstacle of
+        # an arc that stays within the horizon), B R 2
+        rng, idx = obs["scan"].topk(min(SCAN_POINTS, obs["scan"].shape[-1]), dim=-1, largest=False)
+        hit = rng < self.scan_range_m - 1e-3
+        pts = rng[..., None] * self.ray_dir[idx]
+        dq = torch.cdist(arcs.reshape(1, a * s, 2).expand(b, -1, -1), pts)  # B AS R
+        dq = dq.masked_fill(~hit[:, None, :], CLEAR_CAP_M + 1.0).amin(-1).view(b, a, s) - self.radius_m
+        obs_min = dq.clamp(-0.5, CLEAR_CAP_M)
+        obs_contact = ((0.05 - dq).clamp_min(0.0) * disc).sum(-1)
+        obs_near = ((0.25 - dq).clamp_min(0.0) ** 2 * disc).sum(-1)
+        # progress: along the global path when the observation has it (the cost-to-go through the best path point,
+        # ctg(p) ≈ min_k |p - P_k| + (L - s_k)), else towards the sub-goal (or the goal); and towards the goal
+        goal = obs["state"][:, :2]
+        sub = obs["subgoal"] if self.subgoal else goal
+        end = arcs[None, :, -1]  # 1 A 2
+        if self.path:
+            pts = obs["path"]  # B P 2
+            s_k = self.path_s[: pts.shape[1]]
+            reach_end = s_k - torch.linalg.vector_norm(end[:, :, None] - pts[:, None], dim=-1)  # B A P
+            reach_now = (s_k - torch.linalg.vector_norm(pts, dim=-1)).amax(-1, keepdim=True)  # B 1
+            best = reach_end.argmax(-1)  # B A
+            sub_gain = reach_end.amax(-1) - reach_now
+            ahead = torch.gather(pts, 1, (best + self.path_lead).clamp_max(pts.shape[1] - 1)[..., None].expand(-1, -1, 2))
+            to_sub = ahead - end
+        else:
+            sub_gain = torch.linalg.vector_norm(sub, dim=-1, keepdim=True) - torch.linalg.vector_norm(sub[:, None] - end, dim=-1)
+            to_sub = sub[:, None] - end
+        goal_gain = obs["state"][:, 2:3] - torch.linalg.vector_norm(goal[:, None] - end, dim=-1)
+        err = torch.atan2(to_sub[..., 1], to_sub[..., 0]) - self.end_heading
+        goal_near = torch.linalg.vector_norm(goal[:, None, None] - arcs[None], dim=-1).amin(-1)  # B A
+        near = (obs["state"][:, 2:3] < NEAR_GOAL_M).float().expand(-1, a)
+        abs_err = torch.atan2(torch.sin(err), torch.cos(err)).abs()
+        grid = self.grid_norm[None].expand(b, -1, -1)
+        feats = [ped_min, obs_min,
+                 torch.log1p(torch.stack([ped_contact, ped_comfort, obs_contact, obs_near], -1)),
+                 torch.stack([torch.cos(err), torch.sin(err), goal_near.clamp_max(CLEAR_CAP_M), near], -1),
+                 grid,
+                 # the terms of the linear cost (the last N_LINEAR features): predicted intrusions, progress along
+                 # the route, heading error away from the goal, approach when near it, speed and turning
+                 torch.stack([ped_contact.clamp_max(10.0), ped_comfort.clamp_max(10.0), obs_contact.clamp_max(10.0),
+                              obs_near.clamp_max(10.0), sub_gain, goal_gain, (1.0 - near) * abs_err,
+                              near * (obs["state"][:, 2:3] - goal_near), grid[..., 0], grid[..., 1].abs()], -1)]
+        return torch.cat(feats, -1)
+
+    def forward(self, obs: dict[str, torch.Tensor], action_features: torch.Tensor | None = None) -> torch.Tensor:
+        """``B x (A + base)``: the action logits, then the set encoder's embedding (``action_features``: the
+        precomputed :meth:`action_features` of ``obs``, as cloning caches them)."""
+        base = super().forward(obs)
+        feats = self.action_features(obs) if action_features is None else action_features
+        ctx = self.context(base)[:, None].expand(-1, feats.shape[1], -1)
+        scores = SCORE_SCALE * self.linear(feats[..., -N_LINEAR:]) + self.scorer(torch.cat([feats, ctx], -1))
+        return torch.cat([scores.squeeze(-1), base], -1)  # B x (A + base)
+
+
+class TakeScores(nn.Module):
+    """The action logits of a :class:`LookaheadTeacherExtractor`: the first ``n`` features (no parameters)."""
+
+    def __init__(self, n: int) -> None:
+        super().__init__()
+        self.n = n
+
+    def forward(self, latent: torch.Tensor) -> torch.Tensor:
+        return latent[..., :self.n]

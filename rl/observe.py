@@ -149,7 +149,8 @@ def teacher_observation(env, target: np.ndarray | None = None) -> dict[str, np.n
     """The privileged observation of an unwrapped env in any obs mode (what ``obs_mode="privileged"`` returns);
     with ``target`` (a world-frame waypoint) the sub-goal leads there instead of to the goal."""
     return {"state": env.robot_state(), "odom": env.robot.astype(np.float32), "peds": env.privileged_peds(),
-            "scan": env.static_scan().astype(np.float32), "subgoal": env.privileged_subgoal(target)}
+            "scan": env.static_scan().astype(np.float32), "subgoal": env.privileged_subgoal(target),
+            "path": env.privileged_path(target)}
 
 
 class StudentEnv(gym.Wrapper):

@@ -20,7 +20,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 
 from pipeline.artifacts import atomic_write_text
 from pipeline.errors import CorruptArtifactError, InputMissingError
-from rl.networks import StudentExtractor, teacher_extractor_class
+from rl.networks import StudentExtractor, TakeScores, teacher_extractor_class
 
 POLICY_JSON = "policy.json"
 POLICY_WEIGHTS = "policy.safetensors"
@@ -37,12 +37,34 @@ def space_from_json(d: dict[str, Any]) -> gym.spaces.Dict:
                                               np.float32) for k, v in d.items()})
 
 
+class ScoredPolicy(ActorCriticPolicy):
+    """An actor-critic whose action logits are scored by the features extractor itself (the lookahead teacher,
+    :class:`rl.networks.LookaheadTeacherExtractor`): the actor head takes the first ``n`` features as logits, the
+    critic is SB3's MLP on all of them. Use with ``net_arch["pi"] = []``."""
+
+    def _build(self, lr_schedule) -> None:
+        super()._build(lr_schedule)
+        self.action_net = TakeScores(int(self.action_space.n))
+        self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+
+
+def policy_class(kind: str, net: dict[str, Any]) -> type[ActorCriticPolicy]:
+    """The SB3 policy class of a teacher or student (for ``PPO(policy_class, ...)``)."""
+    return ScoredPolicy if kind == "teacher" and net.get("encoder") == "lookahead" else ActorCriticPolicy
+
+
 def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[str, Any]:
     """SB3 ``policy_kwargs`` of a teacher or a student variant."""
     if kind == "teacher":
-        return {"features_extractor_class": teacher_extractor_class(net.get("encoder", "flat")),
-                "features_extractor_kwargs": {"scan_range_m": net.get("scan_range_m", 10.0)},
-                "net_arch": {"pi": list(net.get("pi", [256, 256])), "vf": list(net.get("vf", [256, 256]))},
+        encoder = net.get("encoder", "flat")
+        ext: dict[str, Any] = {"scan_range_m": net.get("scan_range_m", 10.0)}
+        pi = list(net.get("pi", [256, 256]))
+        if encoder == "lookahead":  # the extractor scores the actions; the actor head only reads the scores
+            ext.update({k: net[k] for k in ("robot", "dt_s", "path_spacing_m", "score_dim", "context_dim") if k in net})
+            pi = []
+        return {"features_extractor_class": teacher_extractor_class(encoder),
+                "features_extractor_kwargs": ext,
+                "net_arch": {"pi": pi, "vf": list(net.get("vf", [256, 256]))},
                 "share_features_extractor": True}
     ext = {k: net[k] for k in ("bev_dim", "bev_width", "state_dim", "fused_dim", "i2former") if k in net}
     return {"features_extractor_class": StudentExtractor,
@@ -54,8 +76,8 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
 def build_policy(kind: str, variant: str | None, obs_space: gym.spaces.Dict, net: dict[str, Any],
                  lr: float = 3e-4) -> ActorCriticPolicy:
     """A fresh policy (random weights) for ``obs_space`` and the discrete action grid."""
-    return ActorCriticPolicy(obs_space, gym.spaces.Discrete(N_ACTIONS), lambda _: lr,
-                             **policy_kwargs(kind, variant, net))
+    return policy_class(kind, net)(obs_space, gym.spaces.Discrete(N_ACTIONS), lambda _: lr,
+                                   **policy_kwargs(kind, variant, net))
 
 
 def describe(kind: str, variant: str | None, obs_space: gym.spaces.Dict, net: dict[str, Any],

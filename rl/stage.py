@@ -65,7 +65,7 @@ class TeacherConfig:
     """The privileged teacher (rl.teacher)."""
 
     bc_episodes: int = 200  # expert episodes for the warm start (spread over the curriculum's pairs)
-    bc_epochs: int = 30  # behaviour-cloning epochs
+    bc_epochs: int = 8  # behaviour-cloning epochs
     bc_batch: int = 512
     bc_lr: float = 1e-3
     soft_tau: float = 0.1  # > 0: clone the expert's softmin over the action grid (its costs) instead of its argmin
@@ -73,14 +73,14 @@ class TeacherConfig:
     dagger_iterations: int = 4  # DAgger on privileged states: the teacher drives, the expert labels (no rendering)
     dagger_episodes: int = 100  # episodes per DAgger iteration
     dagger_beta0: float = 0.5  # probability that the expert drives a step in the first DAgger iteration (0 later)
-    dagger_epochs: int = 10  # cloning epochs on the aggregate after each iteration
+    dagger_epochs: int = 4  # cloning epochs on the aggregate after each iteration
     ppo_steps: int = 200_000  # PPO env steps after the warm start (0 = the teacher is the cloned expert)
     n_envs: int = 8  # vectorised envs
     subprocess: bool = True  # SubprocVecEnv (both cores) instead of DummyVecEnv
     ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 512, "batch_size": 512, "n_epochs": 6,
                                                            "learning_rate": 1e-4, "clip_range": 0.1,
                                                            "ent_coef": 0.0})
-    net: dict[str, Any] = field(default_factory=lambda: {"pi": [256, 256], "vf": [256, 256], "encoder": "set"})
+    net: dict[str, Any] = field(default_factory=lambda: {"pi": [256, 256], "vf": [256, 256], "encoder": "lookahead"})
     curriculum: list[CurriculumStage] = field(default_factory=lambda: [
         CurriculumStage(until=0.3, densities=[0.1]), CurriculumStage(until=1.0, densities=[0.1, 0.2])])
 
@@ -245,23 +245,25 @@ def _acceptance(cfg: TrainConfig, policy_dir: Path, method: str) -> dict[str, An
 def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     from stable_baselines3 import PPO
 
-    from rl.policy import build_policy, describe, policy_kwargs, save_policy
+    from rl.policy import build_policy, describe, policy_class, policy_kwargs, save_policy
     from rl.teacher import (
         SceneMixEnv,
         behaviour_clone,
         collect_dagger,
         collect_expert,
         curriculum_callback,
+        fit_lookahead_linear,
         make_vec_env,
         ppo_kwargs,
         stage_pairs_all,
+        teacher_net,
     )
 
     t = cfg.teacher
     logger = _Log(out)
     pairs = stage_pairs_all(t.curriculum)
     probe = SceneMixEnv(cfg.sim, pairs[:1])
-    net = {**t.net, "scan_range_m": cfg.sim.scan_range_m}
+    net = teacher_net(t.net, cfg.sim)
     summary: dict[str, Any] = {}
     gamma = ppo_kwargs(t.ppo)["gamma"]
     clone = {"batch": t.bc_batch, "soft_tau": t.soft_tau, "mirror": t.mirror, "progress": cfg.progress}
@@ -292,14 +294,20 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         if k == 0:
             torch.manual_seed(cfg.seed)
             policy = build_policy("teacher", None, probe.observation_space, net)
+        linear_fit = None
+        if net.get("encoder") == "lookahead":  # convex fit of the linear cost, then the MLP learns the rest
+            linear_fit = fit_lookahead_linear(policy, data, t.soft_tau, seed=cfg.seed + k, mirror=t.mirror)
+            log.info("teacher stage %d: linear cost fit on %d frames, cross-entropy %.3f -> %.3f", k,
+                     linear_fit["frames"], linear_fit["ce_before"], linear_fit["ce_after"])
         rows = behaviour_clone(policy, data, t.bc_epochs if k == 0 else t.dagger_epochs,
-                               lr=t.bc_lr if k == 0 else t.bc_lr / 2, seed=cfg.seed + k, **clone)
+                               lr=t.bc_lr if k == 0 else t.bc_lr / 2, seed=cfg.seed + k,
+                               frozen=("features_extractor.linear.",) if linear_fit else (), **clone)
         for r in rows:
             logger.add("teacher_bc" if k == 0 else f"teacher_dagger{k}", r["epoch"], bc_loss=r["bc_loss"],
                        accuracy=r["accuracy"], value_loss=r["value_loss"])
         stat = {"stage": k, "episodes": t.bc_episodes if k == 0 else t.dagger_episodes, "new_frames": len(new["action"]),
                 "frames": int(len(data["action"])), "driver_success_rate": rate, "collect_s": round(collect_s, 1),
-                "final": rows[-1]}
+                "final": rows[-1], **({"linear_fit": linear_fit} if linear_fit else {})}
         logger.add("teacher_imitation", k, driver_success_rate=rate, frames=stat["frames"])
         sdir.mkdir(parents=True, exist_ok=True)
         atomic_save_npz(sdir / "data.npz", new)
@@ -323,7 +331,7 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         if last.exists():
             model = PPO.load(last, env=venv, device="cpu")
         else:
-            model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs("teacher", None, net), seed=cfg.seed,
+            model = PPO(policy_class("teacher", net), venv, policy_kwargs=policy_kwargs("teacher", None, net), seed=cfg.seed,
                         device="cpu", verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(t.ppo))
             model.policy.load_state_dict(policy.state_dict())
         done = model.num_timesteps

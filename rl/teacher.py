@@ -231,7 +231,7 @@ def collect_dagger(policy, net: dict[str, Any], sim_cfg: SimConfig, pairs: list[
 def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int, lr: float, seed: int,
                     value_coef: float = 0.5, keys: tuple[str, ...] | None = None,
                     progress: bool = True, soft_tau: float = 0.0, mirror: bool = False,
-                    n_rot: int = 21) -> list[dict[str, float]]:
+                    n_rot: int = 21, frozen: tuple[str, ...] = ()) -> list[dict[str, float]]:
     """Cross-entropy on ``data["action"]`` (+ value regression on ``data["return"]`` when present).
 
     With ``soft_tau > 0`` and ``data["costs"]`` (the expert's cost of every action), the target is the softmin
@@ -239,6 +239,8 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     how much worse each other action is (dense supervision; near-ties stop being label noise). With ``mirror``
     every sample is reflected about the robot's x axis with probability 1/2 (:func:`mirror_batch`; the world is
     left-right symmetric, so this doubles the data for free). ``n_rot`` is the number of yaw rates of the grid.
+    Parameters whose names start with one of ``frozen`` are not updated (the lookahead teacher's linear path, fitted
+    by :func:`fit_lookahead_linear`).
 
     Returns one row per epoch: ``{"epoch", "bc_loss", "accuracy", "value_loss"}`` (means over the epoch).
     """
@@ -247,13 +249,15 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     keys = keys or tuple(policy.observation_space.spaces)
     n = len(data["action"])
     g = torch.Generator().manual_seed(seed)
-    opt = torch.optim.Adam(policy.parameters(), lr=lr)
+    opt = torch.optim.Adam([p for name, p in policy.named_parameters() if not name.startswith(frozen)], lr=lr)
     policy.set_training_mode(True)
 
     def take(idx: np.ndarray) -> dict[str, torch.Tensor]:  # per batch: the cache stays float16 numpy
         return {k: torch.as_tensor(data[k][idx], dtype=torch.float32) for k in keys}
 
     mirror_rng = np.random.default_rng(seed + 1)
+    # the lookahead teacher's rollout features depend on the observation alone: computed once, not every epoch
+    cache = lookahead_feature_cache(policy, data, mirror, n_rot, keys) if has_lookahead(policy) else None
 
     rows = []
     for epoch in tqdm(range(epochs), desc="behaviour cloning", unit="epoch", disable=not progress,
@@ -265,10 +269,14 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
             obs = take(idx)
             act_t = torch.as_tensor(data["action"][idx], dtype=torch.long)
             cost = torch.as_tensor(data["costs"][idx], dtype=torch.float32) if "costs" in data else None
+            afeat = None if cache is None else torch.as_tensor(cache[0][idx], dtype=torch.float32)
             if mirror:
                 flip = torch.as_tensor(mirror_rng.random(len(idx)) < 0.5)
                 obs, act_t, cost = mirror_batch(obs, act_t, cost, flip, n_rot)
-            logits, values = policy_logits_values(policy, obs)
+                if cache is not None:
+                    afeat = torch.where(flip.view(-1, 1, 1), torch.as_tensor(cache[1][idx], dtype=torch.float32),
+                                        afeat)
+            logits, values = policy_logits_values(policy, obs, afeat)
             logp_all = torch.log_softmax(logits, -1)
             if soft_tau > 0 and cost is not None:  # cross-entropy to the expert's softmin over the whole grid
                 target = torch.softmax(-(cost - cost.min(1, keepdim=True).values) / soft_tau, -1)
@@ -293,17 +301,86 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     return rows
 
 
-def policy_logits_values(policy, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Action logits and values of an SB3 ``ActorCriticPolicy`` (discrete actions) in one forward pass."""
-    features = policy.extract_features(obs)
+def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, max_frames: int = 20_000,
+                         seed: int = 0, mirror: bool = True, n_rot: int = 21) -> dict[str, float]:
+    """Fits the linear path of a lookahead teacher (:class:`rl.networks.LookaheadTeacherExtractor`) to the expert's
+    softmin targets by convex multinomial regression (L-BFGS), and zeroes the MLP scorer's output layer, so cloning
+    starts from the best linear cost over the rollout features instead of from random logits (Adam would need
+    thousands of steps to grow weights to the tens of nats the expert's costs span). With ``mirror`` the fit also
+    sees every frame reflected. Returns the cross-entropy to the targets before and after."""
+    ext = policy.features_extractor
+    rng = np.random.default_rng(seed)
+    n = len(data["action"])
+    idx = np.sort(rng.choice(n, min(n, max_frames), replace=False))
+    sub = {k: data[k][idx] for k in (*policy.observation_space.spaces, "action", "costs")}
+    cache = lookahead_feature_cache(policy, sub, mirror, n_rot)
+    cost = torch.as_tensor(sub["costs"], dtype=torch.float32)
+    feats = torch.as_tensor(cache[0], dtype=torch.float32)
+    if mirror:
+        mcost = cost.view(len(cost), -1, n_rot).flip(-1).reshape(len(cost), -1)
+        cost = torch.cat([cost, mcost])
+        feats = torch.cat([feats, torch.as_tensor(cache[1], dtype=torch.float32)])
+    tau = soft_tau if soft_tau > 0 else 0.1
+    target = torch.softmax(-(cost - cost.min(1, keepdim=True).values) / tau, -1)
+    from rl.networks import N_LINEAR, SCORE_SCALE
+
+    def ce() -> torch.Tensor:
+        logits = SCORE_SCALE * ext.linear(feats[..., -N_LINEAR:]).squeeze(-1)
+        return -(target * torch.log_softmax(logits, -1)).sum(-1).mean()
+
+    with torch.no_grad():
+        ext.scorer[-1].weight.zero_()
+        ext.scorer[-1].bias.zero_()
+        before = float(ce())
+    opt = torch.optim.LBFGS(ext.linear.parameters(), lr=1.0, max_iter=200, line_search_fn="strong_wolfe")
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        loss = ce()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    return {"frames": int(len(cost)), "ce_before": before, "ce_after": float(ce().detach())}
+
+
+def has_lookahead(policy) -> bool:
+    return hasattr(policy.features_extractor, "action_features")
+
+
+@torch.no_grad()
+def lookahead_feature_cache(policy, data: dict[str, np.ndarray], mirror: bool, n_rot: int = 21,
+                            keys: tuple[str, ...] | None = None, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray | None]:
+    """The lookahead teacher's rollout features of every frame of ``data`` (``N x A x F``, float16) and, with
+    ``mirror``, of every frame reflected (what :func:`mirror_batch` makes of it)."""
+    ext = policy.features_extractor
+    keys = keys or tuple(policy.observation_space.spaces)
+    n = len(data["action"])
+    out = [np.empty((n, ext.n_actions, ext.n_feat), np.float16) for _ in range(1 + mirror)]
+    for s in range(0, n, chunk):
+        obs = {k: torch.as_tensor(data[k][s:s + chunk], dtype=torch.float32) for k in keys}
+        out[0][s:s + chunk] = ext.action_features(obs).numpy()
+        if mirror:
+            flip = torch.ones(len(obs[keys[0]]), dtype=torch.bool)
+            mobs, _, _ = mirror_batch(obs, torch.zeros(len(flip), dtype=torch.long), None, flip, n_rot)
+            out[1][s:s + chunk] = ext.action_features(mobs).numpy()
+    return out[0], (out[1] if mirror else None)
+
+
+def policy_logits_values(policy, obs: dict[str, torch.Tensor],
+                         action_features: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Action logits and values of an SB3 ``ActorCriticPolicy`` (discrete actions) in one forward pass
+    (``action_features``: the lookahead teacher's precomputed rollout features of this batch)."""
+    features = (policy.extract_features(obs) if action_features is None
+                else policy.features_extractor(obs, action_features))
     latent_pi, latent_vf = policy.mlp_extractor(features)
     return policy.action_net(latent_pi), policy.value_net(latent_vf)
 
 
 def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch.Tensor | None, flip: torch.Tensor,
                  n_rot: int) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor | None]:
-    """Reflects the samples where ``flip`` about the robot's x axis: y, v_y of the goal state, of the sub-goal and
-    of every pedestrian change sign, scan ray k becomes ray −k, and yaw-rate index j of the action grid becomes n_rot−1−j."""
+    """Reflects the samples where ``flip`` about the robot's x axis: y, v_y of the goal state, of the sub-goal, of the
+    path points and of every pedestrian change sign, scan ray k becomes ray −k, and yaw-rate index j of the action grid becomes n_rot−1−j."""
     out = dict(obs)
     f = flip.view(-1, 1)
     if "state" in obs:  # [g_x, g_y, d_g, v_x, v_y]
@@ -314,6 +391,8 @@ def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch
         out["peds"] = torch.where(f.unsqueeze(-1), obs["peds"] * sign, obs["peds"])
     if "subgoal" in obs:  # [x, y]
         out["subgoal"] = torch.where(f, obs["subgoal"] * obs["subgoal"].new_tensor([1.0, -1.0]), obs["subgoal"])
+    if "path" in obs:  # P x [x, y]
+        out["path"] = torch.where(f.unsqueeze(-1), obs["path"] * obs["path"].new_tensor([1.0, -1.0]), obs["path"])
     if "scan" in obs:  # rays at heading + k·2π/n → heading − k·2π/n
         rev = torch.roll(torch.flip(obs["scan"], [-1]), 1, -1)
         out["scan"] = torch.where(f, rev, obs["scan"])
@@ -375,6 +454,18 @@ def stage_pairs_all(stages: list[CurriculumStage]) -> list[tuple[str, float]]:
         for p in curriculum_pairs(st):
             seen[p] = None
     return list(seen)
+
+
+def teacher_net(net: dict[str, Any], sim_cfg: SimConfig) -> dict[str, Any]:
+    """The teacher's network description with what its extractor needs from the simulator (saved with the policy,
+    so a checkpoint rebuilds without the training config): the scan range, and for the lookahead encoder the
+    robot's limits, radius and action grid and the control period."""
+    from dataclasses import asdict
+
+    out = {**net, "scan_range_m": sim_cfg.scan_range_m}
+    if net.get("encoder") == "lookahead":
+        out.update({"robot": asdict(sim_cfg.robot), "dt_s": sim_cfg.dt_s, "path_spacing_m": sim_cfg.path_spacing_m})
+    return out
 
 
 def ppo_kwargs(ppo: dict[str, Any]) -> dict[str, Any]:

@@ -16,7 +16,8 @@ Observations (``obs_mode``):
 * ``privileged`` (for the teacher): ``state``, ``odom``, ``peds`` (K x 6: x, y, vx, vy in the robot frame,
   radius, present — nearest first), ``scan`` (a range scan of the static map, m) and ``subgoal`` (the point
   ``subgoal_lookahead_m`` ahead on the global shortest path to the goal, robot frame, m: what a global planner on
-  the map knows about the route).
+  the map knows about the route) and ``path`` (``path_points`` points every ``path_spacing_m`` along that path,
+  robot frame, m: the local shape of the route).
 
 ``state`` is the paper's s = [g_x, g_y, d_g, v_x, v_y]: the goal in the robot frame (m), its distance (m) and
 the robot's velocity in the robot frame (m/s). ``odom`` is the robot pose [x, y, yaw] in the world frame.
@@ -105,6 +106,8 @@ class SimConfig:
     privileged_peds: int = 10  # pedestrians in the privileged observation
     scan_rays: int = 72  # rays of the static-map range scan (360°)
     subgoal_lookahead_m: float = 2.0  # privileged sub-goal: this far along the global path (sim.planners.global_path)
+    path_points: int = 12  # privileged path: this many points along the global path ...
+    path_spacing_m: float = 0.25  # ... this far apart (the first one this far from the robot's closest path point)
     scan_range_m: float = 10.0  # range of the scan
     spawn_clearance_m: float = 1.0  # no pedestrian spawns closer than this to the robot's start or goal
     info_level: Literal["full", "basic"] = "full"  # basic: info without keypoints and scan (fast RL)
@@ -130,9 +133,10 @@ class SimConfig:
             raise ConfigError(f"obs_mode: expected visual, state or privileged, got {self.obs_mode!r}")
         if self.action_type not in ("continuous", "discrete"):
             raise ConfigError(f"action_type: expected continuous or discrete, got {self.action_type!r}")
-        if self.goal_radius_m <= 0 or self.scan_rays < 4 or self.privileged_peds < 1 or self.subgoal_lookahead_m <= 0:
-            raise ConfigError("goal_radius_m must be > 0, scan_rays >= 4, privileged_peds >= 1 and "
-                              "subgoal_lookahead_m > 0")
+        if (self.goal_radius_m <= 0 or self.scan_rays < 4 or self.privileged_peds < 1 or self.subgoal_lookahead_m <= 0
+                or self.path_points < 1 or self.path_spacing_m <= 0):
+            raise ConfigError("goal_radius_m must be > 0, scan_rays >= 4, privileged_peds >= 1, "
+                              "subgoal_lookahead_m > 0, path_points >= 1 and path_spacing_m > 0")
         for sub in (self.robot, self.camera, self.detector, self.crowd, self.body):
             sub.validate()
 
@@ -201,6 +205,7 @@ class CrowdNavEnv(gym.Env):
             d["peds"] = spaces.Box(-big, big, (c.privileged_peds, 6), np.float32)
             d["scan"] = spaces.Box(0.0, np.float32(c.scan_range_m), (c.scan_rays,), np.float32)
             d["subgoal"] = spaces.Box(-big, big, (2,), np.float32)
+            d["path"] = spaces.Box(-big, big, (c.path_points, 2), np.float32)
         return spaces.Dict(d)
 
     # ------------------------------------------------------------------------------------------------- reset
@@ -380,6 +385,7 @@ class CrowdNavEnv(gym.Env):
             obs["peds"] = self.privileged_peds()
             obs["scan"] = self.static_scan().astype(np.float32)
             obs["subgoal"] = self.privileged_subgoal()
+            obs["path"] = self.privileged_path()
         return obs
 
     def privileged_peds(self) -> np.ndarray:
@@ -416,6 +422,18 @@ class CrowdNavEnv(gym.Env):
         c, s = math.cos(yaw), math.sin(yaw)
         dx, dy = p[0] - x, p[1] - y
         return np.array([c * dx + s * dy, -s * dx + c * dy], np.float32)
+
+    def privileged_path(self, target: np.ndarray | None = None) -> np.ndarray:
+        """``path_points x 2``: points every ``path_spacing_m`` along the global shortest path to ``target``
+        (default: the goal), robot frame (m) — the local shape of the route (what the expert's cost-to-go field
+        encodes)."""
+        self.privileged_subgoal(target)  # plans the path if needed
+        d = self.cfg.path_spacing_m * np.arange(1, self.cfg.path_points + 1)
+        p = self._global_path.ahead(self, d, target)
+        x, y, yaw = self.robot
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = p[:, 0] - x, p[:, 1] - y
+        return np.stack([c * dx + s * dy, -s * dx + c * dy], -1).astype(np.float32)
 
     def static_scan(self) -> np.ndarray:
         """Range scan of the static map from the robot centre, rays evenly over 360° from the robot heading."""

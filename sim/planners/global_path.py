@@ -40,6 +40,11 @@ class GlobalPath:
 
     def subgoal(self, env, target: np.ndarray | None = None) -> np.ndarray:
         """The sub-goal (world frame) toward ``target`` (default: the env's goal)."""
+        return self.ahead(env, [self.lookahead_m], target)[0]
+
+    def ahead(self, env, distances, target: np.ndarray | None = None) -> np.ndarray:
+        """World-frame points ``len(distances) x 2`` at the given distances (m, increasing) along the path from
+        the point of the path closest to the robot (the target itself beyond the path's end)."""
         xy = np.asarray(env.robot[:2], float)
         target = np.asarray(env.goal if target is None else target, float)
         if self.path is None or self.target is None or np.hypot(*(self.target - target)) > 1e-6:
@@ -48,19 +53,22 @@ class GlobalPath:
         if seg_d[0] > self.replan_m:
             self._plan(xy, target)
             seg_d = _distance_to_polyline(xy, self.path)
-        # walk lookahead_m along the path from the closest point
+        # walk along the path from the closest point
         k = int(seg_d[1])
         p = self.path
         pos = seg_d[2]
-        left = self.lookahead_m
-        while k < len(p) - 1:
+        walked = 0.0
+        out = np.repeat(p[-1:].astype(float), len(distances), 0)
+        j = 0
+        while k < len(p) - 1 and j < len(distances):
             step = float(np.hypot(*(p[k + 1] - pos)))
-            if step >= left:
-                return pos + (p[k + 1] - pos) * (left / max(step, 1e-9))
-            left -= step
+            while j < len(distances) and distances[j] - walked <= step:
+                out[j] = pos + (p[k + 1] - pos) * ((distances[j] - walked) / max(step, 1e-9))
+                j += 1
+            walked += step
             pos = p[k + 1]
             k += 1
-        return p[-1].copy()
+        return out
 
 
 def _distance_to_polyline(xy: np.ndarray, path: np.ndarray) -> tuple[float, int, np.ndarray]:

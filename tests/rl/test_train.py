@@ -62,8 +62,8 @@ def test_teacher_ppo_learns_a_trivial_scene(tmp_path):
     expert instead)."""
     from stable_baselines3 import PPO
 
-    from rl.policy import policy_kwargs
-    from rl.teacher import make_vec_env, ppo_kwargs
+    from rl.policy import policy_class, policy_kwargs
+    from rl.teacher import make_vec_env, ppo_kwargs, teacher_net
 
     scene = tmp_path / "empty_room.yaml"
     scene.write_text(yaml.safe_dump(EMPTY_ROOM))
@@ -74,8 +74,9 @@ def test_teacher_ppo_learns_a_trivial_scene(tmp_path):
     venv = make_vec_env(sim_cfg, [(str(scene), 0.0)], 4, 0, subprocess=False)
     from rl.stage import TeacherConfig
 
-    net = {"encoder": TeacherConfig().net["encoder"]}
-    model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs("teacher", None, net), seed=0, device="cpu",
+    net = teacher_net({"encoder": TeacherConfig().net["encoder"]}, sim_cfg)
+    model = PPO(policy_class("teacher", net), venv, policy_kwargs=policy_kwargs("teacher", None, net), seed=0,
+                device="cpu",
                 **ppo_kwargs({"n_steps": 256, "batch_size": 256, "n_epochs": 10, "learning_rate": 1e-3,
                               "gamma": 0.95}))
     seeds = list(range(100, 110))
@@ -267,11 +268,13 @@ def test_mirror_batch_reflects_every_lateral_quantity():
     from rl.teacher import mirror_batch
 
     obs = {"state": torch.tensor([[3.0, 1.0, 3.2, 0.5, 0.2]]), "subgoal": torch.tensor([[1.5, 0.7]]),
-           "peds": torch.tensor([[[2.0, -1.0, 0.3, 0.4, 0.25, 1.0]]]), "scan": torch.arange(8.0)[None]}
+           "peds": torch.tensor([[[2.0, -1.0, 0.3, 0.4, 0.25, 1.0]]]), "scan": torch.arange(8.0)[None],
+           "path": torch.tensor([[[0.5, 0.1], [1.0, 0.3]]])}
     cost = torch.arange(105.0)[None]
     out, act_, cost_ = mirror_batch(obs, torch.tensor([3 * 21 + 4]), cost, torch.tensor([True]), 21)
     assert torch.allclose(out["state"], torch.tensor([[3.0, -1.0, 3.2, 0.5, -0.2]]))
     assert torch.allclose(out["subgoal"], torch.tensor([[1.5, -0.7]]))
+    assert torch.allclose(out["path"], torch.tensor([[[0.5, -0.1], [1.0, -0.3]]]))
     assert torch.allclose(out["peds"], torch.tensor([[[2.0, 1.0, 0.3, -0.4, 0.25, 1.0]]]))
     assert out["scan"].tolist() == [[0.0, 7.0, 6.0, 5.0, 4.0, 3.0, 2.0, 1.0]]  # ray k -> ray -k
     assert int(act_) == 3 * 21 + 16 and float(cost_[0, 3 * 21 + 16]) == 3 * 21 + 4

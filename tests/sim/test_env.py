@@ -454,3 +454,17 @@ def test_privileged_subgoal_in_an_open_room_points_at_the_goal():
     g = obs["state"][:2]
     expected = g / np.hypot(*g) * min(env.cfg.subgoal_lookahead_m, float(np.hypot(*g)))
     np.testing.assert_allclose(obs["subgoal"], expected, atol=0.05)
+
+
+def test_privileged_path_points_follow_the_route():
+    env = CrowdNavEnv(scene="corner", density=0.0, obs_mode="privileged")
+    obs, _ = env.reset(seed=1)
+    path = obs["path"]
+    assert path.shape == (env.cfg.path_points, 2) and env.observation_space["path"].contains(path)
+    steps = np.hypot(*np.diff(np.vstack([[0.0, 0.0], path]), axis=0).T)
+    # consecutive points are one spacing apart along the path (chords are never longer), nearer to the goal
+    assert np.all(steps[1:] <= env.cfg.path_spacing_m + 1e-5) and np.all(steps[1:] > 0.5 * env.cfg.path_spacing_m)
+    x, y, yaw = env.robot
+    c, s = math.cos(yaw), math.sin(yaw)
+    k = int(round(env.cfg.subgoal_lookahead_m / env.cfg.path_spacing_m)) - 1
+    np.testing.assert_allclose(path[k], obs["subgoal"], atol=1e-4)  # the sub-goal is the point 2 m along

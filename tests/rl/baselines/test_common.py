@@ -165,3 +165,15 @@ def test_train_cli_vint_without_a_dataset_is_one_clear_error(tmp_path):
     err = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
     assert len(err) == 1 and "icrowdnav/smoke" in err[0] and "make record" in err[0], r.stderr
     assert not (tmp_path / "checkpoints").exists()  # nothing written
+
+
+def test_global_path_points_ahead_are_spaced_along_the_path():
+    e = CrowdNavEnv(scene="corner", density=0.0, obs_mode="state")
+    e.reset(seed=3)
+    g = GlobalPath(lookahead_m=2.0)
+    g.reset(e)
+    g.path = np.array([e.robot[:2], e.robot[:2] + [1.0, 0.0], e.robot[:2] + [1.0, 3.0]])
+    g.target = g.path[-1].copy()
+    pts = g.ahead(e, [0.5, 1.0, 1.5, 3.0, 9.0], g.target) - e.robot[:2]
+    np.testing.assert_allclose(pts, [[0.5, 0.0], [1.0, 0.0], [1.0, 0.5], [1.0, 2.0], [1.0, 3.0]], atol=1e-9)
+    np.testing.assert_allclose(g.subgoal(e, g.target) - e.robot[:2], [1.0, 1.0], atol=1e-9)

@@ -1,0 +1,111 @@
+"""The lookahead teacher: rollout features, the scored policy, the convex fit of its linear cost."""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from rl.networks import N_LINEAR, LookaheadTeacherExtractor, unicycle_arcs
+from rl.policy import ScoredPolicy, build_policy, describe, load_policy, save_policy
+from rl.teacher import behaviour_clone, collect_expert, fit_lookahead_linear, mirror_batch, teacher_net
+from sim.env import CrowdNavEnv, SimConfig
+from sim.robot import action_grid, unicycle_step
+
+SIM = SimConfig(max_episode_s=6.0)
+N_ROT = 21
+
+
+@pytest.fixture(scope="module")
+def space():
+    env = CrowdNavEnv(config=replace(SIM, scene="hallway", obs_mode="privileged", action_type="discrete"))
+    return env.observation_space
+
+
+def _policy(space, seed=0):
+    torch.manual_seed(seed)
+    return build_policy("teacher", None, space, teacher_net({"encoder": "lookahead"}, SIM))
+
+
+def _obs(peds=(), scan_m=10.0, goal=(4.0, 0.0), path_dir=(1.0, 0.0)):
+    """A robot-frame observation: pedestrians [x, y, vx, vy], a uniform scan, the goal and a straight path."""
+    p = torch.zeros(1, 10, 6)
+    for k, (x, y, vx, vy) in enumerate(peds):
+        p[0, k] = torch.tensor([x, y, vx, vy, 0.25, 1.0])
+    d = torch.tensor(path_dir) / torch.linalg.vector_norm(torch.tensor(path_dir))
+    path = (0.25 * torch.arange(1, 13.0))[:, None] * d
+    g = torch.tensor(goal)
+    return {"state": torch.tensor([[g[0], g[1], float(torch.linalg.vector_norm(g)), 0.0, 0.0]]),
+            "odom": torch.zeros(1, 3), "peds": p, "scan": torch.full((1, 72), scan_m),
+            "subgoal": path[7][None], "path": path[None]}
+
+
+def test_arcs_match_the_robot_kinematics():
+    grid = torch.as_tensor(action_grid(SIM.robot), dtype=torch.float32)
+    times = torch.tensor([0.1, 0.7, 2.0])
+    xy, th = unicycle_arcs(grid, times)
+    for a in (0, 10, 52, 60, 104):
+        for s, t in enumerate(times.tolist()):
+            x, y, yaw = unicycle_step(0.0, 0.0, 0.0, *grid[a].tolist(), t)
+            assert xy[a, s].tolist() == pytest.approx([x, y], abs=1e-5)
+            assert math.cos(float(th[a, s]) - yaw) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_features_see_a_pedestrian_ahead_and_reward_the_route(space):
+    ext = _policy(space).features_extractor
+    assert isinstance(ext, LookaheadTeacherExtractor)
+    s = len(ext.times)
+    straight_fast, stop, straight_slow = 4 * N_ROT + N_ROT // 2, N_ROT // 2, 1 * N_ROT + N_ROT // 2
+    f = ext.action_features(_obs(peds=[(1.5, 0.0, 0.0, 0.0)]))[0]
+    # driving straight at 1 m/s into a standing person 1.5 m ahead: negative clearance, a predicted contact
+    assert f[straight_fast, :s].min() < 0 and f[straight_fast, -N_LINEAR] > 0
+    assert f[stop, :s].min() > 0.5 and f[stop, -N_LINEAR] == 0  # standing still touches nobody
+    # without the person, going straight along the route gains ~2 m of cost-to-go, standing still nothing
+    g = ext.action_features(_obs())[0]
+    gain = g[:, -N_LINEAR + 4]
+    assert float(gain[straight_fast]) == pytest.approx(2.0, abs=0.05) and float(gain[stop]) == pytest.approx(0.0, abs=1e-5)
+    assert float(gain[straight_slow]) == pytest.approx(0.5, abs=0.05)
+    # a wall 0.5 m ahead (every ray ends there): the fast straight arc predicts obstacle contact
+    w = ext.action_features(_obs(scan_m=0.6))[0]
+    assert w[straight_fast, -N_LINEAR + 2] > 0 and w[stop, -N_LINEAR + 2] == 0
+
+
+def test_features_are_mirror_symmetric(space):
+    """Reflecting the world about the robot's x axis maps action (v, ω) to (v, -ω) and keeps every clearance,
+    intrusion and progress feature (the cloning cache relies on it)."""
+    ext = _policy(space).features_extractor
+    obs = _obs(peds=[(2.0, 0.7, -0.5, 0.2), (1.0, -1.2, 0.3, 0.6)], goal=(3.0, 1.5), path_dir=(1.0, 0.5))
+    obs["scan"] = torch.linspace(1.0, 6.0, 72)[None]
+    flip = torch.ones(1, dtype=torch.bool)
+    mobs, _, _ = mirror_batch(obs, torch.zeros(1, dtype=torch.long), None, flip, N_ROT)
+    f = ext.action_features(obs)[0].view(5, N_ROT, -1)
+    m = ext.action_features(mobs)[0].view(5, N_ROT, -1).flip(1)
+    s = len(ext.times)
+    sym = list(range(2 * s + 4)) + [f.shape[-1] - N_LINEAR + k for k in range(N_LINEAR)]
+    np.testing.assert_allclose(f[..., sym].numpy(), m[..., sym].numpy(), atol=1e-4)
+
+
+def test_scored_policy_round_trips_through_a_checkpoint(tmp_path, space):
+    policy = _policy(space)
+    assert isinstance(policy, ScoredPolicy)
+    save_policy(tmp_path / "t", policy, describe("teacher", None, space, teacher_net({"encoder": "lookahead"}, SIM)))
+    again, desc = load_policy(tmp_path / "t")
+    obs = _obs(peds=[(1.5, 0.3, -0.2, 0.0)])
+    with torch.no_grad():
+        a = policy.get_distribution(obs).distribution.logits
+        b = again.get_distribution(obs).distribution.logits
+    assert isinstance(again, ScoredPolicy) and desc["net"]["encoder"] == "lookahead"
+    assert torch.allclose(a, b)
+
+
+def test_linear_fit_and_cloning_lower_the_cross_entropy(space):
+    data = collect_expert(replace(SIM, max_episode_s=4.0), [("hallway", 0.1)], 2, 0, 0.99, 1, progress=False)
+    policy = _policy(space)
+    fit = fit_lookahead_linear(policy, data, 0.1)
+    assert fit["frames"] == 2 * len(data["action"]) and fit["ce_after"] < 0.75 * fit["ce_before"]
+    frozen = policy.features_extractor.linear.weight.detach().clone()
+    rows = behaviour_clone(policy, data, 2, 64, 1e-3, 0, progress=False, soft_tau=0.1, mirror=True,
+                           frozen=("features_extractor.linear.",))
+    assert torch.equal(policy.features_extractor.linear.weight, frozen)  # the fitted cost stays
+    assert rows[-1]["bc_loss"] <= fit["ce_after"] + 0.3
