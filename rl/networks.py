@@ -224,9 +224,10 @@ class LookaheadTeacherExtractor(SetTeacherExtractor):
     For each of the A = 5 x 21 commands the layer rolls the robot forward along its unicycle arc (a fixed buffer) for
     2 s, predicts every observed pedestrian with constant velocity (their true robot-frame velocity, privileged),
     and measures per action: the clearance to the nearest pedestrian and to the nearest static-scan point at each
-    of the S lookahead times, discounted intrusion sums (below a 0.15 m gap and within the 0.8 m private zone, the
-    same for obstacles), the progress towards the privileged sub-goal and the goal, the heading error to the
-    sub-goal at the end of the arc, and the command itself. These parameter-free features (computed from the
+    of the S lookahead times, discounted intrusion sums over time (below a 0.15 m gap and within the 0.8 m private
+    zone for pedestrians, below 0.05 m and 0.25 m for obstacles), the progress along the privileged global path
+    (cost-to-go through its best point) and towards the goal, the heading error to the path 1 m further at the end
+    of the arc (or the approach to the goal when it is near), and the command itself. These parameter-free features (computed from the
     observation alone) plus a learned context vector go through one shared MLP that outputs each action's logit —
     the policy network is a learned cost over rollouts, like the expert it imitates, but its weights are fitted by
     cloning and PPO. The first ``A`` outputs of :meth:`forward` are the logits (:class:`ScoredPolicy` reads them);
@@ -276,13 +277,20 @@ class LookaheadTeacherExtractor(SetTeacherExtractor):
         # pedestrians, constant velocity: B K S 2
         peds = obs["peds"]
         present = peds[..., 5] > 0.5
-        pp = peds[:, :, None, :2] + self.times[None, None, :, None] * peds[:, :, None, 2:4]
-        d = torch.linalg.vector_norm(arcs[None, :, None] - pp[:, None], dim=-1)  # B A K S
-        d = d - peds[:, None, :, None, 4] - self.radius_m
-        d = d.masked_fill(~present[:, None, :, None], CLEAR_CAP_M + 1.0)
-        ped_min = d.amin(2).clamp(-0.5, CLEAR_CAP_M)  # B A S
-        ped_contact = ((0.15 - d).clamp_min(0.0) * disc).sum((2, 3))
-        ped_comfort = ((0.8 - d).clamp_min(0.0) ** 2 * disc).sum((2, 3)) * LOOKAHEAD_STEP_S
+        pp = peds[:, :, None, :2] + self.times[None, None, :, None] * peds[:, :, None, 2:4]  # B K S 2
+        # |a - p|² = |a|² - 2 a·p + |p|² (one contraction instead of a B A K S 2 difference tensor)
+        d2 = arcs[None, :, None, :, 0] * pp[:, None, :, :, 0]
+        d2.addcmul_(arcs[None, :, None, :, 1].expand_as(d2), pp[:, None, :, :, 1].expand_as(d2)).mul_(-2.0)
+        d2 += (arcs ** 2).sum(-1)[None, :, None, :]
+        d2 += (pp ** 2).sum(-1)[:, None]
+        d = d2.clamp_min_(0.0).sqrt_()
+        d -= (peds[..., 4] + self.radius_m)[:, None, :, None]
+        d.masked_fill_(~present[:, None, :, None], CLEAR_CAP_M + 1.0)
+        # the nearest pedestrian at each lookahead time (B A S): clearance and its discounted intrusions
+        d = d.amin(2)
+        ped_min = d.clamp(-0.5, CLEAR_CAP_M)
+        ped_contact = ((0.15 - d).clamp_min(0.0) * disc).sum(-1)
+        ped_comfort = ((0.8 - d).clamp_min(0.0) ** 2 * disc).sum(-1) * LOOKAHEAD_STEP_S
         # static obstacles: the end points of the nearest scan hits (farther ones cannot be the nearest obstacle of
         # an arc that stays within the horizon), B R 2
         rng, idx = obs["scan"].topk(min(SCAN_POINTS, obs["scan"].shape[-1]), dim=-1, largest=False)

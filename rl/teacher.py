@@ -5,8 +5,12 @@ velocities, a range scan of the static map) and needs no rendering, so thousands
 cores. Training, on the *training* scenes only:
 
 1. **Warm start** (``bc_episodes``): the privileged expert (:mod:`sim.expert`) drives episodes over every
-   (scene, density) of the curriculum; the policy is trained by cross-entropy on its actions (mapped to the
-   5 x 21 grid) and the value head by regression on the discounted returns of the paper's reward.
+   (scene, density) of the curriculum and scores every action of the 5 x 21 grid; the policy is trained by
+   cross-entropy to the softmin of those costs and the value head by regression on the discounted returns of the
+   paper's reward. The default teacher network (``encoder="lookahead"``, :class:`rl.networks.LookaheadTeacherExtractor`)
+   scores each action from kinematic rollout features; its linear cost is first fitted by convex regression
+   (:func:`fit_lookahead_linear`), then the rest is cloned. Then ``dagger_iterations`` of DAgger: the teacher
+   drives, the expert labels every visited state (no rendering).
 2. **PPO** (stable-baselines3, ``SubprocVecEnv`` on both cores, the paper's reward) continues from the warm start.
    A curriculum widens the (scene, density) pool with training progress (:class:`SceneMixEnv`). ``ppo_steps = 0``
    skips PPO (the teacher is then the cloned expert; the report says so).
