@@ -26,7 +26,7 @@ def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_c
     from stable_baselines3 import PPO
 
     from rl.policy import policy_class, policy_kwargs
-    from rl.teacher import make_vec_env, ppo_kwargs, teacher_net
+    from rl.teacher import attach_lookahead_cache, make_vec_env, ppo_kwargs, teacher_net
 
     t = train_cfg.teacher
     out = {}
@@ -39,6 +39,7 @@ def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_c
             net = teacher_net(dict(t.net), sim_cfg)
             model = PPO(policy_class("teacher", net), venv, policy_kwargs=policy_kwargs("teacher", None, net),
                         seed=seed, device="cpu", **ppo_kwargs(t.ppo))
+            attach_lookahead_cache(model)
             chunk = model.n_steps * n_envs
             model.learn(chunk)  # warm-up: one rollout + update
             t0, done = time.perf_counter(), 0

@@ -37,15 +37,29 @@ def space_from_json(d: dict[str, Any]) -> gym.spaces.Dict:
                                               np.float32) for k, v in d.items()})
 
 
+LOOKAHEAD_KEY = "_lookahead_features"  # a batch's precomputed rollout features (rl.teacher.attach_lookahead_cache)
+
+
 class ScoredPolicy(ActorCriticPolicy):
     """An actor-critic whose action logits are scored by the features extractor itself (the lookahead teacher,
     :class:`rl.networks.LookaheadTeacherExtractor`): the actor head takes the first ``n`` features as logits, the
-    critic is SB3's MLP on all of them. Use with ``net_arch["pi"] = []``."""
+    critic is SB3's MLP on all of them. Use with ``net_arch["pi"] = []``. An observation batch may carry its
+    precomputed rollout features under :data:`LOOKAHEAD_KEY` (PPO's cached rollout buffer)."""
 
     def _build(self, lr_schedule) -> None:
         super()._build(lr_schedule)
         self.action_net = TakeScores(int(self.action_space.n))
         self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+
+    def extract_features(self, obs, features_extractor=None):
+        if isinstance(obs, dict) and LOOKAHEAD_KEY in obs:
+            from stable_baselines3.common.preprocessing import preprocess_obs
+
+            obs = dict(obs)
+            cached = obs.pop(LOOKAHEAD_KEY)
+            pre = preprocess_obs(obs, self.observation_space, normalize_images=self.normalize_images)
+            return (features_extractor or self.features_extractor)(pre, cached)
+        return super().extract_features(obs, features_extractor)
 
 
 def policy_class(kind: str, net: dict[str, Any]) -> type[ActorCriticPolicy]:

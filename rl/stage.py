@@ -248,6 +248,7 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     from rl.policy import build_policy, describe, policy_class, policy_kwargs, save_policy
     from rl.teacher import (
         SceneMixEnv,
+        attach_lookahead_cache,
         behaviour_clone,
         collect_dagger,
         collect_expert,
@@ -334,6 +335,7 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             model = PPO(policy_class("teacher", net), venv, policy_kwargs=policy_kwargs("teacher", None, net), seed=cfg.seed,
                         device="cpu", verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(t.ppo))
             model.policy.load_state_dict(policy.state_dict())
+        attach_lookahead_cache(model)
         done = model.num_timesteps
         t0 = time.perf_counter()
         cb = [curriculum_callback(t.curriculum, t.ppo_steps), _checkpoint_callback(out / "ppo", model, 20_000),

@@ -431,6 +431,54 @@ def make_vec_env(sim_cfg: SimConfig, pairs: list[tuple[str, float]], n_envs: int
     return venv
 
 
+def _lookahead_buffer_class():
+    from stable_baselines3.common.buffers import DictRolloutBuffer
+
+    from rl.policy import LOOKAHEAD_KEY
+
+    class _Buffer(DictRolloutBuffer):
+        """A rollout buffer that computes the lookahead teacher's rollout features of every stored observation once
+        per rollout (they depend on the observation alone) and hands them to the policy with each minibatch, so
+        PPO's epochs do not recompute them (:class:`rl.policy.ScoredPolicy` reads ``LOOKAHEAD_KEY``)."""
+
+        features_fn = None
+
+        def reset(self) -> None:
+            super().reset()
+            self._lookahead: torch.Tensor | None = None
+
+        @torch.no_grad()
+        def _features(self) -> torch.Tensor:
+            n = len(next(iter(self.observations.values())))
+            parts = []
+            for s in range(0, n, 2048):
+                obs = {k: torch.as_tensor(v[s:s + 2048], dtype=torch.float32) for k, v in self.observations.items()}
+                parts.append(self.features_fn(obs))
+            return torch.cat(parts)
+
+        def _get_samples(self, batch_inds, env=None):
+            samples = super()._get_samples(batch_inds, env)
+            if self.features_fn is not None:  # called after get() flattened the observations
+                if self._lookahead is None:
+                    self._lookahead = self._features()
+                samples.observations[LOOKAHEAD_KEY] = self._lookahead[torch.as_tensor(batch_inds)]
+            return samples
+
+    return _Buffer
+
+
+def attach_lookahead_cache(model) -> None:
+    """Gives a PPO model of the lookahead teacher a rollout buffer that caches the rollout features (no-op for other
+    policies). Call after building or loading the model."""
+    if not has_lookahead(model.policy):
+        return
+    rb = model.rollout_buffer
+    buf = _lookahead_buffer_class()(rb.buffer_size, rb.observation_space, rb.action_space, device=rb.device,
+                                    gae_lambda=rb.gae_lambda, gamma=rb.gamma, n_envs=rb.n_envs)
+    buf.features_fn = model.policy.features_extractor.action_features
+    model.rollout_buffer = buf
+
+
 def curriculum_callback(stages: list[CurriculumStage], total_steps: int, start_steps: int = 0):
     """An SB3 callback that sets each env's (scene, density) pool from the training progress."""
     from stable_baselines3.common.callbacks import BaseCallback

@@ -109,3 +109,29 @@ def test_linear_fit_and_cloning_lower_the_cross_entropy(space):
                            frozen=("features_extractor.linear.",))
     assert torch.equal(policy.features_extractor.linear.weight, frozen)  # the fitted cost stays
     assert rows[-1]["bc_loss"] <= fit["ce_after"] + 0.3
+
+
+def test_ppo_rollout_feature_cache_changes_nothing_but_speed():
+    """PPO's minibatches carry the rollout features computed once per rollout; the policy's evaluation of a batch
+    is the same with and without them."""
+    from stable_baselines3 import PPO
+
+    from rl.policy import LOOKAHEAD_KEY, policy_class, policy_kwargs
+    from rl.teacher import attach_lookahead_cache, make_vec_env
+
+    torch.manual_seed(0)
+    venv = make_vec_env(SIM, [("hallway", 0.1)], 2, 0, subprocess=False)
+    net = teacher_net({"encoder": "lookahead"}, SIM)
+    model = PPO(policy_class("teacher", net), venv, policy_kwargs=policy_kwargs("teacher", None, net), seed=0,
+                device="cpu", n_steps=32, batch_size=32, n_epochs=1)
+    attach_lookahead_cache(model)
+    model.learn(64)
+    batch = next(model.rollout_buffer.get(16))
+    assert LOOKAHEAD_KEY in batch.observations
+    plain = {k: v for k, v in batch.observations.items() if k != LOOKAHEAD_KEY}
+    with torch.no_grad():
+        cached = model.policy.evaluate_actions(batch.observations, batch.actions)
+        fresh = model.policy.evaluate_actions(plain, batch.actions)
+    for a, b in zip(cached, fresh, strict=True):
+        assert torch.allclose(a, b, atol=1e-5)
+    venv.close()
