@@ -143,6 +143,17 @@ def load_policy(ckpt: Path) -> tuple[ActorCriticPolicy, dict[str, Any]]:
     return policy, desc
 
 
+def freeze_actor(policy: ActorCriticPolicy) -> list[torch.nn.Parameter]:
+    """Stops gradients into everything but the value branch (``mlp_extractor.value_net``, ``value_net``): the
+    shared extractor, the policy MLP, the action head (and a log-std). Returns the parameters it froze (PPO's
+    critic warm-up: the cloned critic is poor, so it is fitted on-policy before the actor moves)."""
+    critic = {id(p) for m in (policy.mlp_extractor.value_net, policy.value_net) for p in m.parameters()}
+    frozen = [p for p in policy.parameters() if id(p) not in critic and p.requires_grad]
+    for p in frozen:
+        p.requires_grad_(False)
+    return frozen
+
+
 def obs_to_tensor(obs: dict[str, np.ndarray], batch: bool = False) -> dict[str, torch.Tensor]:
     """A (batched) observation dict as float tensors."""
     return {k: torch.as_tensor(np.asarray(v, np.float32)) if batch else

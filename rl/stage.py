@@ -75,6 +75,7 @@ class TeacherConfig:
     dagger_beta0: float = 0.5  # probability that the expert drives a step in the first DAgger iteration (0 later)
     dagger_epochs: int = 4  # cloning epochs on the aggregate after each iteration
     ppo_steps: int = 200_000  # PPO env steps after the warm start (0 = the teacher is the cloned expert)
+    critic_warmup_steps: int = 0  # first PPO steps train only the value head (the actor is frozen)
     n_envs: int = 8  # vectorised envs
     subprocess: bool = True  # SubprocVecEnv (both cores) instead of DummyVecEnv
     ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 512, "batch_size": 512, "n_epochs": 6,
@@ -156,8 +157,8 @@ class TrainConfig(BaseStageConfig):
                        ("acceptance.episodes", self.acceptance.episodes)):
             if v < 1:
                 raise ConfigError(f"train.{key}: expected an integer >= 1, got {v}")
-        if t.ppo_steps < 0 or self.finetune.ppo_steps < 0:
-            raise ConfigError("train: ppo_steps must be >= 0")
+        if t.ppo_steps < 0 or self.finetune.ppo_steps < 0 or t.critic_warmup_steps < 0:
+            raise ConfigError("train: ppo_steps and teacher.critic_warmup_steps must be >= 0")
         if not (0 <= d.beta0 <= 1 and 0 <= d.beta_decay <= 1):
             raise ConfigError(f"train.dagger: beta0 and beta_decay must be in [0, 1], got {d.beta0}, {d.beta_decay}")
         if not d.scenes or not d.densities or not self.acceptance.scenes or not self.acceptance.densities:
@@ -245,7 +246,7 @@ def _acceptance(cfg: TrainConfig, policy_dir: Path, method: str) -> dict[str, An
 def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     from stable_baselines3 import PPO
 
-    from rl.policy import build_policy, describe, policy_class, policy_kwargs, save_policy
+    from rl.policy import build_policy, describe, freeze_actor, policy_class, policy_kwargs, save_policy
     from rl.teacher import (
         SceneMixEnv,
         attach_lookahead_cache,
@@ -340,7 +341,14 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         t0 = time.perf_counter()
         cb = [curriculum_callback(t.curriculum, t.ppo_steps), _checkpoint_callback(out / "ppo", model, 20_000),
               _progress_callback(t.ppo_steps, "teacher PPO", cfg.progress)]
-        model.learn(max(0, t.ppo_steps - done), callback=cb, reset_num_timesteps=False, tb_log_name="ppo")
+        warm = min(t.critic_warmup_steps, t.ppo_steps)
+        if done < warm:  # fit the cloned critic on-policy before the actor moves
+            frozen = freeze_actor(model.policy)
+            model.learn(warm - done, callback=cb, reset_num_timesteps=False, tb_log_name="ppo")
+            for p in frozen:
+                p.requires_grad_(True)
+        model.learn(max(0, t.ppo_steps - model.num_timesteps), callback=cb, reset_num_timesteps=False,
+                    tb_log_name="ppo")
         summary["ppo_steps_per_s"] = round((model.num_timesteps - done) / max(time.perf_counter() - t0, 1e-9), 1)
         ppo_steps = int(model.num_timesteps)
         last.parent.mkdir(parents=True, exist_ok=True)

@@ -106,6 +106,7 @@ from rl.baselines.common import (
     tracked_pedestrians,
     training_pairs,
 )
+from rl.policy import freeze_actor
 
 NAME = "drl_vo"
 MAP_CELLS = 80  # kinematic / lidar map size (cells), the original's
@@ -656,16 +657,6 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
                   reward=asdict(c.reward))
     summary["budget"] = budget
     return summary
-
-
-def freeze_actor(policy: ActorCriticPolicy) -> list[nn.Parameter]:
-    """Stops gradients into everything but the value branch (``mlp_extractor.value_net``, ``value_net``): the
-    shared extractor, the policy MLP, the action head and its log-std. Returns the parameters it froze."""
-    critic = {id(p) for m in (policy.mlp_extractor.value_net, policy.value_net) for p in m.parameters()}
-    frozen = [p for p in policy.parameters() if id(p) not in critic and p.requires_grad]
-    for p in frozen:
-        p.requires_grad_(False)
-    return frozen
 
 
 def describe_inputs(policy: ActorCriticPolicy) -> dict[str, Any]:

@@ -281,3 +281,24 @@ def test_mirror_batch_reflects_every_lateral_quantity():
     assert int(act_) == 3 * 21 + 16 and float(cost_[0, 3 * 21 + 16]) == 3 * 21 + 4
     same, act2, _ = mirror_batch(obs, torch.tensor([5]), cost, torch.tensor([False]), 21)
     assert all(torch.equal(same[k], obs[k]) for k in obs) and int(act2) == 5
+
+
+def test_teacher_stage_end_to_end_on_tiny_sizes(tmp_path):
+    """The teacher stage on the smoke sizes: expert cloning with the lookahead's convex linear fit, one DAgger
+    iteration, PPO with a critic warm-up (actor frozen for the first 256 steps), the acceptance run, provenance."""
+    from rl.stage import TrainConfig, run
+
+    cfg = load_config(TrainConfig, "train", "smoke", {
+        "data_dir": str(tmp_path), "variant": "teacher", "acceptance.scenes": "hallway", "acceptance.episodes": "1",
+        "workers": "1", "threads": "1", "progress": "false"})
+    assert cfg.teacher.net["encoder"] == "lookahead" and cfg.teacher.critic_warmup_steps == 256
+    run(cfg)
+    out = tmp_path / "checkpoints" / "policy" / "teacher"
+    desc = json.loads((out / "policy.json").read_text())
+    assert desc["net"]["encoder"] == "lookahead" and desc["produced_by"]["ppo_steps"] >= 512
+    m = json.loads((out / "metrics.json").read_text())
+    assert [s["stage"] for s in m["imitation"]] == [0, 1]
+    assert all(s["linear_fit"]["ce_after"] <= s["linear_fit"]["ce_before"] for s in m["imitation"])
+    assert (out / "manifest.json").is_file() and (out / "imitation" / "01" / "data.npz").is_file()
+    policy, _ = load_policy(out)
+    assert type(policy).__name__ == "ScoredPolicy"

@@ -464,7 +464,5 @@ def test_privileged_path_points_follow_the_route():
     steps = np.hypot(*np.diff(np.vstack([[0.0, 0.0], path]), axis=0).T)
     # consecutive points are one spacing apart along the path (chords are never longer), nearer to the goal
     assert np.all(steps[1:] <= env.cfg.path_spacing_m + 1e-5) and np.all(steps[1:] > 0.5 * env.cfg.path_spacing_m)
-    x, y, yaw = env.robot
-    c, s = math.cos(yaw), math.sin(yaw)
     k = int(round(env.cfg.subgoal_lookahead_m / env.cfg.path_spacing_m)) - 1
     np.testing.assert_allclose(path[k], obs["subgoal"], atol=1e-4)  # the sub-goal is the point 2 m along

@@ -16,6 +16,7 @@ import yaml
 from pipeline.errors import ConfigError, CorruptArtifactError
 from rl.baselines import drl_vo
 from rl.baselines.common import save_baseline
+from rl.policy import freeze_actor
 from rl.stage import TeacherConfig, TrainConfig
 from rl.teacher import CurriculumStage
 from sim.env import CrowdNavEnv, SimConfig
@@ -145,7 +146,7 @@ def test_config_validate_names_the_field():
 def test_freeze_actor_leaves_only_the_value_branch_trainable():
     c = replace(drl_vo.Config(), width=8, features_dim=32, pi=[16], vf=[16])
     policy = drl_vo.build_policy(c.net())
-    frozen = drl_vo.freeze_actor(policy)
+    frozen = freeze_actor(policy)
     trainable = {n for n, p in policy.named_parameters() if p.requires_grad}
     assert trainable and all(n.startswith(("mlp_extractor.value_net.", "value_net.")) for n in trainable)
     assert {n for n, p in policy.named_parameters() if not p.requires_grad} >= {"log_std", "action_net.weight"}
