@@ -57,7 +57,7 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
     from recorder.mcap_io import EpisodeWriter
     from recorder.schema import episode_meta_from_env, frame_from_env
     from rl.observe import StudentObserver, env_cameras, load_student_encoder, teacher_observation
-    from rl.policy import act
+    from rl.policy import act, action_logits
 
     torch.set_num_threads(1)
     sim_cfg: SimConfig = args["sim"]
@@ -77,17 +77,20 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
                                                     f"beta{args['beta']:g}")
     rows: dict[str, list] = {}
     labels: list[int] = []
+    teacher_logits: list[np.ndarray] = []
     student_steps = 0
     cmd, reward, done, step = (0.0, 0.0), 0.0, False, 0
     with EpisodeWriter(raw / f"{name}.mcap", meta, env.layout.occupancy) as writer:
         while True:
             s_obs = observer(obs)
-            label = act(teacher, teacher_observation(env))
+            logits = action_logits(teacher, teacher_observation(env))
+            label = int(np.argmax(logits))
             writer.add(frame_from_env(env, obs, info, step, command=cmd, reward=reward, done=done,
                                       label=env.decode_action(label)))
             for k, v in s_obs.items():
                 rows.setdefault(k, []).append(v.astype(np.float16) if k == "bev" else v)
             labels.append(label)
+            teacher_logits.append(logits.astype(np.float32))
             if done:
                 break
             a = label
@@ -100,6 +103,7 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
     outcome = info.get("outcome") or "timeout"
     arrays = {k: np.stack(v) for k, v in rows.items()}
     arrays["action"] = np.asarray(labels, np.int64)
+    arrays["teacher_logits"] = np.stack(teacher_logits)
     tmp = feat / f"{name}.tmp.npz"
     np.savez(tmp, **arrays)
     tmp.replace(feat / f"{name}.npz")

@@ -161,6 +161,13 @@ def obs_to_tensor(obs: dict[str, np.ndarray], batch: bool = False) -> dict[str, 
 
 
 @torch.no_grad()
+def action_logits(policy: ActorCriticPolicy, obs: dict[str, np.ndarray]) -> np.ndarray:
+    """The logits over the action grid of one observation (``N_ACTIONS``; the deterministic action is their argmax)."""
+    dist = policy.get_distribution(obs_to_tensor({k: obs[k] for k in policy.observation_space.spaces}))
+    return dist.distribution.logits[0].numpy()
+
+
+@torch.no_grad()
 def act(policy: ActorCriticPolicy, obs: dict[str, np.ndarray], deterministic: bool = True) -> int:
     """The action index of one observation."""
     dist = policy.get_distribution(obs_to_tensor({k: obs[k] for k in policy.observation_space.spaces}))

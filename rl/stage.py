@@ -97,6 +97,7 @@ class DaggerConfig:
     bc_epochs: int = 8  # cloning epochs on the aggregate after each iteration
     bc_batch: int = 128
     bc_lr: float = 5e-4
+    soft_tau: float = 1.0  # > 0: clone the teacher's action distribution softmax(logits / soft_tau); 0: its argmax
     scenes: list[str] = field(default_factory=lambda: ["hallway", "corner", "doorway", "cluttered_room", "open_crowd"])
     densities: list[float] = field(default_factory=lambda: [0.1, 0.2])
 
@@ -159,6 +160,8 @@ class TrainConfig(BaseStageConfig):
                 raise ConfigError(f"train.{key}: expected an integer >= 1, got {v}")
         if t.ppo_steps < 0 or self.finetune.ppo_steps < 0 or t.critic_warmup_steps < 0:
             raise ConfigError("train: ppo_steps and teacher.critic_warmup_steps must be >= 0")
+        if d.soft_tau < 0:
+            raise ConfigError(f"train.dagger.soft_tau: expected >= 0, got {d.soft_tau}")
         if not (0 <= d.beta0 <= 1 and 0 <= d.beta_decay <= 1):
             raise ConfigError(f"train.dagger: beta0 and beta_decay must be in [0, 1], got {d.beta0}, {d.beta_decay}")
         if not d.scenes or not d.densities or not self.acceptance.scenes or not self.acceptance.densities:
@@ -469,7 +472,11 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         if k == 0 and "bev" in space.spaces:
             policy.features_extractor.set_bev_stats(*bev_stats(data))
         before = bc_loss(policy, new)
-        hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, cfg.seed + k, progress=cfg.progress)
+        soft = d.soft_tau > 0 and len(data.get("teacher_logits", ())) == len(data["action"])
+        if soft:  # distillation: the teacher's distribution over the grid (behaviour_clone's softmin of "costs")
+            data["costs"] = -data.pop("teacher_logits") * (0.1 / d.soft_tau)
+        hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, cfg.seed + k, progress=cfg.progress,
+                               soft_tau=0.1 if soft else 0.0)
         after = bc_loss(policy, new)
         frames_total = int(len(data["action"]))
         for r in hist:
