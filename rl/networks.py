@@ -200,9 +200,9 @@ LOOKAHEAD_DISCOUNT_S = 1.5  # time constant of the discount on predicted intrusi
 CLEAR_CAP_M = 3.0  # clearances are clipped to [-0.5, this]
 SCORE_SCALE = 10.0  # logits = this x the linear path's output + the MLP's: the expert's costs differ by tens of
 # nats at τ = 0.1, which the linear path reaches with weights of order one
-SCAN_POINTS = 24
+SCAN_POINTS = 24  # nearest scan hits the lookahead measures obstacle clearance against
 N_LINEAR = 10  # rollout features of the linear cost (the last ones of action_features)
-NEAR_GOAL_M = 0.5  # closer than this to the goal, the cost rewards reaching it instead of the route's heading  # nearest scan hits the lookahead measures obstacle clearance against
+NEAR_GOAL_M = 0.5  # closer than this to the goal, the cost rewards reaching it instead of the route's heading
 
 
 def unicycle_arcs(grid: torch.Tensor, times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -254,7 +254,7 @@ class LookaheadTeacherExtractor(SetTeacherExtractor):
         self.register_buffer("end_heading", heading[:, -1], persistent=False)  # A
         self.register_buffer("disc", torch.exp(-times / LOOKAHEAD_DISCOUNT_S), persistent=False)
         self.path = "path" in observation_space.spaces
-        if self.path:  # arc length of each path point (the env's spacing, recovered from its count and the space)
+        if self.path:  # arc length of each path point (the env's path_spacing_m, stored in the policy's net)
             spacing = float(path_spacing_m)
             n_path = observation_space["path"].shape[0]
             self.register_buffer("path_s", spacing * torch.arange(1, n_path + 1, dtype=torch.float32), persistent=False)

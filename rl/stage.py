@@ -258,6 +258,8 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         collect_expert,
         curriculum_callback,
         fit_lookahead_linear,
+        has_lookahead,
+        lookahead_feature_cache,
         make_vec_env,
         ppo_kwargs,
         stage_pairs_all,
@@ -299,14 +301,17 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         if k == 0:
             torch.manual_seed(cfg.seed)
             policy = build_policy("teacher", None, probe.observation_space, net)
-        linear_fit = None
-        if net.get("encoder") == "lookahead":  # convex fit of the linear cost, then the MLP learns the rest
-            linear_fit = fit_lookahead_linear(policy, data, t.soft_tau, seed=cfg.seed + k, mirror=t.mirror)
+        linear_fit, cache = None, None
+        if has_lookahead(policy):  # convex fit of the linear cost, then the MLP learns the rest
+            cache = lookahead_feature_cache(policy, data, t.mirror)  # shared by the fit and the cloning
+            linear_fit = fit_lookahead_linear(policy, data, t.soft_tau, seed=cfg.seed + k, mirror=t.mirror,
+                                              cache=cache)
             log.info("teacher stage %d: linear cost fit on %d frames, cross-entropy %.3f -> %.3f", k,
                      linear_fit["frames"], linear_fit["ce_before"], linear_fit["ce_after"])
         rows = behaviour_clone(policy, data, t.bc_epochs if k == 0 else t.dagger_epochs,
                                lr=t.bc_lr if k == 0 else t.bc_lr / 2, seed=cfg.seed + k,
-                               frozen=("features_extractor.linear.",) if linear_fit else (), **clone)
+                               frozen=("features_extractor.linear.",) if linear_fit else (), cache=cache, **clone)
+        del cache
         for r in rows:
             logger.add("teacher_bc" if k == 0 else f"teacher_dagger{k}", r["epoch"], bc_loss=r["bc_loss"],
                        accuracy=r["accuracy"], value_loss=r["value_loss"])
@@ -473,10 +478,10 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             policy.features_extractor.set_bev_stats(*bev_stats(data))
         before = bc_loss(policy, new)
         soft = d.soft_tau > 0 and len(data.get("teacher_logits", ())) == len(data["action"])
-        if soft:  # distillation: the teacher's distribution over the grid (behaviour_clone's softmin of "costs")
-            data["costs"] = -data.pop("teacher_logits") * (0.1 / d.soft_tau)
+        if soft:  # distillation: softmin(-logits / τ) = the teacher's distribution softmax(logits / τ)
+            data["costs"] = -data.pop("teacher_logits")
         hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, cfg.seed + k, progress=cfg.progress,
-                               soft_tau=0.1 if soft else 0.0)
+                               soft_tau=d.soft_tau if soft else 0.0)
         after = bc_loss(policy, new)
         frames_total = int(len(data["action"]))
         for r in hist:

@@ -235,7 +235,8 @@ def collect_dagger(policy, net: dict[str, Any], sim_cfg: SimConfig, pairs: list[
 def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int, lr: float, seed: int,
                     value_coef: float = 0.5, keys: tuple[str, ...] | None = None,
                     progress: bool = True, soft_tau: float = 0.0, mirror: bool = False,
-                    n_rot: int = 21, frozen: tuple[str, ...] = ()) -> list[dict[str, float]]:
+                    n_rot: int = 21, frozen: tuple[str, ...] = (),
+                    cache: tuple[np.ndarray, np.ndarray | None] | None = None) -> list[dict[str, float]]:
     """Cross-entropy on ``data["action"]`` (+ value regression on ``data["return"]`` when present).
 
     With ``soft_tau > 0`` and ``data["costs"]`` (the expert's cost of every action), the target is the softmin
@@ -244,7 +245,8 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     every sample is reflected about the robot's x axis with probability 1/2 (:func:`mirror_batch`; the world is
     left-right symmetric, so this doubles the data for free). ``n_rot`` is the number of yaw rates of the grid.
     Parameters whose names start with one of ``frozen`` are not updated (the lookahead teacher's linear path, fitted
-    by :func:`fit_lookahead_linear`).
+    by :func:`fit_lookahead_linear`). ``cache``: the lookahead teacher's :func:`lookahead_feature_cache` of ``data``
+    when the caller has it already (computed here otherwise).
 
     Returns one row per epoch: ``{"epoch", "bc_loss", "accuracy", "value_loss"}`` (means over the epoch).
     """
@@ -261,7 +263,8 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
 
     mirror_rng = np.random.default_rng(seed + 1)
     # the lookahead teacher's rollout features depend on the observation alone: computed once, not every epoch
-    cache = lookahead_feature_cache(policy, data, mirror, n_rot, keys) if has_lookahead(policy) else None
+    if cache is None and has_lookahead(policy):
+        cache = lookahead_feature_cache(policy, data, mirror, n_rot, keys)
 
     rows = []
     for epoch in tqdm(range(epochs), desc="behaviour cloning", unit="epoch", disable=not progress,
@@ -306,22 +309,29 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
 
 
 def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, max_frames: int = 20_000,
-                         seed: int = 0, mirror: bool = True, n_rot: int = 21) -> dict[str, float]:
+                         seed: int = 0, mirror: bool = True, n_rot: int = 21,
+                         cache: tuple[np.ndarray, np.ndarray | None] | None = None) -> dict[str, float]:
     """Fits the linear path of a lookahead teacher (:class:`rl.networks.LookaheadTeacherExtractor`) to the expert's
     softmin targets by convex multinomial regression (L-BFGS), and zeroes the MLP scorer's output layer, so cloning
     starts from the best linear cost over the rollout features instead of from random logits (Adam would need
     thousands of steps to grow weights to the tens of nats the expert's costs span). With ``mirror`` the fit also
-    sees every frame reflected. Returns the cross-entropy to the targets before and after."""
+    sees every frame reflected. ``cache``: :func:`lookahead_feature_cache` of all of ``data`` (with the same
+    ``mirror``) when the caller has it; otherwise only the subsample's features are computed. Returns the
+    cross-entropy to the targets before and after."""
     ext = policy.features_extractor
     rng = np.random.default_rng(seed)
     n = len(data["action"])
     idx = np.sort(rng.choice(n, min(n, max_frames), replace=False))
-    sub = {k: data[k][idx] for k in (*policy.observation_space.spaces, "action", "costs")}
-    cache = lookahead_feature_cache(policy, sub, mirror, n_rot)
-    cost = torch.as_tensor(sub["costs"], dtype=torch.float32)
+    if cache is None:
+        sub = {k: data[k][idx] for k in (*policy.observation_space.spaces, "action")}
+        cache = lookahead_feature_cache(policy, sub, mirror, n_rot)
+    else:
+        cache = (cache[0][idx], None if cache[1] is None else cache[1][idx])
+    cost = torch.as_tensor(data["costs"][idx], dtype=torch.float32)
     feats = torch.as_tensor(cache[0], dtype=torch.float32)
     if mirror:
-        mcost = cost.view(len(cost), -1, n_rot).flip(-1).reshape(len(cost), -1)
+        flip = torch.ones(len(cost), dtype=torch.bool)
+        _, _, mcost = mirror_batch({}, torch.zeros(len(cost), dtype=torch.long), cost, flip, n_rot)
         cost = torch.cat([cost, mcost])
         feats = torch.cat([feats, torch.as_tensor(cache[1], dtype=torch.float32)])
     tau = soft_tau if soft_tau > 0 else 0.1
