@@ -9,7 +9,9 @@ Iteration ``k`` (β_k = ``beta0 · beta_decay^k``; β_0 = 1 means the teacher dr
    the iteration, one LeRobot dataset of the iteration (``action.teacher`` feature) — the data-centric loop: every
    iteration's data is a dataset anyone can load. Beside it, ``features/<episode>.npz`` caches what the student
    saw (its observation dict, ``s_bev`` as float16) with the label index, so cloning does not re-run the encoder.
-3. **Clone**: behaviour cloning (cross-entropy on the teacher's action index) on the aggregate of all iterations.
+3. **Clone**: behaviour cloning (cross-entropy on the teacher's action index, or on its action distribution) on the
+   aggregate of all iterations, each sample mirrored left-right with probability 1/2 (``dagger.mirror``; ``bev``
+   variants cache the mirrored world's ``s_bev`` as ``bev_mirror`` for this).
 
 Everything an iteration writes is in ``dagger/iter_<k>/``; a finished iteration has ``done.json``. A killed run
 resumes at the first unfinished episode of the first unfinished iteration.
@@ -70,7 +72,8 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
                       lambda: load_student_encoder(args["variant"], args["encoder"]))
     teacher = _policy(args["teacher"])
     student = _policy(args["student"])
-    observer = StudentObserver(args["variant"], env_cameras(env), encoder, env.cfg.detector.max_people)
+    observer = StudentObserver(args["variant"], env_cameras(env), encoder, env.cfg.detector.max_people,
+                               mirror=args.get("mirror", False))
     rng = np.random.default_rng(args["seed"] + 7919)
     obs, info = env.reset(seed=args["seed"])
     meta = episode_meta_from_env(env, args["seed"], f"dagger:{args['variant']}:iter{args['iteration']}:"
@@ -88,7 +91,7 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
             writer.add(frame_from_env(env, obs, info, step, command=cmd, reward=reward, done=done,
                                       label=env.decode_action(label)))
             for k, v in s_obs.items():
-                rows.setdefault(k, []).append(v.astype(np.float16) if k == "bev" else v)
+                rows.setdefault(k, []).append(v.astype(np.float16) if k.startswith("bev") else v)
             labels.append(label)
             teacher_logits.append(logits.astype(np.float32))
             if done:

@@ -17,6 +17,13 @@ pose_mask  K x 17               1 = detected joint
 state      5                    s = [g_x, g_y, d_g, v_x, v_y]
 =========  ===================  ====================================================================================
 
+With ``mirror=True`` a ``bev`` variant's observer also returns ``bev_mirror``: ``s_bev`` of the *mirrored* world
+(reflected about the robot's x axis), from a second stream that encodes the left-right flipped images with the
+cameras swapped and the reflected odometry. The rig is symmetric (cameras at ±y, yawed ±35°, principal point at the
+image centre), so this is the map the robot would see in the mirrored world — the exact input for mirror
+augmentation while cloning (:func:`rl.teacher.mirror_batch`). The encoder's latent is not mirror-equivariant, so
+flipping ``s_bev`` itself would not be. Costs one more encoder pass per step (batched with the first).
+
 :func:`teacher_observation` builds the privileged teacher's observation (as ``obs_mode="privileged"`` would) from a
 visual-mode env, so one rendered episode gives both the student's input and the teacher's label (DAgger).
 """
@@ -71,9 +78,11 @@ class StudentObserver:
         cameras: the env's cameras (:func:`env_cameras`).
         encoder: the frozen pretrained encoder (required unless the variant is ``no_bev``).
         max_people: ``K`` of the detector.
+        mirror: also return ``bev_mirror`` (module docstring); only for variants with ``bev``.
     """
 
-    def __init__(self, variant: str, cameras: list[Camera], encoder: BEVEncoder | None, max_people: int) -> None:
+    def __init__(self, variant: str, cameras: list[Camera], encoder: BEVEncoder | None, max_people: int,
+                 mirror: bool = False) -> None:
         self.variant = variant
         self.keys = variant_keys(variant)
         self.cameras = cameras
@@ -91,6 +100,9 @@ class StudentObserver:
         if "occ" in self.keys:
             self.occ_geom = LiftGeometry(cameras, OCC_STRIDE_PX)
         self.max_people = max_people
+        self.mirror = bool(mirror) and "bev" in self.keys
+        if self.mirror:
+            check_mirror_symmetric(cameras)
         self._first = True
         self.observation_space = self._space()
 
@@ -127,8 +139,17 @@ class StudentObserver:
             first = None if not self._first else torch.ones(1, dtype=torch.bool)
             if self._first:
                 self.stream.reset()
-            s_bev = self.stream.step(rgb, depth, pose, first)
-            out["bev"] = F.avg_pool2d(s_bev, BEV_POOL)[0].numpy()
+            if self.mirror:  # stream 1: the mirrored world (flipped images, cameras swapped, reflected odometry)
+                rgb = torch.cat([rgb, torch.flip(rgb, [1, 4])])
+                depth_in = torch.cat([depth, torch.flip(depth, [1, 3])])
+                pose = torch.cat([pose, pose * pose.new_tensor([1.0, -1.0, -1.0])])
+                first = None if first is None else first.expand(2)
+            else:
+                depth_in = depth
+            s_bev = F.avg_pool2d(self.stream.step(rgb, depth_in, pose, first), BEV_POOL).numpy()
+            out["bev"] = s_bev[0]
+            if self.mirror:
+                out["bev_mirror"] = s_bev[1]
         if "occ" in self.keys:
             out["occ"] = self.occupancy(depth)[0].numpy()
         if "poses" in self.keys:
@@ -143,6 +164,20 @@ class StudentObserver:
         ones = d.new_ones(d.shape[0], d.shape[1], 1, *d.shape[2:])
         count = lift_splat(ones, d, self.occ_geom, self.grid)
         return F.max_pool2d((count > 0).float(), BEV_POOL)
+
+
+def check_mirror_symmetric(cameras: list[Camera]) -> None:
+    """Mirror augmentation of ``s_bev`` needs two cameras that are each other's reflection about the base x axis."""
+    if len(cameras) != 2:
+        raise ConfigError(f"mirror augmentation needs a symmetric pair of cameras, got {len(cameras)}")
+    reflect = np.diag([1.0, -1.0, 1.0, 1.0])
+    flip_u = np.diag([-1.0, 1.0, 1.0, 1.0])  # the image flipped left-right: camera x axis reversed
+    a, b = (np.asarray(c.to_dict()["T_base_cam"]) for c in cameras)
+    ka, kb = (np.asarray(c.to_dict()["K"]) for c in cameras)
+    if not (np.allclose(reflect @ a @ flip_u, b, atol=1e-6) and np.allclose(ka, kb)
+            and abs(ka[0, 2] - cameras[0].width / 2.0) < 1e-6):
+        raise ConfigError("mirror augmentation: the cameras are not a mirror-symmetric pair (mount, yaw, intrinsics); "
+                          "set dagger.mirror false")
 
 
 def teacher_observation(env, target: np.ndarray | None = None) -> dict[str, np.ndarray]:

@@ -98,6 +98,7 @@ class DaggerConfig:
     bc_batch: int = 128
     bc_lr: float = 5e-4
     soft_tau: float = 1.0  # > 0: clone the teacher's action distribution softmax(logits / soft_tau); 0: its argmax
+    mirror: bool = True  # left-right mirror augmentation while cloning (bev variants record the mirrored s_bev)
     scenes: list[str] = field(default_factory=lambda: ["hallway", "corner", "doorway", "cluttered_room", "open_crowd"])
     densities: list[float] = field(default_factory=lambda: [0.1, 0.2])
 
@@ -451,6 +452,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     net = dict(cfg.net)
     extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir)}
     pairs = [(s, float(x)) for s in d.scenes for x in d.densities]
+    n_rot = cfg.sim.robot.n_rotations  # yaw rates of the action grid (mirroring reverses them)
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
     torch.manual_seed(cfg.seed)
     policy = build_policy("student", cfg.variant, space, net)
@@ -469,7 +471,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         jobs = [{"sim": cfg.sim, "scene": pairs[e % len(pairs)][0], "density": pairs[e % len(pairs)][1],
                  "seed": cfg.seed + 1000 * k + e, "variant": cfg.variant, "encoder": str(enc_dir) if enc_dir else None,
                  "teacher": str(teacher_dir), "student": str(student_dir) if student_dir else None, "beta": beta,
-                 "iteration": k, "iter_dir": str(it)} for e in range(d.episodes_per_iter)]
+                 "iteration": k, "iter_dir": str(it), "mirror": d.mirror} for e in range(d.episodes_per_iter)]
         rows = run_iteration(it, jobs, cfg.workers, cfg.progress)
         counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress)
         new = load_features([it])
@@ -481,7 +483,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         if soft:  # distillation: softmin(-logits / τ) = the teacher's distribution softmax(logits / τ)
             data["costs"] = -data.pop("teacher_logits")
         hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, cfg.seed + k, progress=cfg.progress,
-                               soft_tau=d.soft_tau if soft else 0.0)
+                               soft_tau=d.soft_tau if soft else 0.0, mirror=d.mirror, n_rot=n_rot)
         after = bc_loss(policy, new)
         frames_total = int(len(data["action"]))
         for r in hist:

@@ -258,6 +258,14 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     opt = torch.optim.Adam([p for name, p in policy.named_parameters() if not name.startswith(frozen)], lr=lr)
     policy.set_training_mode(True)
 
+    if mirror and "bev" in keys:
+        if "bev_mirror" not in data:
+            from pipeline.errors import InputMissingError
+
+            raise InputMissingError("mirror augmentation of s_bev needs the mirrored world's s_bev ('bev_mirror') in "
+                                    "the cached features (recorded with dagger.mirror true); clone without mirror")
+        keys = (*keys, "bev_mirror")
+
     def take(idx: np.ndarray) -> dict[str, torch.Tensor]:  # per batch: the cache stays float16 numpy
         return {k: torch.as_tensor(data[k][idx], dtype=torch.float32) for k in keys}
 
@@ -391,10 +399,17 @@ def policy_logits_values(policy, obs: dict[str, torch.Tensor],
     return policy.action_net(latent_pi), policy.value_net(latent_vf)
 
 
+# COCO-17 joint order (nose, eyes, ears, shoulders, elbows, wrists, hips, knees, ankles; left before right) mirrored
+COCO_MIRROR = (0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11, 14, 13, 16, 15)
+
+
 def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch.Tensor | None, flip: torch.Tensor,
                  n_rot: int) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor | None]:
     """Reflects the samples where ``flip`` about the robot's x axis: y, v_y of the goal state, of the sub-goal, of the
-    path points and of every pedestrian change sign, scan ray k becomes ray −k, and yaw-rate index j of the action grid becomes n_rot−1−j."""
+    path points and of every pedestrian change sign, scan ray k becomes ray −k, and yaw-rate index j of the action grid
+    becomes n_rot−1−j. Student keys: the occupancy map's y axis is reversed, detected joints change y and swap left
+    and right (COCO-17), and ``bev`` is replaced by ``bev_mirror`` (the mirrored world's own ``s_bev``, recorded by
+    :class:`rl.observe.StudentObserver` with ``mirror=True``)."""
     out = dict(obs)
     f = flip.view(-1, 1)
     if "state" in obs:  # [g_x, g_y, d_g, v_x, v_y]
@@ -407,6 +422,18 @@ def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch
         out["subgoal"] = torch.where(f, obs["subgoal"] * obs["subgoal"].new_tensor([1.0, -1.0]), obs["subgoal"])
     if "path" in obs:  # P x [x, y]
         out["path"] = torch.where(f.unsqueeze(-1), obs["path"] * obs["path"].new_tensor([1.0, -1.0]), obs["path"])
+    if "occ" in obs:  # C x X x Y map on a grid symmetric in y: reverse the y axis
+        out["occ"] = torch.where(f.view(-1, 1, 1, 1), torch.flip(obs["occ"], [-1]), obs["occ"])
+    if "bev" in obs:  # the encoder's latent is not mirror-equivariant: the mirrored world's own s_bev is needed
+        if "bev_mirror" not in obs:
+            raise ValueError("mirror_batch: 'bev' needs 'bev_mirror' (StudentObserver(mirror=True))")
+        out["bev"] = torch.where(f.view(-1, 1, 1, 1), obs["bev_mirror"], obs["bev"])
+    out.pop("bev_mirror", None)
+    if "poses" in obs:  # K x 17 x [x, y, z], robot frame: y changes sign, left and right joints swap
+        perm = torch.as_tensor(COCO_MIRROR)
+        sign = obs["poses"].new_tensor([1.0, -1.0, 1.0])
+        out["poses"] = torch.where(f.view(-1, 1, 1, 1), obs["poses"][:, :, perm] * sign, obs["poses"])
+        out["pose_mask"] = torch.where(f.view(-1, 1, 1), obs["pose_mask"][:, :, perm], obs["pose_mask"])
     if "scan" in obs:  # rays at heading + k·2π/n → heading − k·2π/n
         rev = torch.roll(torch.flip(obs["scan"], [-1]), 1, -1)
         out["scan"] = torch.where(f, rev, obs["scan"])

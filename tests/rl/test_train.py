@@ -302,3 +302,81 @@ def test_teacher_stage_end_to_end_on_tiny_sizes(tmp_path):
     assert (out / "manifest.json").is_file() and (out / "imitation" / "01" / "data.npz").is_file()
     policy, _ = load_policy(out)
     assert type(policy).__name__ == "ScoredPolicy"
+
+
+def _mirrored_obs(o):
+    """A visual observation as the mirrored robot would see it: images flipped left-right, cameras swapped,
+    odometry reflected about the world x axis."""
+    m = dict(o)
+    for kind in ("rgb", "depth"):
+        m[f"{kind}_left"], m[f"{kind}_right"] = (np.ascontiguousarray(o[f"{kind}_right"][:, ::-1]),
+                                                 np.ascontiguousarray(o[f"{kind}_left"][:, ::-1]))
+    m["odom"] = np.asarray(o["odom"], np.float64) * [1.0, -1.0, -1.0]
+    return m
+
+
+def test_observer_mirror_stream_encodes_the_mirrored_world():
+    """``bev_mirror`` is what a second observer computes from the mirrored observations, step after step, and the
+    depth lift of the mirrored images is the mirrored occupancy (the rig is symmetric)."""
+    from pretrain.model import BEVEncoder, EncoderConfig
+    from rl.observe import StudentObserver, env_cameras
+    from sim.env import CrowdNavEnv
+
+    env = CrowdNavEnv(config=replace(TINY_SIM, scene="hallway", obs_mode="visual"))
+    cams = env_cameras(env)
+    torch.manual_seed(0)
+    enc = BEVEncoder(EncoderConfig(bev_channels=8, resnet_stages=1, lift_stride_px=4), cams).eval()
+    both = StudentObserver("full", cams, enc, 6, mirror=True)
+    ref = StudentObserver("full", cams, enc, 6)
+    occ = StudentObserver("no_bev", cams, None, 6)
+    o, _ = env.reset(seed=5)
+    def iou(a, b):
+        return np.logical_and(a, b).sum() / max(np.logical_or(a, b).sum(), 1)
+
+    for _ in range(4):
+        out, want = both(o), ref(_mirrored_obs(o))
+        assert set(out) == {"bev", "bev_mirror", "poses", "pose_mask", "state"}
+        assert np.allclose(out["bev_mirror"], want["bev"], atol=1e-4)
+        # the mirrored lift lands where the flipped one does: no lateral offset (the strided pixel sampling picks the
+        # other columns of the flipped image, so thin walls move by up to a cell — the overlap is partial, not shifted)
+        a, b = occ(o)["occ"][..., ::-1], occ(_mirrored_obs(o))["occ"]
+        assert a.sum() > 0 and iou(a, b) > 0.4
+        assert iou(a, b) > max(iou(a, np.roll(b, 1, -1)), iou(a, np.roll(b, -1, -1)))
+        o, *_ = env.step(env.action_space.sample())
+
+
+def test_mirror_needs_a_symmetric_rig():
+    from rl.observe import check_mirror_symmetric, env_cameras
+    from sim.env import CrowdNavEnv
+
+    env = CrowdNavEnv(config=replace(TINY_SIM, scene="hallway", obs_mode="visual"))
+    cams = env_cameras(env)
+    check_mirror_symmetric(cams)
+    skew = replace(TINY_SIM, camera=replace(TINY_SIM.camera, mount_lateral_m=0.0, yaw_deg=30.0))
+    env2 = CrowdNavEnv(config=replace(skew, scene="hallway", obs_mode="visual"))
+    check_mirror_symmetric(env_cameras(env2))  # yaw ±30°, both on the axis: still symmetric
+    with pytest.raises(ConfigError, match="mirror"):
+        check_mirror_symmetric([cams[0], cams[0]])
+
+
+def test_mirror_batch_reflects_the_students_inputs():
+    from rl.teacher import COCO_MIRROR, mirror_batch
+
+    g = torch.Generator().manual_seed(0)
+    obs = {"state": torch.randn(2, 5, generator=g), "occ": torch.rand(2, 1, 4, 6, generator=g).round(),
+           "poses": torch.randn(2, 3, 17, 3, generator=g), "pose_mask": torch.rand(2, 3, 17, generator=g).round(),
+           "bev": torch.randn(2, 8, 4, 6, generator=g), "bev_mirror": torch.randn(2, 8, 4, 6, generator=g)}
+    flip = torch.tensor([True, False])
+    out, act_, _ = mirror_batch(obs, torch.tensor([0 * 21 + 20, 7]), None, flip, 21)
+    assert "bev_mirror" not in out and act_.tolist() == [0, 7]
+    assert torch.equal(out["occ"][0], obs["occ"][0].flip(-1)) and torch.equal(out["occ"][1], obs["occ"][1])
+    assert torch.equal(out["bev"][0], obs["bev_mirror"][0]) and torch.equal(out["bev"][1], obs["bev"][1])
+    # the left shoulder (5) of the mirrored person is the right shoulder (6) of the original, reflected
+    assert torch.allclose(out["poses"][0, :, 5], obs["poses"][0, :, 6] * torch.tensor([1.0, -1.0, 1.0]))
+    assert torch.equal(out["pose_mask"][0, :, 5], obs["pose_mask"][0, :, 6])
+    assert torch.equal(out["poses"][1], obs["poses"][1])
+    assert sorted(COCO_MIRROR) == list(range(17)) and all(COCO_MIRROR[COCO_MIRROR[j]] == j for j in range(17))
+    twice, _, _ = mirror_batch({**out, "bev_mirror": obs["bev"]}, act_, None, flip, 21)
+    assert torch.equal(twice["poses"], obs["poses"]) and torch.equal(twice["occ"], obs["occ"])
+    with pytest.raises(ValueError, match="bev_mirror"):
+        mirror_batch({"bev": obs["bev"]}, act_, None, flip, 21)
