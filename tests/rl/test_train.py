@@ -54,12 +54,13 @@ def _success_rate(policy, sim_cfg, seeds):
 
 
 def test_teacher_ppo_learns_a_trivial_scene(tmp_path):
-    """PPO from scratch (no warm start) learns to reach a nearby goal in an empty room within 8k steps.
+    """PPO from scratch (no warm start) learns to reach a nearby goal in an empty room within 6k steps.
 
     The default teacher network (the lookahead encoder: rollout features + a linear cost and an MLP scorer, here
-    from random weights), one torch thread (results depend on the thread count through float reductions).
-    Earlier networks, measured: the set encoder 2 -> 6 deterministic successes on 10 seeds after 8k steps, the flat
-    network 1 -> 3 (the 105-action grid makes exploration slow; the real teacher starts from the cloned expert)."""
+    from random weights), one torch thread (results depend on the thread count and the CPU's vector unit through
+    float reductions). Measured: deterministic successes on the 10 seeds 0 -> 7 / 9 / 10 / 9 after 2k / 4k / 6k / 8k
+    steps at lr 3e-4; at lr 1e-3 it learns as fast but oscillates (7 at 2k, 1 at 8k, 6 at 10k on one machine).
+    Earlier networks: the set encoder 2 -> 6 after 8k steps, the flat network 1 -> 3."""
     from stable_baselines3 import PPO
 
     from rl.policy import policy_class, policy_kwargs
@@ -77,17 +78,17 @@ def test_teacher_ppo_learns_a_trivial_scene(tmp_path):
     net = teacher_net({"encoder": TeacherConfig().net["encoder"]}, sim_cfg)
     model = PPO(policy_class("teacher", net), venv, policy_kwargs=policy_kwargs("teacher", None, net), seed=0,
                 device="cpu",
-                **ppo_kwargs({"n_steps": 256, "batch_size": 256, "n_epochs": 10, "learning_rate": 1e-3,
+                **ppo_kwargs({"n_steps": 256, "batch_size": 256, "n_epochs": 10, "learning_rate": 3e-4,
                               "gamma": 0.95}))
     attach_lookahead_cache(model)
     seeds = list(range(100, 110))
     try:
         before = round(_success_rate(model.policy, sim_cfg, seeds) * len(seeds))
-        model.learn(8192)
+        model.learn(6144)
         after = round(_success_rate(model.policy, sim_cfg, seeds) * len(seeds))
     finally:
         torch.set_num_threads(threads)
-    assert after >= before + 3, (before, after)
+    assert after >= before + 5, (before, after)
 
 
 def test_dagger_iteration_writes_a_loadable_dataset_and_lowers_bc_loss(tmp_path, teacher_dir):
