@@ -218,12 +218,12 @@ class PolicyDriver:
         self.last_obs: dict[str, np.ndarray] | None = None
 
     def reset(self, env, obs):
-        from rl.observe import StudentObserver, env_cameras
+        from rl.observe import observer_for_env
 
         if self.student:
             if self.observer is None:
-                self.observer = StudentObserver(self.desc["variant"], env_cameras(env), self.encoder,
-                                                env.cfg.detector.max_people)
+                self.observer = observer_for_env(env, self.desc["variant"], self.encoder,
+                                                 self.desc["net"].get("head", "mlp"))
             self.observer.reset()
 
     def act(self, env, obs, waypoint=None):

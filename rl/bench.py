@@ -55,11 +55,13 @@ def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_c
 
 
 def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg: Any, seconds: float) -> dict:
+    from dataclasses import asdict
+
     import torch.nn.functional as F
 
     from pipeline.bench import time_call
     from pretrain.model import BEVEncoder
-    from rl.observe import BEV_POOL, StudentObserver, env_cameras
+    from rl.observe import BEV_POOL, StudentObserver, env_cameras, observer_for_env
     from rl.policy import act, build_policy
     from sim.env import CrowdNavEnv
 
@@ -93,9 +95,22 @@ def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encod
                  "poses": obs["poses"], "pose_mask": obs["pose_mask"].astype(np.float32)}
             act(policy, o)
 
+        # the default student: the same, plus perception (tracks, depth scan) and the lookahead head
+        look_obs = observer_for_env(env, "full", enc, head="lookahead")
+        look = build_policy("student", "full", look_obs.observation_space,
+                            {"head": "lookahead", "robot": asdict(env.cfg.robot), "dt_s": env.cfg.dt_s,
+                             "scan_range_m": env.cfg.scan_range_m})
+        look.set_training_mode(False)
+        look_obs(obs)
+
+        def stream_lookahead() -> None:
+            act(look, look_obs(obs))
+
         ms = 1000.0 * time_call(stream, seconds)
         ref = 1000.0 * time_call(recompute, seconds)
+        ms_look = 1000.0 * time_call(stream_lookahead, seconds)
     finally:
         torch.set_num_threads(threads)
     return {"policy_inference_ms": ms, "policy_inference_hz": 1000.0 / ms, "policy_inference_recompute_ms": ref,
-            "policy_inference_speedup_vs_recompute": ref / ms}
+            "policy_inference_speedup_vs_recompute": ref / ms, "policy_inference_lookahead_ms": ms_look,
+            "policy_inference_lookahead_hz": 1000.0 / ms_look}

@@ -58,7 +58,7 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
     """One DAgger episode (see the module docstring); writes ``raw/<name>.mcap`` and ``features/<name>.npz``."""
     from recorder.mcap_io import EpisodeWriter
     from recorder.schema import episode_meta_from_env, frame_from_env
-    from rl.observe import StudentObserver, env_cameras, load_student_encoder, teacher_observation
+    from rl.observe import load_student_encoder, observer_for_env, teacher_observation
     from rl.policy import act, action_logits
 
     torch.set_num_threads(1)
@@ -72,8 +72,7 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
                       lambda: load_student_encoder(args["variant"], args["encoder"]))
     teacher = _policy(args["teacher"])
     student = _policy(args["student"])
-    observer = StudentObserver(args["variant"], env_cameras(env), encoder, env.cfg.detector.max_people,
-                               mirror=args.get("mirror", False))
+    observer = observer_for_env(env, args["variant"], encoder, args.get("head", "mlp"), mirror=args.get("mirror", False))
     rng = np.random.default_rng(args["seed"] + 7919)
     obs, info = env.reset(seed=args["seed"])
     meta = episode_meta_from_env(env, args["seed"], f"dagger:{args['variant']}:iter{args['iteration']}:"

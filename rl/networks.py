@@ -34,6 +34,7 @@ from rl.i2former import AttnPool, I2Former, I2FormerConfig, mlp, normalise_state
 
 VARIANTS = ("full", "no_i2", "no_bev")
 VARIANT_LABELS = {"full": "iCrowdNav (full)", "no_i2": "w/o I²", "no_bev": "w/o BEV"}
+STUDENT_HEADS = ("mlp", "lookahead")  # the student's actor: SB3's MLP on z (the paper's) or the lookahead scorer
 
 
 TEACHER_ENCODERS = ("set", "flat", "lookahead")
@@ -49,14 +50,20 @@ def teacher_extractor_class(encoder: str) -> type[BaseFeaturesExtractor]:
     return {"set": SetTeacherExtractor, "flat": TeacherExtractor, "lookahead": LookaheadTeacherExtractor}[encoder]
 
 
-def variant_keys(variant: str) -> tuple[str, ...]:
-    """The observation keys a student variant consumes."""
+def variant_keys(variant: str, head: str = "mlp") -> tuple[str, ...]:
+    """The observation keys a student variant consumes (with the ``lookahead`` head also its perceived ``scan`` and,
+    for variants with poses, the pedestrian tracks ``peds``: :mod:`rl.perceive`)."""
     from pipeline.errors import ConfigError
 
     if variant not in VARIANTS:
         raise ConfigError(f"variant: expected one of {list(VARIANTS)}, got {variant!r}")
-    return {"full": ("bev", "poses", "pose_mask", "state"), "no_i2": ("bev", "state"),
+    if head not in STUDENT_HEADS:
+        raise ConfigError(f"net.head: expected one of {list(STUDENT_HEADS)}, got {head!r}")
+    keys = {"full": ("bev", "poses", "pose_mask", "state"), "no_i2": ("bev", "state"),
             "no_bev": ("occ", "poses", "pose_mask", "state")}[variant]
+    if head == "lookahead":
+        keys += ("scan",) + (("peds",) if "poses" in keys else ())
+    return keys
 
 
 class ResBlock(nn.Module):
@@ -136,6 +143,38 @@ class StudentExtractor(BaseFeaturesExtractor):
             parts.append(self.i2former(obs["poses"], obs["pose_mask"] > 0.5, obs["state"]))
         parts.append(self.state_net(normalise_state(obs["state"])))
         return self.fusion(torch.cat(parts, -1))
+
+
+class StudentLookaheadExtractor(StudentExtractor):
+    """A student variant's embedding ``z`` (:class:`StudentExtractor`, the paper's) with the *lookahead head*
+    (``net.head = "lookahead"``): every action of the grid is scored by the teacher's lookahead layer
+    (:class:`LookaheadTeacherExtractor`: a linear cost + an MLP over the action's kinematic rollout features, with a
+    context vector from ``z``) — fed with what the student perceives instead of privileged state: pedestrian tracks
+    from its detected poses and an obstacle scan from its depth images (:mod:`rl.perceive`), and the goal in place of
+    the global path. ``no_i2`` has no poses, so its rollouts predict no pedestrians (people are depth obstacles
+    in its scan). The first ``A`` features are the logits (:class:`rl.policy.ScoredPolicy`), the rest is ``z``."""
+
+    def __init__(self, observation_space: gym.spaces.Dict, variant: str = "full", robot: dict[str, Any] | None = None,
+                 dt_s: float = 0.1, scan_range_m: float = 10.0, score_dim: int = 64, context_dim: int = 32,
+                 **kwargs: Any) -> None:
+        super().__init__(observation_space, variant, **kwargs)
+        missing = [k for k in variant_keys(variant, "lookahead") if k not in observation_space.spaces]
+        if missing:
+            from pipeline.errors import ConfigError
+
+            raise ConfigError(f"the lookahead head of variant {variant!r} needs observation keys {missing}")
+        self.subgoal = False
+        self.scan_range_m = float(scan_range_m)
+        base_dim = self._features_dim
+        init_lookahead(self, observation_space, robot, dt_s, 0.25)
+        init_scorer(self, base_dim, score_dim, context_dim)
+
+    def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``B x A x F`` rollout features of every action from the perceived ``peds`` / ``scan`` and the goal."""
+        return lookahead_action_features(self, obs)
+
+    def forward(self, obs: dict[str, torch.Tensor], action_features: torch.Tensor | None = None) -> torch.Tensor:
+        return score_actions(self, super().forward(obs), obs, action_features)
 
 
 class TeacherExtractor(BaseFeaturesExtractor):
@@ -237,112 +276,138 @@ class LookaheadTeacherExtractor(SetTeacherExtractor):
     def __init__(self, observation_space: gym.spaces.Dict, scan_range_m: float = 10.0, ped_scale_m: float = 5.0,
                  robot: dict[str, Any] | None = None, dt_s: float = 0.1, path_spacing_m: float = 0.25, score_dim: int = 64,
                  context_dim: int = 32) -> None:
-        from sim.robot import RobotConfig, action_grid
-
         super().__init__(observation_space, scan_range_m, ped_scale_m)
         base_dim = self._features_dim
-        rc = RobotConfig(**(robot or {}))
-        self.radius_m = float(rc.radius_m)
-        grid = torch.as_tensor(action_grid(rc), dtype=torch.float32)
-        self.n_actions = len(grid)
-        times = torch.cat([torch.tensor([float(dt_s)]),
-                           torch.arange(1, int(round(LOOKAHEAD_HORIZON_S / LOOKAHEAD_STEP_S)) + 1) * LOOKAHEAD_STEP_S])
-        arcs, heading = unicycle_arcs(grid, times)
-        self.register_buffer("grid_norm", grid / grid.new_tensor([rc.v_max_mps, rc.omega_max_radps]), persistent=False)
-        self.register_buffer("times", times, persistent=False)
-        self.register_buffer("arcs", arcs, persistent=False)  # A x S x 2
-        self.register_buffer("end_heading", heading[:, -1], persistent=False)  # A
-        self.register_buffer("disc", torch.exp(-times / LOOKAHEAD_DISCOUNT_S), persistent=False)
-        self.path = "path" in observation_space.spaces
-        if self.path:  # arc length of each path point (the env's path_spacing_m, stored in the policy's net)
-            spacing = float(path_spacing_m)
-            n_path = observation_space["path"].shape[0]
-            self.register_buffer("path_s", spacing * torch.arange(1, n_path + 1, dtype=torch.float32), persistent=False)
-            self.path_lead = max(1, int(round(1.0 / spacing)))  # heading target: 1 m further along the path
-        rays = observation_space["scan"].shape[0]
-        ang = torch.arange(rays) * (2 * torch.pi / rays)
-        self.register_buffer("ray_dir", torch.stack([torch.cos(ang), torch.sin(ang)], -1), persistent=False)
-        self.n_feat = 2 * len(times) + 4 + 4 + 2 + N_LINEAR
-        self.context = nn.Sequential(nn.Linear(base_dim, context_dim), nn.ReLU())
-        self.scorer = mlp([self.n_feat + context_dim, score_dim, score_dim, 1], last_act=False)
-        self.linear = nn.Linear(N_LINEAR, 1)  # the linear cost over the last N_LINEAR rollout features
-        self._features_dim = self.n_actions + base_dim
+        init_lookahead(self, observation_space, robot, dt_s, path_spacing_m)
+        init_scorer(self, base_dim, score_dim, context_dim)
 
-    @torch.no_grad()
     def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """``B x A x F`` parameter-free rollout features of every action (class docstring)."""
-        arcs, disc = self.arcs, self.disc  # A S 2, S
-        b = obs["state"].shape[0]
-        a, s = arcs.shape[:2]
-        # pedestrians, constant velocity: B K S 2
-        peds = obs["peds"]
-        present = peds[..., 5] > 0.5
-        pp = peds[:, :, None, :2] + self.times[None, None, :, None] * peds[:, :, None, 2:4]  # B K S 2
-        # |a - p|² = |a|² - 2 a·p + |p|² (one contraction instead of a B A K S 2 difference tensor)
-        d2 = arcs[None, :, None, :, 0] * pp[:, None, :, :, 0]
-        d2.addcmul_(arcs[None, :, None, :, 1].expand_as(d2), pp[:, None, :, :, 1].expand_as(d2)).mul_(-2.0)
-        d2 += (arcs ** 2).sum(-1)[None, :, None, :]
-        d2 += (pp ** 2).sum(-1)[:, None]
-        d = d2.clamp_min_(0.0).sqrt_()
-        d -= (peds[..., 4] + self.radius_m)[:, None, :, None]
-        d.masked_fill_(~present[:, None, :, None], CLEAR_CAP_M + 1.0)
-        # the nearest pedestrian at each lookahead time (B A S): clearance and its discounted intrusions
-        d = d.amin(2)
-        ped_min = d.clamp(-0.5, CLEAR_CAP_M)
-        ped_contact = ((0.15 - d).clamp_min(0.0) * disc).sum(-1)
-        ped_comfort = ((0.8 - d).clamp_min(0.0) ** 2 * disc).sum(-1) * LOOKAHEAD_STEP_S
-        # static obstacles: the end points of the nearest scan hits (farther ones cannot be the nearest obstacle of
-        # an arc that stays within the horizon), B R 2
-        rng, idx = obs["scan"].topk(min(SCAN_POINTS, obs["scan"].shape[-1]), dim=-1, largest=False)
-        hit = rng < self.scan_range_m - 1e-3
-        pts = rng[..., None] * self.ray_dir[idx]
-        dq = torch.cdist(arcs.reshape(1, a * s, 2).expand(b, -1, -1), pts)  # B AS R
-        dq = dq.masked_fill(~hit[:, None, :], CLEAR_CAP_M + 1.0).amin(-1).view(b, a, s) - self.radius_m
-        obs_min = dq.clamp(-0.5, CLEAR_CAP_M)
-        obs_contact = ((0.05 - dq).clamp_min(0.0) * disc).sum(-1)
-        obs_near = ((0.25 - dq).clamp_min(0.0) ** 2 * disc).sum(-1)
-        # progress: along the global path when the observation has it (the cost-to-go through the best path point,
-        # ctg(p) ≈ min_k |p - P_k| + (L - s_k)), else towards the sub-goal (or the goal); and towards the goal
-        goal = obs["state"][:, :2]
-        sub = obs["subgoal"] if self.subgoal else goal
-        end = arcs[None, :, -1]  # 1 A 2
-        if self.path:
-            pts = obs["path"]  # B P 2
-            s_k = self.path_s[: pts.shape[1]]
-            reach_end = s_k - torch.linalg.vector_norm(end[:, :, None] - pts[:, None], dim=-1)  # B A P
-            reach_now = (s_k - torch.linalg.vector_norm(pts, dim=-1)).amax(-1, keepdim=True)  # B 1
-            best = reach_end.argmax(-1)  # B A
-            sub_gain = reach_end.amax(-1) - reach_now
-            ahead = torch.gather(pts, 1, (best + self.path_lead).clamp_max(pts.shape[1] - 1)[..., None].expand(-1, -1, 2))
-            to_sub = ahead - end
-        else:
-            sub_gain = torch.linalg.vector_norm(sub, dim=-1, keepdim=True) - torch.linalg.vector_norm(sub[:, None] - end, dim=-1)
-            to_sub = sub[:, None] - end
-        goal_gain = obs["state"][:, 2:3] - torch.linalg.vector_norm(goal[:, None] - end, dim=-1)
-        err = torch.atan2(to_sub[..., 1], to_sub[..., 0]) - self.end_heading
-        goal_near = torch.linalg.vector_norm(goal[:, None, None] - arcs[None], dim=-1).amin(-1)  # B A
-        near = (obs["state"][:, 2:3] < NEAR_GOAL_M).float().expand(-1, a)
-        abs_err = torch.atan2(torch.sin(err), torch.cos(err)).abs()
-        grid = self.grid_norm[None].expand(b, -1, -1)
-        feats = [ped_min, obs_min,
-                 torch.log1p(torch.stack([ped_contact, ped_comfort, obs_contact, obs_near], -1)),
-                 torch.stack([torch.cos(err), torch.sin(err), goal_near.clamp_max(CLEAR_CAP_M), near], -1),
-                 grid,
-                 # the terms of the linear cost (the last N_LINEAR features): predicted intrusions, progress along
-                 # the route, heading error away from the goal, approach when near it, speed and turning
-                 torch.stack([ped_contact.clamp_max(10.0), ped_comfort.clamp_max(10.0), obs_contact.clamp_max(10.0),
-                              obs_near.clamp_max(10.0), sub_gain, goal_gain, (1.0 - near) * abs_err,
-                              near * (obs["state"][:, 2:3] - goal_near), grid[..., 0], grid[..., 1].abs()], -1)]
-        return torch.cat(feats, -1)
+        return lookahead_action_features(self, obs)
 
     def forward(self, obs: dict[str, torch.Tensor], action_features: torch.Tensor | None = None) -> torch.Tensor:
         """``B x (A + base)``: the action logits, then the set encoder's embedding (``action_features``: the
         precomputed :meth:`action_features` of ``obs``, as cloning caches them)."""
-        base = super().forward(obs)
-        feats = self.action_features(obs) if action_features is None else action_features
-        ctx = self.context(base)[:, None].expand(-1, feats.shape[1], -1)
-        scores = SCORE_SCALE * self.linear(feats[..., -N_LINEAR:]) + self.scorer(torch.cat([feats, ctx], -1))
-        return torch.cat([scores.squeeze(-1), base], -1)  # B x (A + base)
+        return score_actions(self, super().forward(obs), obs, action_features)
+
+
+def init_lookahead(m: nn.Module, observation_space: gym.spaces.Dict, robot: dict[str, Any] | None, dt_s: float,
+                   path_spacing_m: float) -> None:
+    """Registers the lookahead layer's fixed buffers on ``m`` (the arcs of every command of the grid, the lookahead
+    times, the discount, the scan's ray directions, the path's arc lengths) and its sizes (``n_actions``,
+    ``n_feat``). ``m`` must already have ``subgoal`` and ``scan_range_m``."""
+    from sim.robot import RobotConfig, action_grid
+
+    rc = RobotConfig(**(robot or {}))
+    m.radius_m = float(rc.radius_m)
+    grid = torch.as_tensor(action_grid(rc), dtype=torch.float32)
+    m.n_actions = len(grid)
+    times = torch.cat([torch.tensor([float(dt_s)]),
+                       torch.arange(1, int(round(LOOKAHEAD_HORIZON_S / LOOKAHEAD_STEP_S)) + 1) * LOOKAHEAD_STEP_S])
+    arcs, heading = unicycle_arcs(grid, times)
+    m.register_buffer("grid_norm", grid / grid.new_tensor([rc.v_max_mps, rc.omega_max_radps]), persistent=False)
+    m.register_buffer("times", times, persistent=False)
+    m.register_buffer("arcs", arcs, persistent=False)  # A x S x 2
+    m.register_buffer("end_heading", heading[:, -1], persistent=False)  # A
+    m.register_buffer("disc", torch.exp(-times / LOOKAHEAD_DISCOUNT_S), persistent=False)
+    m.path = "path" in observation_space.spaces
+    if m.path:  # arc length of each path point (the env's path_spacing_m, stored in the policy's net)
+        spacing = float(path_spacing_m)
+        n_path = observation_space["path"].shape[0]
+        m.register_buffer("path_s", spacing * torch.arange(1, n_path + 1, dtype=torch.float32), persistent=False)
+        m.path_lead = max(1, int(round(1.0 / spacing)))  # heading target: 1 m further along the path
+    rays = observation_space["scan"].shape[0]
+    ang = torch.arange(rays) * (2 * torch.pi / rays)
+    m.register_buffer("ray_dir", torch.stack([torch.cos(ang), torch.sin(ang)], -1), persistent=False)
+    m.n_feat = 2 * len(times) + 4 + 4 + 2 + N_LINEAR
+
+
+def init_scorer(m: nn.Module, base_dim: int, score_dim: int, context_dim: int) -> None:
+    """The learned part of a lookahead head on ``m``: a context vector from the ``base_dim`` embedding, the MLP scorer,
+    the linear cost; ``m``'s features become the ``n_actions`` logits followed by the embedding."""
+    m.context = nn.Sequential(nn.Linear(base_dim, context_dim), nn.ReLU())
+    m.scorer = mlp([m.n_feat + context_dim, score_dim, score_dim, 1], last_act=False)
+    m.linear = nn.Linear(N_LINEAR, 1)  # the linear cost over the last N_LINEAR rollout features
+    m._features_dim = m.n_actions + base_dim
+
+
+def score_actions(m: nn.Module, base: torch.Tensor, obs: dict[str, torch.Tensor],
+                  action_features: torch.Tensor | None) -> torch.Tensor:
+    """``B x (A + base)``: each action's logit (the linear cost + the MLP scorer over its rollout features and the
+    context of ``base``), then ``base``."""
+    feats = m.action_features(obs) if action_features is None else action_features
+    ctx = m.context(base)[:, None].expand(-1, feats.shape[1], -1)
+    scores = SCORE_SCALE * m.linear(feats[..., -N_LINEAR:]) + m.scorer(torch.cat([feats, ctx], -1))
+    return torch.cat([scores.squeeze(-1), base], -1)
+
+
+@torch.no_grad()
+def lookahead_action_features(self: nn.Module, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+    """``B x A x F`` parameter-free rollout features of every action of ``self`` (a module set up by
+    :func:`init_lookahead`; see :class:`LookaheadTeacherExtractor`). Without ``obs["peds"]`` nobody is predicted."""
+    arcs, disc = self.arcs, self.disc  # A S 2, S
+    b = obs["state"].shape[0]
+    a, s = arcs.shape[:2]
+    # pedestrians, constant velocity: B K S 2 (a student without pose input has none)
+    peds = obs["peds"] if "peds" in obs else obs["state"].new_zeros(b, 1, 6)
+    present = peds[..., 5] > 0.5
+    pp = peds[:, :, None, :2] + self.times[None, None, :, None] * peds[:, :, None, 2:4]  # B K S 2
+    # |a - p|² = |a|² - 2 a·p + |p|² (one contraction instead of a B A K S 2 difference tensor)
+    d2 = arcs[None, :, None, :, 0] * pp[:, None, :, :, 0]
+    d2.addcmul_(arcs[None, :, None, :, 1].expand_as(d2), pp[:, None, :, :, 1].expand_as(d2)).mul_(-2.0)
+    d2 += (arcs ** 2).sum(-1)[None, :, None, :]
+    d2 += (pp ** 2).sum(-1)[:, None]
+    d = d2.clamp_min_(0.0).sqrt_()
+    d -= (peds[..., 4] + self.radius_m)[:, None, :, None]
+    d.masked_fill_(~present[:, None, :, None], CLEAR_CAP_M + 1.0)
+    # the nearest pedestrian at each lookahead time (B A S): clearance and its discounted intrusions
+    d = d.amin(2)
+    ped_min = d.clamp(-0.5, CLEAR_CAP_M)
+    ped_contact = ((0.15 - d).clamp_min(0.0) * disc).sum(-1)
+    ped_comfort = ((0.8 - d).clamp_min(0.0) ** 2 * disc).sum(-1) * LOOKAHEAD_STEP_S
+    # static obstacles: the end points of the nearest scan hits (farther ones cannot be the nearest obstacle of
+    # an arc that stays within the horizon), B R 2
+    rng, idx = obs["scan"].topk(min(SCAN_POINTS, obs["scan"].shape[-1]), dim=-1, largest=False)
+    hit = rng < self.scan_range_m - 1e-3
+    pts = rng[..., None] * self.ray_dir[idx]
+    dq = torch.cdist(arcs.reshape(1, a * s, 2).expand(b, -1, -1), pts)  # B AS R
+    dq = dq.masked_fill(~hit[:, None, :], CLEAR_CAP_M + 1.0).amin(-1).view(b, a, s) - self.radius_m
+    obs_min = dq.clamp(-0.5, CLEAR_CAP_M)
+    obs_contact = ((0.05 - dq).clamp_min(0.0) * disc).sum(-1)
+    obs_near = ((0.25 - dq).clamp_min(0.0) ** 2 * disc).sum(-1)
+    # progress: along the global path when the observation has it (the cost-to-go through the best path point,
+    # ctg(p) ≈ min_k |p - P_k| + (L - s_k)), else towards the sub-goal (or the goal); and towards the goal
+    goal = obs["state"][:, :2]
+    sub = obs["subgoal"] if self.subgoal else goal
+    end = arcs[None, :, -1]  # 1 A 2
+    if self.path:
+        pts = obs["path"]  # B P 2
+        s_k = self.path_s[: pts.shape[1]]
+        reach_end = s_k - torch.linalg.vector_norm(end[:, :, None] - pts[:, None], dim=-1)  # B A P
+        reach_now = (s_k - torch.linalg.vector_norm(pts, dim=-1)).amax(-1, keepdim=True)  # B 1
+        best = reach_end.argmax(-1)  # B A
+        sub_gain = reach_end.amax(-1) - reach_now
+        ahead = torch.gather(pts, 1, (best + self.path_lead).clamp_max(pts.shape[1] - 1)[..., None].expand(-1, -1, 2))
+        to_sub = ahead - end
+    else:
+        sub_gain = torch.linalg.vector_norm(sub, dim=-1, keepdim=True) - torch.linalg.vector_norm(sub[:, None] - end, dim=-1)
+        to_sub = sub[:, None] - end
+    goal_gain = obs["state"][:, 2:3] - torch.linalg.vector_norm(goal[:, None] - end, dim=-1)
+    err = torch.atan2(to_sub[..., 1], to_sub[..., 0]) - self.end_heading
+    goal_near = torch.linalg.vector_norm(goal[:, None, None] - arcs[None], dim=-1).amin(-1)  # B A
+    near = (obs["state"][:, 2:3] < NEAR_GOAL_M).float().expand(-1, a)
+    abs_err = torch.atan2(torch.sin(err), torch.cos(err)).abs()
+    grid = self.grid_norm[None].expand(b, -1, -1)
+    feats = [ped_min, obs_min,
+             torch.log1p(torch.stack([ped_contact, ped_comfort, obs_contact, obs_near], -1)),
+             torch.stack([torch.cos(err), torch.sin(err), goal_near.clamp_max(CLEAR_CAP_M), near], -1),
+             grid,
+             # the terms of the linear cost (the last N_LINEAR features): predicted intrusions, progress along
+             # the route, heading error away from the goal, approach when near it, speed and turning
+             torch.stack([ped_contact.clamp_max(10.0), ped_comfort.clamp_max(10.0), obs_contact.clamp_max(10.0),
+                          obs_near.clamp_max(10.0), sub_gain, goal_gain, (1.0 - near) * abs_err,
+                          near * (obs["state"][:, 2:3] - goal_near), grid[..., 0], grid[..., 1].abs()], -1)]
+    return torch.cat(feats, -1)
 
 
 class TakeScores(nn.Module):

@@ -15,6 +15,9 @@ occ        1 x X/2 x Y/2        local occupancy from depth (the "w/o BEV" ablati
 poses      K x 17 x 3           detected 3D joints, robot frame (the env's detector)
 pose_mask  K x 17               1 = detected joint
 state      5                    s = [g_x, g_y, d_g, v_x, v_y]
+peds       P x 6                ``head="lookahead"``, variants with poses: pedestrian tracks from the detected poses
+                                ([x, y, vx, vy, r, present], robot frame; :mod:`rl.perceive`)
+scan       R                    ``head="lookahead"``: nearest depth obstacle per bearing bin over 360° (with memory)
 =========  ===================  ====================================================================================
 
 With ``mirror=True`` a ``bev`` variant's observer also returns ``bev_mirror``: ``s_bev`` of the *mirrored* world
@@ -79,13 +82,24 @@ class StudentObserver:
         encoder: the frozen pretrained encoder (required unless the variant is ``no_bev``).
         max_people: ``K`` of the detector.
         mirror: also return ``bev_mirror`` (module docstring); only for variants with ``bev``.
+        head: the policy's actor head (``lookahead`` adds ``peds`` and ``scan``).
+        perception: ``{"dt_s", "k", "rays", "range_m"}`` of the lookahead head's :class:`rl.perceive.Perception`
+            (:func:`perception_params` of the env).
     """
 
     def __init__(self, variant: str, cameras: list[Camera], encoder: BEVEncoder | None, max_people: int,
-                 mirror: bool = False) -> None:
+                 mirror: bool = False, head: str = "mlp", perception: dict[str, Any] | None = None) -> None:
         self.variant = variant
-        self.keys = variant_keys(variant)
+        self.keys = variant_keys(variant, head)
         self.cameras = cameras
+        self.perception = None
+        if head == "lookahead":
+            from rl.perceive import CameraView, Perception
+
+            if perception is None:
+                raise ConfigError("the lookahead head's observer needs the perception parameters of the env")
+            self.perception = Perception([CameraView.of(c) for c in cameras], perception["dt_s"], perception["k"],
+                                         perception["rays"], perception["range_m"], people="poses" in self.keys)
         if "bev" in self.keys:
             if encoder is None:
                 raise ConfigError(f"variant {variant!r} needs the pretrained encoder")
@@ -121,11 +135,17 @@ class StudentObserver:
         if "poses" in self.keys:
             d["poses"] = gym.spaces.Box(-big, big, (self.max_people, 17, 3), np.float32)
             d["pose_mask"] = gym.spaces.Box(0.0, 1.0, (self.max_people, 17), np.float32)
+        if self.perception is not None:
+            d["scan"] = gym.spaces.Box(0.0, big, (self.perception.scan.rays,), np.float32)
+            if self.perception.people:
+                d["peds"] = gym.spaces.Box(-big, big, (self.perception.k, 6), np.float32)
         return gym.spaces.Dict(d)
 
     def reset(self) -> None:
         """The next observation starts a new episode (its history is that frame repeated)."""
         self._first = True
+        if self.perception is not None:
+            self.perception.reset()
 
     @torch.no_grad()
     def __call__(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -155,6 +175,8 @@ class StudentObserver:
         if "poses" in self.keys:
             out["poses"] = np.asarray(obs["poses"], np.float32)
             out["pose_mask"] = np.asarray(obs["pose_mask"], np.float32)
+        if self.perception is not None:
+            out.update(self.perception(obs))
         self._first = False
         return out
 
@@ -164,6 +186,21 @@ class StudentObserver:
         ones = d.new_ones(d.shape[0], d.shape[1], 1, *d.shape[2:])
         count = lift_splat(ones, d, self.occ_geom, self.grid)
         return F.max_pool2d((count > 0).float(), BEV_POOL)
+
+
+def perception_params(env) -> dict[str, Any]:
+    """The lookahead head's perception layout of an (unwrapped) env: control period, tracks and scan as the
+    teacher's privileged observation has them."""
+    c = env.cfg
+    return {"dt_s": float(c.dt_s), "k": int(c.privileged_peds), "rays": int(c.scan_rays),
+            "range_m": float(c.scan_range_m)}
+
+
+def observer_for_env(env, variant: str, encoder: BEVEncoder | None, head: str = "mlp",
+                     mirror: bool = False) -> StudentObserver:
+    """The :class:`StudentObserver` of a student variant on an (unwrapped) env."""
+    return StudentObserver(variant, env_cameras(env), encoder, env.cfg.detector.max_people, mirror=mirror, head=head,
+                           perception=perception_params(env))
 
 
 def check_mirror_symmetric(cameras: list[Camera]) -> None:
@@ -195,14 +232,15 @@ class StudentEnv(gym.Wrapper):
     running on one thread).
     """
 
-    def __init__(self, env: gym.Env, variant: str, encoder_ckpt: Path | None, threads: int = 1) -> None:
+    def __init__(self, env: gym.Env, variant: str, encoder_ckpt: Path | None, threads: int = 1,
+                 head: str = "mlp") -> None:
         super().__init__(env)
         torch.set_num_threads(threads)
         u = env.unwrapped
         if u.cfg.obs_mode != "visual":
             raise ConfigError(f"StudentEnv needs obs_mode='visual', got {u.cfg.obs_mode!r}")
         encoder = load_student_encoder(variant, encoder_ckpt)
-        self.observer = StudentObserver(variant, env_cameras(u), encoder, u.cfg.detector.max_people)
+        self.observer = observer_for_env(u, variant, encoder, head)
         self.observation_space = self.observer.observation_space
 
     def reset(self, **kwargs: Any):

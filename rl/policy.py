@@ -20,7 +20,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 
 from pipeline.artifacts import atomic_write_text
 from pipeline.errors import CorruptArtifactError, InputMissingError
-from rl.networks import StudentExtractor, TakeScores, teacher_extractor_class
+from rl.networks import StudentExtractor, StudentLookaheadExtractor, TakeScores, teacher_extractor_class
 
 POLICY_JSON = "policy.json"
 POLICY_WEIGHTS = "policy.safetensors"
@@ -64,7 +64,8 @@ class ScoredPolicy(ActorCriticPolicy):
 
 def policy_class(kind: str, net: dict[str, Any]) -> type[ActorCriticPolicy]:
     """The SB3 policy class of a teacher or student (for ``PPO(policy_class, ...)``)."""
-    return ScoredPolicy if kind == "teacher" and net.get("encoder") == "lookahead" else ActorCriticPolicy
+    scored = (net.get("encoder") == "lookahead") if kind == "teacher" else (net.get("head") == "lookahead")
+    return ScoredPolicy if scored else ActorCriticPolicy
 
 
 def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[str, Any]:
@@ -81,9 +82,14 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
                 "net_arch": {"pi": pi, "vf": list(net.get("vf", [256, 256]))},
                 "share_features_extractor": True}
     ext = {k: net[k] for k in ("bev_dim", "bev_width", "state_dim", "fused_dim", "i2former") if k in net}
-    return {"features_extractor_class": StudentExtractor,
+    pi = list(net.get("pi", [256]))
+    cls: type = StudentExtractor
+    if net.get("head", "mlp") == "lookahead":  # the extractor scores the actions (rl.networks.StudentLookaheadExtractor)
+        ext.update({k: net[k] for k in ("robot", "dt_s", "scan_range_m", "score_dim", "context_dim") if k in net})
+        cls, pi = StudentLookaheadExtractor, []
+    return {"features_extractor_class": cls,
             "features_extractor_kwargs": {"variant": variant, **ext},
-            "net_arch": {"pi": list(net.get("pi", [256])), "vf": list(net.get("vf", [128]))},
+            "net_arch": {"pi": pi, "vf": list(net.get("vf", [128]))},
             "share_features_extractor": True}
 
 

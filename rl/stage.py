@@ -99,6 +99,10 @@ class DaggerConfig:
     bc_lr: float = 5e-4
     soft_tau: float = 1.0  # > 0: clone the teacher's action distribution softmax(logits / soft_tau); 0: its argmax
     mirror: bool = True  # left-right mirror augmentation while cloning (bev variants record the mirrored s_bev)
+    # the lookahead head's linear cost: "teacher" = the lookahead teacher's own (the same layer on the student's
+    # perceived tracks and scan; frozen, the MLP scorer learns the rest), "fit" = convex regression to the teacher's
+    # distribution on the DAgger frames (measured weaker: README, Training)
+    linear_cost: str = "teacher"
     scenes: list[str] = field(default_factory=lambda: ["hallway", "corner", "doorway", "cluttered_room", "open_crowd"])
     densities: list[float] = field(default_factory=lambda: [0.1, 0.2])
 
@@ -134,6 +138,10 @@ class TrainConfig(BaseStageConfig):
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
     acceptance: AcceptanceConfig = field(default_factory=AcceptanceConfig)
     net: dict[str, Any] = field(default_factory=dict)  # student network sizes (rl.networks.StudentExtractor)
+    # the student's actor: "lookahead" scores each action by rolling it out against the pedestrians tracked from its
+    # detected poses and a depth obstacle scan (rl.perceive, rl.networks.StudentLookaheadExtractor); "mlp" is the
+    # paper's MLP head on z alone (README, Training: why the default differs)
+    head: str = "lookahead"
     drl_vo: DRLVOConfig = field(default_factory=DRLVOConfig)  # the learned baselines (rl.baselines.<name>)
     sarl_om: SARLOMConfig = field(default_factory=SARLOMConfig)
     vint: ViNTConfig = field(default_factory=ViNTConfig)
@@ -163,6 +171,12 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError("train: ppo_steps and teacher.critic_warmup_steps must be >= 0")
         if d.soft_tau < 0:
             raise ConfigError(f"train.dagger.soft_tau: expected >= 0, got {d.soft_tau}")
+        from rl.networks import STUDENT_HEADS
+
+        if self.head not in STUDENT_HEADS:
+            raise ConfigError(f"train.head: expected one of {list(STUDENT_HEADS)}, got {self.head!r}")
+        if d.linear_cost not in ("teacher", "fit"):
+            raise ConfigError(f"train.dagger.linear_cost: expected 'teacher' or 'fit', got {d.linear_cost!r}")
         if not (0 <= d.beta0 <= 1 and 0 <= d.beta_decay <= 1):
             raise ConfigError(f"train.dagger: beta0 and beta_decay must be in [0, 1], got {d.beta0}, {d.beta_decay}")
         if not d.scenes or not d.densities or not self.acceptance.scenes or not self.acceptance.densities:
@@ -436,9 +450,15 @@ def _progress_callback(total: int, desc: str, enabled: bool):
 # --------------------------------------------------------------------------------------------------------- student
 def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     from rl.dagger import bev_stats, export_iteration, load_features, run_iteration, write_done
-    from rl.observe import StudentObserver, env_cameras, load_student_encoder
+    from rl.observe import load_student_encoder, observer_for_env
     from rl.policy import build_policy, describe, load_policy, save_policy
-    from rl.teacher import bc_loss, behaviour_clone
+    from rl.teacher import (
+        bc_loss,
+        behaviour_clone,
+        fit_lookahead_linear,
+        has_lookahead,
+        lookahead_feature_cache,
+    )
     from sim.env import CrowdNavEnv
 
     d = cfg.dagger
@@ -448,14 +468,17 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     encoder = load_student_encoder(cfg.variant, enc_dir)
     env = CrowdNavEnv(config=replace(cfg.sim, scene=d.scenes[0], obs_mode="state"))
     env.reset(seed=0)
-    space = StudentObserver(cfg.variant, env_cameras(env), encoder, cfg.sim.detector.max_people).observation_space
-    net = dict(cfg.net)
+    space = observer_for_env(env, cfg.variant, encoder, cfg.head).observation_space
+    net = student_net(cfg)
     extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir)}
     pairs = [(s, float(x)) for s in d.scenes for x in d.densities]
     n_rot = cfg.sim.robot.n_rotations  # yaw rates of the action grid (mirroring reverses them)
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
     torch.manual_seed(cfg.seed)
     policy = build_policy("student", cfg.variant, space, net)
+    inherited = has_lookahead(policy) and d.linear_cost == "teacher"
+    if inherited:
+        inherit_linear_cost(policy, teacher_dir)
     iters: list[dict[str, Any]] = []
     frames_total = 0
     for k in range(d.iterations):
@@ -471,7 +494,8 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         jobs = [{"sim": cfg.sim, "scene": pairs[e % len(pairs)][0], "density": pairs[e % len(pairs)][1],
                  "seed": cfg.seed + 1000 * k + e, "variant": cfg.variant, "encoder": str(enc_dir) if enc_dir else None,
                  "teacher": str(teacher_dir), "student": str(student_dir) if student_dir else None, "beta": beta,
-                 "iteration": k, "iter_dir": str(it), "mirror": d.mirror} for e in range(d.episodes_per_iter)]
+                 "iteration": k, "iter_dir": str(it), "mirror": d.mirror, "head": cfg.head}
+                for e in range(d.episodes_per_iter)]
         rows = run_iteration(it, jobs, cfg.workers, cfg.progress)
         counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress)
         new = load_features([it])
@@ -482,20 +506,38 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         soft = d.soft_tau > 0 and len(data.get("teacher_logits", ())) == len(data["action"])
         if soft:  # distillation: softmin(-logits / τ) = the teacher's distribution softmax(logits / τ)
             data["costs"] = -data.pop("teacher_logits")
+            new["costs"] = -new.pop("teacher_logits")
+            soft_before = bc_loss(policy, new, soft_tau=d.soft_tau)
+        linear_fit, cache = None, None
+        if has_lookahead(policy):  # rollout features once; the linear cost by convex regression, then the rest
+            cache = lookahead_feature_cache(policy, data, d.mirror, n_rot,
+                                            (*space.spaces, *(("bev_mirror",) if d.mirror and "bev" in space.spaces
+                                                              else ())))
+            if soft and not inherited:
+                linear_fit = fit_lookahead_linear(policy, data, d.soft_tau, seed=cfg.seed + k, mirror=d.mirror,
+                                                  n_rot=n_rot, cache=cache)
+                log.info("student %s iteration %d: linear cost fit on %d frames, cross-entropy %.3f -> %.3f",
+                         cfg.variant, k, linear_fit["frames"], linear_fit["ce_before"], linear_fit["ce_after"])
         hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, cfg.seed + k, progress=cfg.progress,
-                               soft_tau=d.soft_tau if soft else 0.0, mirror=d.mirror, n_rot=n_rot)
+                               soft_tau=d.soft_tau if soft else 0.0, mirror=d.mirror, n_rot=n_rot,
+                               frozen=("features_extractor.linear.",) if (linear_fit or inherited) else (),
+                               cache=cache)
+        del cache
         after = bc_loss(policy, new)
+        soft_ce = ({"soft_ce_new_before": soft_before, "soft_ce_new_after": bc_loss(policy, new, soft_tau=d.soft_tau)}
+                   if soft else {})
         frames_total = int(len(data["action"]))
         for r in hist:
             logger.add("dagger_bc", k * d.bc_epochs + r["epoch"], bc_loss=r["bc_loss"], accuracy=r["accuracy"])
         sr_rollout = float(np.mean([r["outcome"] == "success" for r in rows]))
         logger.add("dagger", k, rollout_success=sr_rollout, bc_loss_new_before=before, bc_loss_new_after=after,
-                   aggregate_frames=frames_total)
+                   aggregate_frames=frames_total, **soft_ce)
         info = {"iteration": k, "beta": beta, "episodes": len(rows), "frames": int(len(new["action"])),
                 "aggregate_frames": frames_total, "rollout_success_rate": sr_rollout,
                 "student_steps": int(sum(r["student_steps"] for r in rows)),
                 "bc_loss_new_before": before, "bc_loss_new_after": after, "final_accuracy": hist[-1]["accuracy"],
-                "dataset": str(it / "dataset"), "dataset_frames": counts["frames"]}
+                "dataset": str(it / "dataset"), "dataset_frames": counts["frames"], **soft_ce,
+                **({"linear_fit": linear_fit} if linear_fit else {})}
         save_policy(it / "policy", policy, describe("student", cfg.variant, space, net, **extra,
                                                     produced_by={"dagger_iterations": k + 1,
                                                                  "dagger_frames": frames_total}))
@@ -513,19 +555,47 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     return summary
 
 
+def inherit_linear_cost(policy, teacher_dir: Path) -> None:
+    """Copies the lookahead teacher's linear cost into a student's lookahead head (the same rollout features, here of
+    the perceived tracks and scan) and zeroes the MLP scorer's output layer, so the student starts as the teacher's
+    cost over what it perceives and cloning learns corrections on top."""
+    from rl.policy import load_policy
+
+    teacher, _ = load_policy(teacher_dir)
+    src, dst = teacher.features_extractor, policy.features_extractor
+    if not hasattr(src, "linear") or src.linear.weight.shape != dst.linear.weight.shape:
+        raise ConfigError(f"dagger.linear_cost 'teacher' needs a lookahead teacher ({teacher_dir} has "
+                          f"{type(src).__name__}); use dagger.linear_cost fit")
+    with torch.no_grad():
+        dst.linear.load_state_dict(src.linear.state_dict())
+        dst.scorer[-1].weight.zero_()
+        dst.scorer[-1].bias.zero_()
+
+
+def student_net(cfg: TrainConfig) -> dict[str, Any]:
+    """The student's network description (saved in policy.json): ``cfg.net``, the head and, for the lookahead head,
+    what its rollouts need from the simulator (robot limits and radius, control period, scan range)."""
+    from dataclasses import asdict
+
+    net = {**cfg.net, "head": cfg.head}
+    if cfg.head == "lookahead":
+        net.update({"robot": asdict(cfg.sim.robot), "dt_s": cfg.sim.dt_s, "scan_range_m": cfg.sim.scan_range_m})
+    return net
+
+
 def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir):
     """PPO on the student (rendered envs, the paper's reward), starting from the distilled policy."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     from rl.observe import StudentEnv
-    from rl.policy import policy_kwargs
+    from rl.policy import policy_class, policy_kwargs
     from rl.teacher import SceneMixEnv, ppo_kwargs
 
     f = cfg.finetune
 
     def make():
-        return StudentEnv(SceneMixEnv(cfg.sim, pairs, obs_mode="visual"), cfg.variant, enc_dir)
+        return StudentEnv(SceneMixEnv(cfg.sim, pairs, obs_mode="visual"), cfg.variant, enc_dir, head=cfg.head)
 
     venv = (SubprocVecEnv([make] * f.n_envs, start_method="fork") if f.n_envs > 1 else DummyVecEnv([make]))
     venv.seed(cfg.seed + 77)
@@ -533,7 +603,8 @@ def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir):
     if last.exists():
         model = PPO.load(last, env=venv, device="cpu")
     else:
-        model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs("student", cfg.variant, dict(cfg.net)),
+        net = student_net(cfg)
+        model = PPO(policy_class("student", net), venv, policy_kwargs=policy_kwargs("student", cfg.variant, net),
                     seed=cfg.seed, device="cpu", verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(f.ppo))
         model.policy.load_state_dict(policy.state_dict())
     done = model.num_timesteps

@@ -446,19 +446,25 @@ def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch
 
 
 @torch.no_grad()
-def bc_loss(policy, data: dict[str, np.ndarray], batch: int = 1024) -> float:
-    """Mean negative log-likelihood of ``data["action"]`` under ``policy`` (no gradient)."""
+def bc_loss(policy, data: dict[str, np.ndarray], batch: int = 1024, soft_tau: float = 0.0) -> float:
+    """Mean negative log-likelihood of ``data["action"]`` under ``policy`` (no gradient); with ``soft_tau > 0`` and
+    ``data["costs"]``, the cross-entropy to the softmin of the costs instead (the cloning objective)."""
     keys = tuple(policy.observation_space.spaces)
     n = len(data["action"])
     tot = 0.0
     for s in range(0, n, batch):
         obs = {k: torch.as_tensor(data[k][s:s + batch], dtype=torch.float32) for k in keys}
-        _, logp, _ = policy.evaluate_actions(obs, torch.as_tensor(data["action"][s:s + batch]))
-        tot += float(-logp.sum())
+        if soft_tau > 0 and "costs" in data:
+            logits, _ = policy_logits_values(policy, obs)
+            cost = torch.as_tensor(data["costs"][s:s + batch], dtype=torch.float32)
+            target = torch.softmax(-(cost - cost.min(1, keepdim=True).values) / soft_tau, -1)
+            tot += float(-(target * torch.log_softmax(logits, -1)).sum())
+        else:
+            _, logp, _ = policy.evaluate_actions(obs, torch.as_tensor(data["action"][s:s + batch]))
+            tot += float(-logp.sum())
     return tot / max(n, 1)
 
 
-# ---------------------------------------------------------------------------------------------------------- PPO
 def make_vec_env(sim_cfg: SimConfig, pairs: list[tuple[str, float]], n_envs: int, seed: int, subprocess: bool):
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 

@@ -194,22 +194,44 @@ def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir):
     a, b = tmp_path / "a", tmp_path / "b"
     for d in (a, b):
         shutil.copytree(teacher_dir, d / "checkpoints" / "policy" / "teacher")
-    run(_train_cfg(a, "no_bev"))
+    run(_train_cfg(a, "no_bev", head="mlp"))
     out_a = a / "checkpoints" / "policy" / "no_bev"
     assert json.loads((out_a / "policy.json").read_text())["produced_by"]["dagger_iterations"] == 2
     # b: the same run killed during iteration 1 (iteration 0 finished), then resumed
-    run(_train_cfg(b, "no_bev"))
+    run(_train_cfg(b, "no_bev", head="mlp"))
     out_b = b / "checkpoints" / "policy" / "no_bev"
     for name in ("manifest.json", "policy.safetensors", "policy.json", "metrics.json"):
         (out_b / name).unlink()
     shutil.rmtree(out_b / "dagger" / "iter_1")
-    run(_train_cfg(b, "no_bev", resume="true"))
+    run(_train_cfg(b, "no_bev", head="mlp", resume="true"))
     assert (out_a / "policy.safetensors").read_bytes() == (out_b / "policy.safetensors").read_bytes()
     pa, _ = load_policy(out_a)
     assert (out_a / "curves.png").stat().st_size > 0 and (out_a / "manifest.json").is_file()
     m = json.loads((out_a / "metrics.json").read_text())
     assert m["acceptance"]["table"]["hallway@0.1"]["n"] == 1
     assert all(it["bc_loss_new_after"] < it["bc_loss_new_before"] for it in m["dagger"])
+    assert all(it["soft_ce_new_after"] < it["soft_ce_new_before"] for it in m["dagger"])
+
+
+def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
+    """The default student head: one DAgger iteration records perceived tracks and scans, the convex fit of the
+    linear cost and the cloning lower the cross-entropy to the teacher's distribution on the iteration's frames, and
+    the checkpoint rebuilds as the scored policy."""
+    from rl.policy import ScoredPolicy
+    from rl.stage import run
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    run(_train_cfg(tmp_path, "no_bev", **{"dagger.iterations": 1, "dagger.episodes_per_iter": 2,
+                                         "sim.max_episode_s": 6.0, "dagger.bc_epochs": 3}))
+    out = tmp_path / "checkpoints" / "policy" / "no_bev"
+    it = json.loads((out / "metrics.json").read_text())["dagger"][0]
+    assert it["linear_fit"]["ce_after"] < 0.5 * it["linear_fit"]["ce_before"]
+    assert it["soft_ce_new_after"] < 0.5 * it["soft_ce_new_before"]
+    with np.load(next((out / "dagger" / "iter_0" / "features").glob("*.npz"))) as z:
+        assert z["scan"].shape[1] == 72 and z["peds"].shape[1:] == (10, 6)
+        assert z["scan"].min() < 10.0  # the hallway's walls
+    policy, desc = load_policy(out)
+    assert isinstance(policy, ScoredPolicy) and desc["net"]["head"] == "lookahead"
 
 
 def test_missing_encoder_is_one_clear_error(tmp_path, teacher_dir):

@@ -1,0 +1,196 @@
+"""The student's perception for its lookahead head (rl.perceive) and the head itself (StudentLookaheadExtractor)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from rl.networks import N_LINEAR, StudentLookaheadExtractor, variant_keys
+from rl.observe import observer_for_env
+from rl.perceive import (
+    PED_RADIUS_M,
+    CameraView,
+    DepthScan,
+    PedestrianTracker,
+    person_centres,
+    scan_from_points,
+)
+from rl.policy import ScoredPolicy, build_policy, describe, load_policy, save_policy
+from rl.teacher import fit_lookahead_linear, lookahead_feature_cache, mirror_batch
+from sim.env import CrowdNavEnv, SimConfig
+from sim.expert import PrivilegedExpert
+
+SIM = replace(SimConfig(max_episode_s=8.0), obs_mode="visual", info_level="basic")
+SIM.camera.width_px, SIM.camera.height_px = 80, 60
+
+
+def test_person_centre_is_behind_the_lifted_joints():
+    poses = np.zeros((2, 17, 3), np.float32)
+    poses[0, :, 0], poses[0, :, 1] = 3.0, np.linspace(-0.2, 0.2, 17)
+    mask = np.zeros((2, 17), np.uint8)
+    mask[0] = 1
+    mask[1, :2] = 1  # too few joints: not a person
+    c = person_centres(poses, mask)
+    assert c.shape == (1, 2)
+    assert c[0] == pytest.approx([3.1, 0.0], abs=1e-6)
+
+
+def test_tracker_estimates_a_constant_velocity_and_coasts():
+    tr = PedestrianTracker(dt_s=0.1)
+    rng = np.random.default_rng(0)
+    v = np.array([0.8, -0.4])
+    est = []
+    for t in range(60):
+        p = np.array([[1.0, 2.0]]) + v * 0.1 * t + rng.normal(0, 0.03, 2)
+        far = np.array([[-5.0, 5.0]])  # a standing person
+        tr.update(np.concatenate([p, far]) if t % 2 else np.concatenate([far, p]))  # order must not matter
+        obs = tr.observation((0.0, 0.0, np.pi / 2), k=4)  # robot at the origin facing +y
+        assert obs[:2, 5].tolist() == [1.0, 1.0] and obs[2:, 5].tolist() == [0.0, 0.0]
+        walker = obs[np.argmin(np.hypot(obs[:2, 0] - (p[0, 1]), obs[:2, 1] + p[0, 0]))]
+        if t >= 20:
+            est.append(walker[2:4])
+    # world velocity (0.8, -0.4) seen from a robot facing +y: x_r = world y, y_r = -world x
+    assert np.mean(est, 0) == pytest.approx([-0.4, -0.8], abs=0.06)
+    assert np.std(est, 0).max() < 0.25  # per-frame noise of the estimate (0.03 m position noise)
+    assert walker[4] == PED_RADIUS_M
+    n = len(tr.pos)
+    for _ in range(tr.max_missed):  # nobody detected: the tracks coast
+        tr.update(np.zeros((0, 2)))
+    assert len(tr.pos) == n
+    tr.update(np.zeros((0, 2)))
+    assert len(tr.pos) == 0
+
+
+def test_scan_bins_points_like_the_static_scan():
+    pts = np.array([[2.0, 0.0], [3.0, 0.0], [0.0, 1.0], [-1.0, -1.0]])
+    s = scan_from_points(pts, 8, 10.0)
+    assert s.tolist() == pytest.approx([2.0, 10.0, 1.0, 10.0, 10.0, np.sqrt(2), 10.0, 10.0])
+
+
+@pytest.fixture(scope="module")
+def lobby():
+    env = CrowdNavEnv(config=replace(SIM, scene="office_lobby", density=0.2))
+    yield env
+    env.close()
+
+
+def test_perception_agrees_with_the_simulator_in_view(lobby):
+    """Tracks near the true pedestrians (with their velocity), the depth scan near the static scan ahead."""
+    env = lobby
+    obs, _ = env.reset(seed=3)
+    observer = observer_for_env(env, "no_bev", None, head="lookahead")
+    assert set(variant_keys("no_bev", "lookahead")) <= set(observer.observation_space.spaces)
+    observer.reset()
+    expert = PrivilegedExpert()
+    expert.reset(env)
+    pos_err, vel_err, scan_err = [], [], []
+    for step in range(60):
+        o = observer(obs)
+        assert observer.observation_space.contains({k: np.asarray(v, np.float32) for k, v in o.items()})
+        true = env.privileged_peds()
+        true = true[true[:, 5] > 0]
+        for p in o["peds"][o["peds"][:, 5] > 0]:
+            d = np.hypot(*(true[:, :2] - p[:2]).T)
+            if d.min() < 0.6 and step >= 10:
+                pos_err.append(d.min())
+                vel_err.append(np.hypot(*(true[d.argmin(), 2:4] - p[2:4])))
+        ahead = np.r_[0:8, 65:72]  # ±35°: both cameras see it
+        scan_err.append(np.abs(np.minimum(o["scan"][ahead], 4.0) - np.minimum(env.static_scan()[ahead], 4.0)))
+        obs, _, term, trunc, _ = env.step(env.encode_command(*expert.command(env)))
+        if term or trunc:
+            break
+    assert len(pos_err) > 20
+    assert np.median(pos_err) < 0.2
+    assert np.median(vel_err) < 0.5
+    assert np.median(np.concatenate(scan_err)) < 0.25
+
+
+def test_depth_scan_remembers_what_the_cameras_turned_away_from(lobby):
+    env = lobby
+    env.reset(seed=1)
+    cams = [CameraView.of(c) for c in observer_for_env(env, "no_bev", None).cameras]
+    scan = DepthScan(cams, 72, 10.0, memory_s=1.5)
+    depth = np.zeros((cams[0].height_px, cams[0].width_px), np.float32)
+    depth[:, :] = 2.0  # a wall 2 m in front of the left camera (the floor and ceiling fall outside the band)
+    first = scan.update([depth, np.zeros_like(depth)], (0.0, 0.0, 0.0), 0.1)
+    hit = np.flatnonzero(first < 10.0)
+    assert len(hit) > 0
+    # the robot turns by 180° and sees nothing: the wall is now behind it, still in the scan
+    turned = scan.update([np.zeros_like(depth)] * 2, (0.0, 0.0, np.pi), 0.1)
+    assert np.all(turned[(hit + 36) % 72] == pytest.approx(first[hit], abs=0.05))
+    for _ in range(15):  # ... until the memory expires
+        turned = scan.update([np.zeros_like(depth)] * 2, (0.0, 0.0, np.pi), 0.1)
+    assert np.all(turned == 10.0)
+
+
+def _student_space(lobby, variant="no_bev"):
+    return observer_for_env(lobby, variant, None, head="lookahead").observation_space
+
+
+def _net(lobby):
+    from dataclasses import asdict
+
+    c = lobby.cfg
+    return {"head": "lookahead", "robot": asdict(c.robot), "dt_s": c.dt_s, "scan_range_m": c.scan_range_m}
+
+
+def _batch(space, n, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    out = {k: torch.rand((n, *s.shape), generator=g) for k, s in space.spaces.items()}
+    out["scan"] = 1.0 + 9.0 * out["scan"]
+    out["peds"][..., :2] = 6.0 * out["peds"][..., :2] - 3.0
+    out["peds"][..., 4] = PED_RADIUS_M
+    out["peds"][..., 5] = (out["peds"][..., 5] > 0.5).float()
+    out["state"][:, :2] = 8.0 * out["state"][:, :2] - 4.0
+    out["state"][:, 2] = torch.linalg.vector_norm(out["state"][:, :2], dim=-1)
+    return out
+
+
+def test_student_head_scores_actions_and_round_trips(lobby, tmp_path):
+    space = _student_space(lobby)
+    torch.manual_seed(0)
+    policy = build_policy("student", "no_bev", space, _net(lobby))
+    assert isinstance(policy, ScoredPolicy)
+    ext = policy.features_extractor
+    assert isinstance(ext, StudentLookaheadExtractor)
+    obs = _batch(space, 4)
+    logits = policy.get_distribution(obs).distribution.logits
+    assert logits.shape == (4, 105) and torch.isfinite(logits).all()
+    save_policy(tmp_path, policy, describe("student", "no_bev", space, _net(lobby)))
+    again, _ = load_policy(tmp_path)
+    assert torch.allclose(again.get_distribution(obs).distribution.logits, logits, atol=1e-5)
+
+
+def test_student_head_mirror_symmetry_and_no_i2_without_people(lobby):
+    space = _student_space(lobby)
+    ext = build_policy("student", "no_bev", space, _net(lobby)).features_extractor
+    obs = _batch(space, 3, seed=1)
+    flip = torch.ones(3, dtype=torch.bool)
+    mobs, _, _ = mirror_batch(obs, torch.zeros(3, dtype=torch.long), None, flip, 21)
+    f, mf = ext.action_features(obs), ext.action_features(mobs)
+    # the mirrored world's action j of yaw index r is action j of yaw index 20 - r; the linear cost's terms agree
+    lin, mlin = f[..., -N_LINEAR:].view(3, 5, 21, -1), mf[..., -N_LINEAR:].view(3, 5, 21, -1)
+    assert torch.allclose(lin, torch.flip(mlin, [2]), atol=1e-4)
+    # w/o I²: no poses, so no tracks; its rollouts predict nobody
+    assert "peds" not in variant_keys("no_i2", "lookahead")
+    no_people = {k: v for k, v in obs.items() if k != "peds"}
+    g = ext.action_features(no_people)
+    assert torch.all(g[..., 0] == g[..., 0].max())  # ped clearance at its cap everywhere
+
+
+def test_linear_cost_fits_the_teachers_distribution(lobby):
+    """The convex fit recovers a linear cost the targets were generated from (the student's distillation step)."""
+    space = _student_space(lobby)
+    torch.manual_seed(0)
+    policy = build_policy("student", "no_bev", space, _net(lobby))
+    obs = _batch(space, 256, seed=2)
+    data = {k: v.numpy() for k, v in obs.items()}
+    ext = policy.features_extractor
+    feats = ext.action_features(obs)[..., -N_LINEAR:]
+    w_true = torch.tensor([-3.0, -1.0, -2.0, -0.5, 1.0, 0.5, -0.3, 0.2, 0.1, -0.1])
+    logits = 10.0 * (feats @ w_true)
+    data["costs"], data["action"] = -logits.numpy(), logits.argmax(-1).numpy()
+    cache = lookahead_feature_cache(policy, data, mirror=True)
+    fit = fit_lookahead_linear(policy, data, soft_tau=1.0, mirror=True, cache=cache)
+    assert fit["ce_after"] < 0.5 * fit["ce_before"]
