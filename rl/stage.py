@@ -216,6 +216,11 @@ def _inputs(cfg: TrainConfig) -> list[Path]:
         raise InputMissingError(f"teacher checkpoint {teacher} is unfinished (no manifest.json); run "
                                 "`icrowdnav train --variant teacher` first")
     paths = [teacher / "policy.json", teacher / "policy.safetensors"]
+    if cfg.head == "lookahead" and cfg.dagger.linear_cost == "teacher" and \
+            read_policy_json(teacher)["net"].get("encoder") != "lookahead":
+        raise ConfigError(f"train.dagger.linear_cost 'teacher': the teacher {teacher} is not a lookahead teacher "
+                          "(teacher.net.encoder lookahead), so it has no linear cost to inherit; re-train it or use "
+                          "--dagger.linear_cost fit")
     if cfg.variant != "no_bev":
         read_encoder_json(encoder_dir(cfg))  # missing / unfinished / corrupt -> one clear error
         from rl.observe import check_encoder_matches, env_cameras, load_student_encoder
