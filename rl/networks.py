@@ -152,11 +152,14 @@ class StudentLookaheadExtractor(StudentExtractor):
     context vector from ``z``) — fed with what the student perceives instead of privileged state: pedestrian tracks
     from its detected poses and an obstacle scan from its depth images (:mod:`rl.perceive`), and the goal in place of
     the global path. ``no_i2`` has no poses, so its rollouts predict no pedestrians (people are depth obstacles
-    in its scan). The first ``A`` features are the logits (:class:`rl.policy.ScoredPolicy`), the rest is ``z``."""
+    in its scan). With ``scorer_bound`` c the MLP scorer's output is squashed to ``c · tanh(x / c)`` nats: the
+    learned part can re-rank actions the cost finds close, not override a predicted contact (an unbounded scorer
+    cloned from the privileged teacher learned to, and collided more: README, Training). The first ``A`` features
+    are the logits (:class:`rl.policy.ScoredPolicy`), the rest is ``z``."""
 
     def __init__(self, observation_space: gym.spaces.Dict, variant: str = "full", robot: dict[str, Any] | None = None,
                  dt_s: float = 0.1, scan_range_m: float = 10.0, score_dim: int = 64, context_dim: int = 32,
-                 **kwargs: Any) -> None:
+                 scorer_bound: float | None = None, **kwargs: Any) -> None:
         super().__init__(observation_space, variant, **kwargs)
         missing = [k for k in variant_keys(variant, "lookahead") if k not in observation_space.spaces]
         if missing:
@@ -168,6 +171,7 @@ class StudentLookaheadExtractor(StudentExtractor):
         base_dim = self._features_dim
         init_lookahead(self, observation_space, robot, dt_s, 0.25)
         init_scorer(self, base_dim, score_dim, context_dim)
+        self.scorer_bound = float(scorer_bound) if scorer_bound else None
 
     def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """``B x A x F`` rollout features of every action from the perceived ``peds`` / ``scan`` and the goal."""
@@ -329,6 +333,7 @@ def init_scorer(m: nn.Module, base_dim: int, score_dim: int, context_dim: int) -
     m.scorer = mlp([m.n_feat + context_dim, score_dim, score_dim, 1], last_act=False)
     m.linear = nn.Linear(N_LINEAR, 1)  # the linear cost over the last N_LINEAR rollout features
     m._features_dim = m.n_actions + base_dim
+    m.scorer_bound = None  # a student's learned correction is bounded (StudentLookaheadExtractor)
 
 
 def score_actions(m: nn.Module, base: torch.Tensor, obs: dict[str, torch.Tensor],
@@ -337,7 +342,10 @@ def score_actions(m: nn.Module, base: torch.Tensor, obs: dict[str, torch.Tensor]
     context of ``base``), then ``base``."""
     feats = m.action_features(obs) if action_features is None else action_features
     ctx = m.context(base)[:, None].expand(-1, feats.shape[1], -1)
-    scores = SCORE_SCALE * m.linear(feats[..., -N_LINEAR:]) + m.scorer(torch.cat([feats, ctx], -1))
+    learned = m.scorer(torch.cat([feats, ctx], -1))
+    if m.scorer_bound:  # c · tanh(x / c): the learned part may re-rank actions, not override predicted contacts
+        learned = m.scorer_bound * torch.tanh(learned / m.scorer_bound)
+    scores = SCORE_SCALE * m.linear(feats[..., -N_LINEAR:]) + learned
     return torch.cat([scores.squeeze(-1), base], -1)
 
 

@@ -14,7 +14,8 @@ velocities and a range scan of the *static map* (:class:`rl.networks.LookaheadTe
 * ``scan`` (``R`` ranges over 360° from the robot heading, ``range_m`` = no hit): :class:`DepthScan` back-projects
   the depth images (the DWA baseline's :func:`sim.planners.dwa.depth_to_points`, floor and ceiling dropped), drops the
   points within ``person_clear_m`` of a detected person (people are in ``peds``, with a velocity), keeps the rest in an
-  odometry-frame :class:`sim.planners.dwa.ObstacleMemory` for ``memory_s`` (what the cameras turned away from), and
+  odometry-frame :class:`sim.planners.dwa.ObstacleMemory` for ``memory_s`` = 5 s (what the cameras turned away from,
+  and what is now closer than their minimum depth), and
   takes the nearest point per bearing bin — the same ray layout as the env's static scan, so one lookahead layer
   serves both. Undetected people stay in the scan as obstacles without velocity.
 
@@ -147,18 +148,23 @@ class DepthScan:
         min_height_m, max_height_m: the height band of obstacle points (floor and ceiling dropped).
         pixel_stride: every n-th depth pixel in both directions.
         memory_s, voxel_m: the obstacle memory (points older than ``memory_s`` are dropped; one per voxel).
+        keep_near_m: if > 0, remembered points closer than this to the robot do not expire (dropped only when a
+            camera sees through them). Off by default: with 1.0 m the lookahead student timed out behind ghosts of
+            people who had passed beside it (lobby SR 0.73 vs 0.93, N = 30); the 5 s memory covers the case it was
+            meant for (an obstacle the robot stopped in front of, closer than the cameras' minimum depth).
         person_clear_m: points this close (x, y) to a detected person's centre are not obstacles.
     """
 
     def __init__(self, cameras: Sequence, rays: int, range_m: float, min_height_m: float = 0.05,
                  max_height_m: float = 1.8, pixel_stride: int = 2, memory_s: float = 5.0, voxel_m: float = 0.1,
-                 person_clear_m: float = 0.45, see_through_tol_m: float = 0.3) -> None:
+                 person_clear_m: float = 0.45, see_through_tol_m: float = 0.3, keep_near_m: float = 0.0) -> None:
         self.cameras = list(cameras)
         self.rays, self.range_m = int(rays), float(range_m)
         self.band = (float(min_height_m), float(max_height_m))
         self.stride = int(pixel_stride)
         self.memory = ObstacleMemory(memory_s, voxel_m)
         self.person_clear_m, self.tol_m = float(person_clear_m), float(see_through_tol_m)
+        self.keep_near_m = float(keep_near_m)
         self.t_s = 0.0
 
     def reset(self) -> None:
@@ -177,6 +183,11 @@ class DepthScan:
         self.t_s += float(dt_s)
         self.memory.update(_base_to_world(pts, robot_pose), self.t_s, keep)
         base = _world_to_base(self.memory.xyz, robot_pose) if len(self.memory) else np.zeros((0, 3))
+        # optionally, points near the robot do not expire (an obstacle the robot stopped in front of, closer than the
+        # cameras' minimum depth, is not measured any more); off by default: it keeps ghosts of people who passed
+        # beside the robot, which trapped it (measured: README, Training)
+        if self.keep_near_m > 0:
+            self.memory.stamp[np.hypot(base[:, 0], base[:, 1]) < self.keep_near_m] = self.t_s
         return scan_from_points(base[:, :2], self.rays, self.range_m)
 
 

@@ -85,7 +85,8 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
     pi = list(net.get("pi", [256]))
     cls: type = StudentExtractor
     if net.get("head", "mlp") == "lookahead":  # the extractor scores the actions (rl.networks.StudentLookaheadExtractor)
-        ext.update({k: net[k] for k in ("robot", "dt_s", "scan_range_m", "score_dim", "context_dim") if k in net})
+        ext.update({k: net[k] for k in ("robot", "dt_s", "scan_range_m", "score_dim", "context_dim", "scorer_bound")
+                    if k in net})
         cls, pi = StudentLookaheadExtractor, []
     return {"features_extractor_class": cls,
             "features_extractor_kwargs": {"variant": variant, **ext},

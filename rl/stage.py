@@ -142,6 +142,7 @@ class TrainConfig(BaseStageConfig):
     # detected poses and a depth obstacle scan (rl.perceive, rl.networks.StudentLookaheadExtractor); "mlp" is the
     # paper's MLP head on z alone (README, Training: why the default differs)
     head: str = "lookahead"
+    scorer_bound: float = 3.0  # lookahead head: its learned correction is bounded to ± this many nats (0 = unbounded)
     drl_vo: DRLVOConfig = field(default_factory=DRLVOConfig)  # the learned baselines (rl.baselines.<name>)
     sarl_om: SARLOMConfig = field(default_factory=SARLOMConfig)
     vint: ViNTConfig = field(default_factory=ViNTConfig)
@@ -175,6 +176,8 @@ class TrainConfig(BaseStageConfig):
 
         if self.head not in STUDENT_HEADS:
             raise ConfigError(f"train.head: expected one of {list(STUDENT_HEADS)}, got {self.head!r}")
+        if self.scorer_bound < 0:
+            raise ConfigError(f"train.scorer_bound: expected >= 0, got {self.scorer_bound}")
         if d.linear_cost not in ("teacher", "fit"):
             raise ConfigError(f"train.dagger.linear_cost: expected 'teacher' or 'fit', got {d.linear_cost!r}")
         if not (0 <= d.beta0 <= 1 and 0 <= d.beta_decay <= 1):
@@ -584,7 +587,8 @@ def student_net(cfg: TrainConfig) -> dict[str, Any]:
 
     net = {**cfg.net, "head": cfg.head}
     if cfg.head == "lookahead":
-        net.update({"robot": asdict(cfg.sim.robot), "dt_s": cfg.sim.dt_s, "scan_range_m": cfg.sim.scan_range_m})
+        net.update({"robot": asdict(cfg.sim.robot), "dt_s": cfg.sim.dt_s, "scan_range_m": cfg.sim.scan_range_m,
+                    "scorer_bound": cfg.scorer_bound})
     return net
 
 

@@ -76,7 +76,7 @@ def lobby():
 
 
 def test_perception_agrees_with_the_simulator_in_view(lobby):
-    """Tracks near the true pedestrians (with their velocity), the depth scan near the static scan ahead."""
+    """Tracks near the true pedestrians (with their velocity); the depth scan ahead shows the static map or people."""
     env = lobby
     obs, _ = env.reset(seed=3)
     observer = observer_for_env(env, "no_bev", None, head="lookahead")
@@ -95,15 +95,25 @@ def test_perception_agrees_with_the_simulator_in_view(lobby):
             if d.min() < 0.6 and step >= 10:
                 pos_err.append(d.min())
                 vel_err.append(np.hypot(*(true[d.argmin(), 2:4] - p[2:4])))
-        ahead = np.r_[0:8, 65:72]  # ±35°: both cameras see it
-        scan_err.append(np.abs(np.minimum(o["scan"][ahead], 4.0) - np.minimum(env.static_scan()[ahead], 4.0)))
+        # in view (±35°), every perceived scan bin is the static map or a pedestrian (undetected people stay in it)
+        ahead = np.r_[0:8, 65:72]
+        rng, static = np.minimum(o["scan"][ahead], 4.0), np.minimum(env.static_scan()[ahead], 4.0)
+        ang = ahead * (2 * np.pi / 72)
+        hit = np.stack([rng * np.cos(ang), rng * np.sin(ang)], -1)
+        x, y, yaw = env.robot
+        c, s_ = np.cos(yaw), np.sin(yaw)
+        rel = env.crowd.pos - env.robot[:2]
+        people = np.stack([c * rel[:, 0] + s_ * rel[:, 1], -s_ * rel[:, 0] + c * rel[:, 1]], -1)
+        near_person = np.linalg.norm(hit[:, None] - people[None], axis=-1).min(1) < 0.6
+        scan_err.append((np.abs(rng - static) < 0.3) | (near_person & (rng < 4.0)))
         obs, _, term, trunc, _ = env.step(env.encode_command(*expert.command(env)))
         if term or trunc:
             break
     assert len(pos_err) > 20
     assert np.median(pos_err) < 0.2
     assert np.median(vel_err) < 0.5
-    assert np.median(np.concatenate(scan_err)) < 0.25
+    # 0.84 measured: the rest are trails of people who walked on within the 5 s memory (outside the seen-through test)
+    assert np.mean(np.concatenate(scan_err)) > 0.75
 
 
 def test_depth_scan_remembers_what_the_cameras_turned_away_from(lobby):
@@ -122,6 +132,14 @@ def test_depth_scan_remembers_what_the_cameras_turned_away_from(lobby):
     for _ in range(15):  # ... until the memory expires
         turned = scan.update([np.zeros_like(depth)] * 2, (0.0, 0.0, np.pi), 0.1)
     assert np.all(turned == 10.0)
+    # with keep_near_m, an obstacle near the robot does not expire (too close to be measured once the robot stands
+    # in front of it)
+    near = DepthScan(cams, 72, 10.0, memory_s=1.5, keep_near_m=1.0)
+    depth[:, :] = 0.7
+    first = near.update([depth, np.zeros_like(depth)], (0.0, 0.0, 0.0), 0.1)
+    for _ in range(40):
+        later = near.update([np.zeros_like(depth)] * 2, (0.0, 0.0, 0.0), 0.1)
+    assert later.min() < 1.0 and np.allclose(later, first)
 
 
 def _student_space(lobby, variant="no_bev"):
@@ -194,3 +212,20 @@ def test_linear_cost_fits_the_teachers_distribution(lobby):
     cache = lookahead_feature_cache(policy, data, mirror=True)
     fit = fit_lookahead_linear(policy, data, soft_tau=1.0, mirror=True, cache=cache)
     assert fit["ce_after"] < 0.5 * fit["ce_before"]
+
+
+def test_bounded_scorer_cannot_override_the_cost(lobby):
+    """With scorer_bound c, logits differ from the linear cost's by at most c nats, however large the MLP's output."""
+    space = _student_space(lobby)
+    torch.manual_seed(0)
+    policy = build_policy("student", "no_bev", space, {**_net(lobby), "scorer_bound": 2.0})
+    ext = policy.features_extractor
+    with torch.no_grad():
+        ext.scorer[-1].weight.mul_(1e3)
+        ext.scorer[-1].bias.fill_(50.0)
+    obs = _batch(space, 8, seed=3)
+    feats = ext.action_features(obs)
+    logits = ext(obs)[:, :ext.n_actions]
+    linear = 10.0 * ext.linear(feats[..., -N_LINEAR:]).squeeze(-1)
+    gap = (logits - linear).abs()
+    assert gap.max() <= 2.0 + 1e-4 and gap.max() > 1.5
