@@ -15,7 +15,14 @@ import yaml
 from pipeline.config import load_config
 from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
 from rl.policy import act, build_policy, describe, load_policy, save_policy
-from rl.teacher import SceneMixEnv, bc_loss, behaviour_clone, collect_expert, fit_lookahead_linear, teacher_net
+from rl.teacher import (
+    SceneMixEnv,
+    bc_loss,
+    behaviour_clone,
+    collect_expert,
+    fit_lookahead_linear,
+    teacher_net,
+)
 from sim.env import CameraConfig, SimConfig
 
 ROOT = Path(__file__).resolve().parents[2]
