@@ -25,13 +25,13 @@ Nothing here is learned or privileged; the numbers are checked against the simul
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from sim.planners.dwa import ObstacleMemory, _base_to_world, _world_to_base, depth_to_points
+from sim.geometry import robot_to_world, world_to_robot
+from sim.planners.dwa import ObstacleMemory, depth_to_points
 
 SURFACE_TO_CENTRE_M = 0.1  # detected joints → body centre, along the viewing ray
 PED_RADIUS_M = 0.25  # nominal body radius of a perceived person (the simulator's bodies: 0.2-0.3 m)
@@ -126,11 +126,8 @@ class PedestrianTracker:
         out = np.zeros((k, 6), np.float32)
         if not len(self.pos):
             return out
-        x, y, yaw = (float(v) for v in robot_pose)
-        c, s = math.cos(yaw), math.sin(yaw)
-        dx, dy = self.pos[:, 0] - x, self.pos[:, 1] - y
-        rel = np.stack([c * dx + s * dy, -s * dx + c * dy], -1)
-        vel = np.stack([c * self.vel[:, 0] + s * self.vel[:, 1], -s * self.vel[:, 0] + c * self.vel[:, 1]], -1)
+        rel = world_to_robot(self.pos, robot_pose)
+        vel = world_to_robot(self.vel, robot_pose, vectors=True)
         order = np.argsort(np.hypot(rel[:, 0], rel[:, 1]), kind="stable")[:k]
         n = len(order)
         out[:n, :2], out[:n, 2:4] = rel[order], vel[order]
@@ -181,8 +178,8 @@ class DepthScan:
             pts = pts[d.min(0) > self.person_clear_m]
         keep = ~self.memory.seen_through(depths, self.cameras, robot_pose, self.tol_m)
         self.t_s += float(dt_s)
-        self.memory.update(_base_to_world(pts, robot_pose), self.t_s, keep)
-        base = _world_to_base(self.memory.xyz, robot_pose) if len(self.memory) else np.zeros((0, 3))
+        self.memory.update(robot_to_world(pts, robot_pose), self.t_s, keep)
+        base = world_to_robot(self.memory.xyz, robot_pose) if len(self.memory) else np.zeros((0, 3))
         # optionally, points near the robot do not expire (an obstacle the robot stopped in front of, closer than the
         # cameras' minimum depth, is not measured any more); off by default: it keeps ghosts of people who passed
         # beside the robot, which trapped it (measured: README, Training)
@@ -230,7 +227,7 @@ class Perception:
         centres = None
         if self.people:
             centres = person_centres(obs["poses"], obs["pose_mask"])
-            self.tracker.update(_base_to_world(np.c_[centres, np.zeros(len(centres))], pose)[:, :2])
+            self.tracker.update(robot_to_world(centres, pose))
             out["peds"] = self.tracker.observation(pose, self.k)
         out["scan"] = self.scan.update(depths, pose, self.dt_s, centres)
         return out
@@ -264,12 +261,8 @@ def evaluate_perception(scene: str = "office_lobby", density: float = 0.2, seed:
     snap = None
     for step in range(steps):
         o = observer(obs)
-        x, y, yaw = env.robot
-        c, s = math.cos(yaw), math.sin(yaw)
-        rel = env.crowd.pos - env.robot[:2]
-        people = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]], -1)
-        pvel = np.stack([c * env.crowd.vel[:, 0] + s * env.crowd.vel[:, 1],
-                         -s * env.crowd.vel[:, 0] + c * env.crowd.vel[:, 1]], -1)
+        people = world_to_robot(env.crowd.pos, env.robot)
+        pvel = world_to_robot(env.crowd.vel, env.robot, vectors=True)
         tracks = o["peds"][o["peds"][:, 5] > 0]
         if len(people) and len(tracks):
             d = np.linalg.norm(tracks[:, None, :2] - people[None], axis=-1)

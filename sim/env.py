@@ -47,6 +47,7 @@ from pipeline.errors import ConfigError
 from sim.cameras import CameraSpec, pose_matrix
 from sim.crowd import Crowd, CrowdConfig, norm2d
 from sim.detector import CameraFrame, DetectorConfig, OracleDetector, PoseDetector
+from sim.geometry import world_to_robot
 from sim.humans import Bodies, BodyConfig
 from sim.reward import RewardConfig, reward_terms
 from sim.robot import RobotConfig, action_grid, unicycle_step
@@ -418,10 +419,7 @@ class CrowdNavEnv(gym.Env):
             self._global_path = GlobalPath(self.cfg.subgoal_lookahead_m)
             self._global_path.reset(self)
         p = self._global_path.subgoal(self, target)
-        x, y, yaw = self.robot
-        c, s = math.cos(yaw), math.sin(yaw)
-        dx, dy = p[0] - x, p[1] - y
-        return np.array([c * dx + s * dy, -s * dx + c * dy], np.float32)
+        return world_to_robot(np.asarray(p[:2]), self.robot).astype(np.float32)
 
     def privileged_path(self, target: np.ndarray | None = None) -> np.ndarray:
         """``path_points x 2``: points every ``path_spacing_m`` along the global shortest path to ``target``
@@ -430,10 +428,7 @@ class CrowdNavEnv(gym.Env):
         self.privileged_subgoal(target)  # plans the path if needed
         d = self.cfg.path_spacing_m * np.arange(1, self.cfg.path_points + 1)
         p = self._global_path.ahead(self, d, target)
-        x, y, yaw = self.robot
-        c, s = math.cos(yaw), math.sin(yaw)
-        dx, dy = p[:, 0] - x, p[:, 1] - y
-        return np.stack([c * dx + s * dy, -s * dx + c * dy], -1).astype(np.float32)
+        return world_to_robot(p, self.robot).astype(np.float32)
 
     def static_scan(self) -> np.ndarray:
         """Range scan of the static map from the robot centre, rays evenly over 360° from the robot heading."""

@@ -217,3 +217,31 @@ def signed_distance_reference(obstacles: list[Obstacle], point: tuple[float, flo
 def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
     """Wrap angles to ``[-pi, pi)``."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def world_to_robot(points: np.ndarray, pose, *, vectors: bool = False) -> np.ndarray:
+    """World-frame points (``... x d``, d >= 2) in the frame of a robot at ``pose = (x, y, yaw)``: x forward, y left.
+
+    Only the first two columns change (a z or any other trailing column is kept). ``vectors=True`` rotates without
+    translating (velocities, directions).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    x, y, yaw = (float(v) for v in pose)
+    c, s = math.cos(yaw), math.sin(yaw)
+    dx, dy = (p[..., 0], p[..., 1]) if vectors else (p[..., 0] - x, p[..., 1] - y)
+    out = p.copy()
+    out[..., 0], out[..., 1] = c * dx + s * dy, -s * dx + c * dy
+    return out
+
+
+def robot_to_world(points: np.ndarray, pose, *, vectors: bool = False) -> np.ndarray:
+    """The inverse of :func:`world_to_robot`."""
+    p = np.asarray(points, dtype=np.float64)
+    x, y, yaw = (float(v) for v in pose)
+    c, s = math.cos(yaw), math.sin(yaw)
+    out = p.copy()
+    out[..., 0], out[..., 1] = c * p[..., 0] - s * p[..., 1], s * p[..., 0] + c * p[..., 1]
+    if not vectors:
+        out[..., 0] += x
+        out[..., 1] += y
+    return out

@@ -41,6 +41,7 @@ import torch
 from pipeline.artifacts import atomic_write_text
 from pipeline.errors import CorruptArtifactError
 from sim.env import CrowdNavEnv, SimConfig
+from sim.geometry import world_to_robot
 from sim.planners.global_path import GlobalPath, _distance_to_polyline  # noqa: F401 - re-exported
 
 POLICY_JSON = "policy.json"
@@ -198,24 +199,17 @@ def tracked_pedestrians(env: CrowdNavEnv, range_m: float) -> np.ndarray:
     """Pedestrian tracks a robot's tracker would report: ``M x 5`` [x, y, vx, vy, radius] in the robot frame of
     every pedestrian whose centre is within ``range_m`` (true positions and velocities: a perfect tracker), nearest
     first."""
-    x, y, yaw = env.robot
     crowd = env.crowd
     if not crowd.n:
         return np.zeros((0, 5), np.float32)
-    rel = crowd.pos - np.array([x, y])
-    dist = np.hypot(*rel.T)
+    dist = np.hypot(*(crowd.pos - np.asarray(env.robot[:2])).T)
     idx = np.argsort(dist, kind="stable")
     idx = idx[dist[idx] <= range_m]
-    c, s = math.cos(yaw), math.sin(yaw)
-    r, v = rel[idx], crowd.vel[idx]
-    out = np.stack([c * r[:, 0] + s * r[:, 1], -s * r[:, 0] + c * r[:, 1],
-                    c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1], crowd.radius[idx]], -1)
+    out = np.concatenate([world_to_robot(crowd.pos[idx], env.robot),
+                          world_to_robot(crowd.vel[idx], env.robot, vectors=True), crowd.radius[idx, None]], -1)
     return out.astype(np.float32)
 
 
 def to_robot_frame(env: CrowdNavEnv, xy: np.ndarray) -> np.ndarray:
     """A world-frame point in the robot frame (x forward, y left)."""
-    x, y, yaw = env.robot
-    dx, dy = float(xy[0]) - x, float(xy[1]) - y
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([c * dx + s * dy, -s * dx + c * dy], np.float32)
+    return world_to_robot(np.asarray(xy, dtype=np.float64)[:2], env.robot).astype(np.float32)

@@ -67,7 +67,7 @@ from scipy import ndimage
 
 from pipeline.errors import ConfigError
 from sim.cameras import CameraSpec
-from sim.geometry import wrap_angle
+from sim.geometry import robot_to_world, world_to_robot, wrap_angle
 
 
 @dataclass
@@ -249,7 +249,7 @@ def build_costmap(depths: Sequence[np.ndarray], cameras: Sequence[CameraSpec], r
     """
     pts = [_band(depth_to_points(d, s, cfg.pixel_stride), cfg) for d, s in zip(depths, cameras, strict=True)]
     if memory_xyz is not None and len(memory_xyz):
-        pts.append(_world_to_base(np.asarray(memory_xyz, dtype=np.float64), robot_pose))
+        pts.append(world_to_robot(np.asarray(memory_xyz, dtype=np.float64), robot_pose))
     xy = np.concatenate([p[:, :2] for p in pts], axis=0) if pts else np.zeros((0, 2))
     return rasterise_costmap(xy, cfg.costmap_size_m, cfg.costmap_res_m, robot_radius_m + cfg.safety_margin_m)
 
@@ -257,20 +257,6 @@ def build_costmap(depths: Sequence[np.ndarray], cameras: Sequence[CameraSpec], r
 def _band(points: np.ndarray, cfg: DWAConfig) -> np.ndarray:
     z = points[:, 2]
     return points[(z >= cfg.min_height_m) & (z <= cfg.max_height_m)]
-
-
-def _world_to_base(points: np.ndarray, pose: Sequence[float]) -> np.ndarray:
-    x, y, yaw = (float(v) for v in pose)
-    c, s = math.cos(yaw), math.sin(yaw)
-    dx, dy = points[:, 0] - x, points[:, 1] - y
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, points[:, 2]], -1)
-
-
-def _base_to_world(points: np.ndarray, pose: Sequence[float]) -> np.ndarray:
-    x, y, yaw = (float(v) for v in pose)
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.stack([x + c * points[:, 0] - s * points[:, 1], y + s * points[:, 0] + c * points[:, 1],
-                     points[:, 2]], -1)
 
 
 class ObstacleMemory:
@@ -319,7 +305,7 @@ class ObstacleMemory:
         out = np.zeros(len(self.xyz), dtype=bool)
         if not len(self.xyz):
             return out
-        base = _world_to_base(self.xyz, pose)
+        base = world_to_robot(self.xyz, pose)
         for depth, spec in zip(depths, cameras, strict=True):
             t = spec.T_base_cam
             pc = (base - t[:3, 3]) @ t[:3, :3]  # camera frame
@@ -425,12 +411,12 @@ class DWAController:
                               zip(depths, self.cameras, strict=True)], axis=0)
         keep = ~self.memory.seen_through(depths, self.cameras, pose, c.see_through_tol_m)
         if c.memory_s > 0:
-            self.memory.update(_base_to_world(now, pose), self.t_s, keep)
+            self.memory.update(robot_to_world(now, pose), self.t_s, keep)
             mem = self.memory.xyz
             # only what can fall in the costmap
             near = np.hypot(mem[:, 0] - pose[0], mem[:, 1] - pose[1]) <= c.costmap_size_m * 0.75
             self.memory.xyz, self.memory.stamp = mem[near], self.memory.stamp[near]
-            pts_xy = _world_to_base(self.memory.xyz, pose)[:, :2]
+            pts_xy = world_to_robot(self.memory.xyz, pose)[:, :2]
         else:
             pts_xy = now[:, :2]
         cm = rasterise_costmap(pts_xy, c.costmap_size_m, c.costmap_res_m, self.radius_m + c.safety_margin_m)

@@ -7,7 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from sim.geometry import Box, Cylinder, StaticGeometry, signed_distance_reference, wrap_angle
+from sim.geometry import (
+    Box,
+    Cylinder,
+    StaticGeometry,
+    robot_to_world,
+    signed_distance_reference,
+    world_to_robot,
+    wrap_angle,
+)
 from sim.scene import GRID_RES_M, load_scene
 
 
@@ -205,3 +213,18 @@ def test_clearance_fast_error_is_bounded_by_half_a_cell_in_free_space(name, seed
     fast, _ = layout.clearance_fast(pts)
     free = exact > 0
     assert np.max(np.abs(fast - exact)[free]) <= GRID_RES_M / 2 + 1e-3
+
+
+def test_frame_transforms_known_values_and_round_trip():
+    pose = (1.0, 2.0, np.pi / 2)  # robot at (1, 2) facing +y
+    # a point 1 m along +y from the robot is 1 m ahead; 1 m along −x is 1 m to its left
+    np.testing.assert_allclose(world_to_robot(np.array([[1.0, 3.0], [0.0, 2.0]]), pose), [[1, 0], [0, 1]],
+                               atol=1e-12)
+    # vectors rotate without the translation; a trailing z column is kept
+    np.testing.assert_allclose(world_to_robot(np.array([0.0, 1.0, 0.7]), pose, vectors=True), [1, 0, 0.7],
+                               atol=1e-12)
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(5, 7, 3))
+    for vec in (False, True):
+        back = robot_to_world(world_to_robot(pts, (0.3, -1.2, 2.5), vectors=vec), (0.3, -1.2, 2.5), vectors=vec)
+        np.testing.assert_allclose(back, pts, atol=1e-12)
