@@ -159,7 +159,7 @@ class StudentLookaheadExtractor(StudentExtractor):
 
     def __init__(self, observation_space: gym.spaces.Dict, variant: str = "full", robot: dict[str, Any] | None = None,
                  dt_s: float = 0.1, scan_range_m: float = 10.0, score_dim: int = 64, context_dim: int = 32,
-                 scorer_bound: float | None = None, **kwargs: Any) -> None:
+                 scorer_bound: float | None = None, heading: str = "end", **kwargs: Any) -> None:
         super().__init__(observation_space, variant, **kwargs)
         missing = [k for k in variant_keys(variant, "lookahead") if k not in observation_space.spaces]
         if missing:
@@ -169,7 +169,7 @@ class StudentLookaheadExtractor(StudentExtractor):
         self.subgoal = False
         self.scan_range_m = float(scan_range_m)
         base_dim = self._features_dim
-        init_lookahead(self, observation_space, robot, dt_s, 0.25)
+        init_lookahead(self, observation_space, robot, dt_s, 0.25, heading)
         init_scorer(self, base_dim, score_dim, context_dim)
         self.scorer_bound = float(scorer_bound) if scorer_bound else None
 
@@ -243,6 +243,7 @@ LOOKAHEAD_DISCOUNT_S = 1.5  # time constant of the discount on predicted intrusi
 CLEAR_CAP_M = 3.0  # clearances are clipped to [-0.5, this]
 SCORE_SCALE = 10.0  # logits = this x the linear path's output + the MLP's: the expert's costs differ by tens of
 # nats at τ = 0.1, which the linear path reaches with weights of order one
+HEADING_MODES = ("end", "best")  # the lookahead heading error: at the arc's end, or the best along it
 SCAN_POINTS = 24  # nearest scan hits the lookahead measures obstacle clearance against
 N_LINEAR = 10  # rollout features of the linear cost (the last ones of action_features)
 NEAR_GOAL_M = 0.5  # closer than this to the goal, the cost rewards reaching it instead of the route's heading
@@ -279,10 +280,10 @@ class LookaheadTeacherExtractor(SetTeacherExtractor):
 
     def __init__(self, observation_space: gym.spaces.Dict, scan_range_m: float = 10.0, ped_scale_m: float = 5.0,
                  robot: dict[str, Any] | None = None, dt_s: float = 0.1, path_spacing_m: float = 0.25, score_dim: int = 64,
-                 context_dim: int = 32) -> None:
+                 context_dim: int = 32, heading: str = "end") -> None:
         super().__init__(observation_space, scan_range_m, ped_scale_m)
         base_dim = self._features_dim
-        init_lookahead(self, observation_space, robot, dt_s, path_spacing_m)
+        init_lookahead(self, observation_space, robot, dt_s, path_spacing_m, heading)
         init_scorer(self, base_dim, score_dim, context_dim)
 
     def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -296,11 +297,21 @@ class LookaheadTeacherExtractor(SetTeacherExtractor):
 
 
 def init_lookahead(m: nn.Module, observation_space: gym.spaces.Dict, robot: dict[str, Any] | None, dt_s: float,
-                   path_spacing_m: float) -> None:
+                   path_spacing_m: float, heading: str = "end") -> None:
     """Registers the lookahead layer's fixed buffers on ``m`` (the arcs of every command of the grid, the lookahead
     times, the discount, the scan's ray directions, the path's arc lengths) and its sizes (``n_actions``,
-    ``n_feat``). ``m`` must already have ``subgoal`` and ``scan_range_m``."""
+    ``n_feat``). ``m`` must already have ``subgoal`` and ``scan_range_m``.
+
+    ``heading`` picks the heading error of the linear cost: ``"end"`` at the end of the 2 s arc (the first
+    checkpoints; a turn on the spot at 2 rad/s ends 4 rad away, past the target, so a robot facing a wall may
+    prefer the turn away from its route and dither between the two), ``"best"`` the smallest error reached along
+    the arc (a turn that passes through the target heading could stop there)."""
+    from pipeline.errors import ConfigError
     from sim.robot import RobotConfig, action_grid
+
+    if heading not in HEADING_MODES:
+        raise ConfigError(f"lookahead heading: expected one of {list(HEADING_MODES)}, got {heading!r}")
+    m.heading = heading
 
     rc = RobotConfig(**(robot or {}))
     m.radius_m = float(rc.radius_m)
@@ -405,6 +416,14 @@ def lookahead_action_features(self: nn.Module, obs: dict[str, torch.Tensor]) -> 
     goal_near = torch.linalg.vector_norm(goal[:, None, None] - arcs[None], dim=-1).amin(-1)  # B A
     near = (obs["state"][:, 2:3] < NEAR_GOAL_M).float().expand(-1, a)
     abs_err = torch.atan2(torch.sin(err), torch.cos(err)).abs()
+    if getattr(self, "heading", "end") == "best":  # the smallest error along the arc (init_lookahead)
+        # the heading sweeps 0 → rot = ω·T; it passes the target direction phi (from the arc's end point) if phi,
+        # measured in the direction of the turn, is within the sweep; else the nearer of the start and the end
+        phi = torch.atan2(to_sub[..., 1], to_sub[..., 0])
+        rot = self.end_heading.expand_as(phi)
+        ahead = torch.where(rot >= 0, torch.remainder(phi, 2 * torch.pi), torch.remainder(-phi, 2 * torch.pi))
+        start_err = phi.abs()
+        abs_err = torch.where(ahead <= rot.abs(), torch.zeros_like(phi), torch.minimum(start_err, abs_err))
     grid = self.grid_norm[None].expand(b, -1, -1)
     feats = [ped_min, obs_min,
              torch.log1p(torch.stack([ped_contact, ped_comfort, obs_contact, obs_near], -1)),

@@ -588,8 +588,19 @@ def student_net(cfg: TrainConfig) -> dict[str, Any]:
     net = {**cfg.net, "head": cfg.head}
     if cfg.head == "lookahead":
         net.update({"robot": asdict(cfg.sim.robot), "dt_s": cfg.sim.dt_s, "scan_range_m": cfg.sim.scan_range_m,
-                    "scorer_bound": cfg.scorer_bound})
+                    "scorer_bound": cfg.scorer_bound, "heading": teacher_heading(policy_root(cfg) / "teacher")})
     return net
+
+
+def teacher_heading(teacher_dir: Path) -> str:
+    """The heading error mode of a lookahead teacher's rollout features (``rl.networks.init_lookahead``; checkpoints
+    from before the option have ``"end"``): a student's lookahead head computes its features the same way, so the
+    teacher's linear cost it inherits means the same thing."""
+    from rl.policy import read_policy_json
+
+    if not (teacher_dir / "policy.json").exists():
+        return "end"
+    return str(read_policy_json(teacher_dir)["net"].get("heading", "end"))
 
 
 def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir):

@@ -135,3 +135,26 @@ def test_ppo_rollout_feature_cache_changes_nothing_but_speed():
     for a, b in zip(cached, fresh, strict=True):
         assert torch.allclose(a, b, atol=1e-5)
     venv.close()
+
+
+def test_best_heading_prefers_the_turn_towards_the_route(space):
+    """Facing a wall with the route 40° to the right: every forward arc predicts contact and every turn on the spot
+    stays put. The end-of-arc heading error (``heading: end``) prefers the 2 rad/s turn *away* from the route (4 rad
+    to the right ends 171° off, 4 rad to the left 91° off); the best error along the arc (``heading: best``) is 0
+    for the right turn, which passes through the route's direction, and the initial 40° for the left one."""
+    from pipeline.errors import ConfigError
+
+    a = math.radians(-40)
+    obs = _obs(scan_m=0.33, goal=(3.0 * math.cos(a), 3.0 * math.sin(a)), path_dir=(math.cos(a), math.sin(a)))
+    err = -N_LINEAR + 6  # the heading term of the linear cost
+    spin_right, spin_left = 0, N_ROT - 1  # v = 0, ω = -2 / +2
+    torch.manual_seed(0)
+    best = build_policy("teacher", None, space, teacher_net({"encoder": "lookahead", "heading": "best"}, SIM))
+    fb = best.features_extractor.action_features(obs)[0]
+    fe = _policy(space).features_extractor.action_features(obs)[0]
+    assert float(fb[spin_right, err]) == pytest.approx(0.0, abs=1e-6)
+    assert float(fb[spin_left, err]) == pytest.approx(math.radians(40), abs=0.05)
+    assert float(fe[spin_right, err]) > float(fe[spin_left, err]) + 1.0  # "end": the wrong way round
+    assert float(fb[:N_ROT, err].min()) <= float(fe[:N_ROT, err].min())  # never worse than the end's error
+    with pytest.raises(ConfigError, match="heading"):
+        build_policy("teacher", None, space, teacher_net({"encoder": "lookahead", "heading": "sideways"}, SIM))
