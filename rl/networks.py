@@ -243,7 +243,7 @@ LOOKAHEAD_DISCOUNT_S = 1.5  # time constant of the discount on predicted intrusi
 CLEAR_CAP_M = 3.0  # clearances are clipped to [-0.5, this]
 SCORE_SCALE = 10.0  # logits = this x the linear path's output + the MLP's: the expert's costs differ by tens of
 # nats at τ = 0.1, which the linear path reaches with weights of order one
-HEADING_MODES = ("end", "best")  # the lookahead heading error: at the arc's end, or the best along it
+HEADING_MODES = ("end", "best", "spin")  # the lookahead heading error (init_lookahead)
 SCAN_POINTS = 24  # nearest scan hits the lookahead measures obstacle clearance against
 N_LINEAR = 10  # rollout features of the linear cost (the last ones of action_features)
 NEAR_GOAL_M = 0.5  # closer than this to the goal, the cost rewards reaching it instead of the route's heading
@@ -305,7 +305,9 @@ def init_lookahead(m: nn.Module, observation_space: gym.spaces.Dict, robot: dict
     ``heading`` picks the heading error of the linear cost: ``"end"`` at the end of the 2 s arc (the first
     checkpoints; a turn on the spot at 2 rad/s ends 4 rad away, past the target, so a robot facing a wall may
     prefer the turn away from its route and dither between the two), ``"best"`` the smallest error reached along
-    the arc (a turn that passes through the target heading could stop there)."""
+    the arc (a turn that passes through the target heading could stop there; measured: fewer stops, many more
+    collisions — fast arcs that sweep past the route score as aligned), ``"spin"`` the smallest error for the
+    turns on the spot only (v = 0), the end error for every moving arc."""
     from pipeline.errors import ConfigError
     from sim.robot import RobotConfig, action_grid
 
@@ -324,6 +326,7 @@ def init_lookahead(m: nn.Module, observation_space: gym.spaces.Dict, robot: dict
     m.register_buffer("times", times, persistent=False)
     m.register_buffer("arcs", arcs, persistent=False)  # A x S x 2
     m.register_buffer("end_heading", heading[:, -1], persistent=False)  # A
+    m.register_buffer("spin", grid[:, 0].abs() < 1e-6, persistent=False)  # A: the turns on the spot
     m.register_buffer("disc", torch.exp(-times / LOOKAHEAD_DISCOUNT_S), persistent=False)
     m.path = "path" in observation_space.spaces
     if m.path:  # arc length of each path point (the env's path_spacing_m, stored in the policy's net)
@@ -416,14 +419,16 @@ def lookahead_action_features(self: nn.Module, obs: dict[str, torch.Tensor]) -> 
     goal_near = torch.linalg.vector_norm(goal[:, None, None] - arcs[None], dim=-1).amin(-1)  # B A
     near = (obs["state"][:, 2:3] < NEAR_GOAL_M).float().expand(-1, a)
     abs_err = torch.atan2(torch.sin(err), torch.cos(err)).abs()
-    if getattr(self, "heading", "end") == "best":  # the smallest error along the arc (init_lookahead)
+    mode = getattr(self, "heading", "end")
+    if mode != "end":  # the smallest error along the arc (init_lookahead)
         # the heading sweeps 0 → rot = ω·T; it passes the target direction phi (from the arc's end point) if phi,
         # measured in the direction of the turn, is within the sweep; else the nearer of the start and the end
         phi = torch.atan2(to_sub[..., 1], to_sub[..., 0])
         rot = self.end_heading.expand_as(phi)
         ahead = torch.where(rot >= 0, torch.remainder(phi, 2 * torch.pi), torch.remainder(-phi, 2 * torch.pi))
         start_err = phi.abs()
-        abs_err = torch.where(ahead <= rot.abs(), torch.zeros_like(phi), torch.minimum(start_err, abs_err))
+        best = torch.where(ahead <= rot.abs(), torch.zeros_like(phi), torch.minimum(start_err, abs_err))
+        abs_err = best if mode == "best" else torch.where(self.spin, best, abs_err)
     grid = self.grid_norm[None].expand(b, -1, -1)
     feats = [ped_min, obs_min,
              torch.log1p(torch.stack([ped_contact, ped_comfort, obs_contact, obs_near], -1)),

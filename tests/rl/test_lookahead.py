@@ -156,5 +156,10 @@ def test_best_heading_prefers_the_turn_towards_the_route(space):
     assert float(fb[spin_left, err]) == pytest.approx(math.radians(40), abs=0.05)
     assert float(fe[spin_right, err]) > float(fe[spin_left, err]) + 1.0  # "end": the wrong way round
     assert float(fb[:N_ROT, err].min()) <= float(fe[:N_ROT, err].min())  # never worse than the end's error
+    # "spin": the turns on the spot as "best", every moving arc as "end"
+    spin = build_policy("teacher", None, space, teacher_net({"encoder": "lookahead", "heading": "spin"}, SIM))
+    fs = spin.features_extractor.action_features(obs)[0]
+    torch.testing.assert_close(fs[:N_ROT, err], fb[:N_ROT, err])
+    torch.testing.assert_close(fs[N_ROT:, err], fe[N_ROT:, err])
     with pytest.raises(ConfigError, match="heading"):
         build_policy("teacher", None, space, teacher_net({"encoder": "lookahead", "heading": "sideways"}, SIM))
