@@ -3,6 +3,12 @@
 * ``teacher_env_steps_per_s`` — the teacher's PPO (stable-baselines3, privileged envs, SubprocVecEnv of
   ``n_envs`` on both cores) collecting and updating, env steps per second of wall time; reference in the same run:
   ``teacher_env_steps_per_s_1env`` — the same PPO on one in-process env (DummyVecEnv); the ratio is reported;
+  where the time goes, from the vectorised run: ``teacher_collect_s_share`` (collecting vs updating), and the CPU
+  cost per env step of each part measured alone — ``teacher_env_step_ms`` (one env, in process),
+  ``teacher_policy_ms_per_step`` (the rollout forward pass per env, batched over ``n_envs``),
+  ``teacher_update_ms_per_step`` (PPO's update per collected step: ``n_epochs`` passes, one thread) — and
+  ``teacher_cpu_bound_steps_per_s``: the rate at which every core would be busy with no waiting at all,
+  ``cores / (sum of the three)``, the ceiling any scheduling of this PPO reaches on this machine;
 * ``policy_inference_ms`` / ``policy_inference_hz`` — the full visual policy (variant ``full``) from the two RGB-D
   frames + detected poses to an action index, one CPU thread: streaming encoder step (newest frame only) + pooling +
   φ_bev + I²Former + fusion + actor head; ``policy_inference_recompute_ms`` — the same with the encoder recomputing
@@ -14,6 +20,7 @@ the frames are rendered from the bench scene at the profile's resolution.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import replace
 from typing import Any
@@ -42,16 +49,68 @@ def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_c
             attach_lookahead_cache(model)
             chunk = model.n_steps * n_envs
             model.learn(chunk)  # warm-up: one rollout + update
+            spent = _time_phases(model)
             t0, done = time.perf_counter(), 0
             while time.perf_counter() - t0 < seconds or done == 0:
                 model.learn(chunk, reset_num_timesteps=False)
                 done += chunk
             out[key] = done / (time.perf_counter() - t0)
+            if n_envs > 1:
+                out["teacher_collect_s_share"] = spent["collect"] / (spent["collect"] + spent["train"])
+                out["teacher_update_ms_per_step"] = 1e3 * spent["train"] / done
+                out["teacher_policy_ms_per_step"] = _policy_ms_per_step(model, venv, n_envs)
             venv.close()
+        out["teacher_env_step_ms"] = _env_step_ms(sim_cfg, scene, density, seed, seconds / 4)
     finally:
         torch.set_num_threads(threads)
     out["teacher_env_steps_speedup_vs_1env"] = out["teacher_env_steps_per_s"] / out["teacher_env_steps_per_s_1env"]
+    per_step_ms = out["teacher_env_step_ms"] + out["teacher_policy_ms_per_step"] + out["teacher_update_ms_per_step"]
+    out["teacher_cpu_bound_steps_per_s"] = 1e3 * (os.cpu_count() or 1) / per_step_ms
     return out
+
+
+def _time_phases(model) -> dict[str, float]:
+    """Wraps ``model.collect_rollouts`` / ``model.train`` to add their wall time to the returned dict."""
+    spent = {"collect": 0.0, "train": 0.0}
+
+    def timed(name, fn):
+        def call(*args, **kwargs):
+            t = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent[name] += time.perf_counter() - t
+        return call
+
+    model.collect_rollouts = timed("collect", model.collect_rollouts)
+    model.train = timed("train", model.train)
+    return spent
+
+
+def _policy_ms_per_step(model, venv, n_envs: int, calls: int = 50) -> float:
+    obs = {k: torch.as_tensor(v) for k, v in venv.reset().items()}
+    with torch.no_grad():
+        model.policy(obs)
+        t = time.perf_counter()
+        for _ in range(calls):
+            model.policy(obs)
+    return 1e3 * (time.perf_counter() - t) / (calls * n_envs)
+
+
+def _env_step_ms(sim_cfg: Any, scene: str, density: float, seed: int, seconds: float) -> float:
+    """One privileged env in process, random discrete actions (resets included, as in PPO's rollouts)."""
+    from rl.teacher import make_vec_env
+
+    venv = make_vec_env(sim_cfg, [(scene, density)], 1, seed, False)
+    rng = np.random.default_rng(seed)
+    venv.reset()
+    t, n = time.perf_counter(), 0
+    while time.perf_counter() - t < seconds or n < 100:
+        venv.step(rng.integers(0, venv.action_space.n, size=1))
+        n += 1
+    ms = 1e3 * (time.perf_counter() - t) / n
+    venv.close()
+    return ms
 
 
 def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg: Any, seconds: float) -> dict:
