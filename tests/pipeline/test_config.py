@@ -182,6 +182,18 @@ def test_supported_types_from_yaml() -> None:
     assert from_dict(ToyConfig, {"sim": {"max_peds": None}}, "t").sim.max_peds is None
 
 
+def test_dotted_cli_keys_into_a_dict_field_merge_and_whole_text_replaces() -> None:
+    base = from_dict(ToyConfig, {"sim": {"weights": {"a": 1, "b": 0.5}}}, "t.yaml")
+    merged = apply_dict(base, parse_overrides({"sim.weights.b": "2"}), "command line")
+    assert merged.sim.weights == {"a": 1.0, "b": 2.0}
+    added = apply_dict(base, parse_overrides({"sim.weights.c": "3"}), "command line")
+    assert added.sim.weights == {"a": 1.0, "b": 0.5, "c": 3.0}
+    whole = apply_dict(base, parse_overrides({"sim.weights": "{c: 3}"}), "command line")
+    assert whole.sim.weights == {"c": 3.0}
+    layered = apply_dict(base, {"sim": {"weights": {"c": 3}}}, "other.yaml")  # a YAML layer replaces
+    assert layered.sim.weights == {"c": 3.0}
+
+
 def test_cli_overrides_parse_strings_for_the_field_type() -> None:
     base = from_dict(ToyConfig, {}, "defaults")
     cfg = apply_dict(
