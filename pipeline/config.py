@@ -353,14 +353,13 @@ def _coerce(value: Any, tp: Any, key: str, source: str, current: Any = None) -> 
         if not isinstance(value, Mapping):
             raise _type_error(key, source, tp, value)
         if not args:
-            if source == CLI_SOURCE and isinstance(current, Mapping):
-                return {**current, **value}
-            return dict(value)
-        key_tp, val_tp = args
-        out = {
-            _coerce(k, key_tp, f"{key}.<key {k!r}>", source): _coerce(v, val_tp, f"{key}.{k}", source)
-            for k, v in value.items()
-        }
+            out = dict(value)
+        else:
+            key_tp, val_tp = args
+            out = {
+                _coerce(k, key_tp, f"{key}.<key {k!r}>", source): _coerce(v, val_tp, f"{key}.{k}", source)
+                for k, v in value.items()
+            }
         if source == CLI_SOURCE and isinstance(current, Mapping):
             # dotted keys into a dict field (`--teacher.net.heading best`) change those keys and keep the rest;
             # the whole field given as text (`--teacher.net '{...}'`) replaces it, as a YAML layer does
