@@ -154,7 +154,7 @@ def run_episode(job: Job) -> dict[str, Any]:
     if job.row_cache is not None:  # last: a row on disk means every file of the episode is complete
         import json
 
-        from pipeline.artifacts import atomic_write_text
+        from pipeline.core.artifacts import atomic_write_text
 
         job.row_cache.mkdir(parents=True, exist_ok=True)
         atomic_write_text(job.row_cache / f"{job.name}.json", json.dumps(row) + "\n")
@@ -191,7 +191,7 @@ def run_jobs_cached(jobs: list[Job], cache: Path, workers: int, desc: str, progr
     continues where it stopped); rows in job order."""
     import json
 
-    from pipeline.errors import CorruptArtifactError
+    from pipeline.core.errors import CorruptArtifactError
 
     jobs = [replace(j, row_cache=cache) for j in jobs]
     todo = [j for j in jobs if not (cache / f"{j.name}.json").is_file()]

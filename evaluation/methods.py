@@ -38,7 +38,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from pipeline.errors import ConfigError, InputMissingError
+from pipeline.core.errors import ConfigError, InputMissingError
 
 
 @dataclass(frozen=True)

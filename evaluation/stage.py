@@ -37,10 +37,9 @@ from typing import Any
 import numpy as np
 
 from evaluation.methods import MethodSpec, resolve_methods
-from pipeline.artifacts import atomic_write_json, atomic_write_text
-from pipeline.config import BaseStageConfig, check_run_name
-from pipeline.errors import ConfigError
-from pipeline.stage import Stage, run_stage
+from pipeline.core.artifacts import atomic_write_json, atomic_write_text
+from pipeline.core.config import BaseStageConfig, check_run_name
+from pipeline.core.errors import ConfigError
 from sim.env import SimConfig
 from sim.rollout import _finite
 from sim.scene import check_episode_grid
@@ -99,7 +98,7 @@ def output_dir(cfg: EvalConfig) -> Path:
     return Path(cfg.data_dir) / "eval" / cfg.run_name
 
 
-def _inputs(cfg: EvalConfig) -> list[Path]:
+def inputs(cfg: EvalConfig) -> list[Path]:
     specs = resolve_methods(cfg.methods, Path(cfg.data_dir))  # unknown / missing -> one clear error, nothing written
     return [p for m in specs if m.checkpoint is not None
             for p in (m.checkpoint / "policy.json", m.checkpoint / "policy.safetensors")]
@@ -150,7 +149,7 @@ def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:
     return plans
 
 
-def _body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
+def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
     from evaluation.harness import Job, run_jobs_cached
     from evaluation.report import paired, plot_sr, report_markdown, results, results_csv, training_budget
 
@@ -215,21 +214,3 @@ def _plot_long_horizon(plans: list[dict[str, Any]], rows: list[dict[str, Any]], 
         plot_topomap(first["layout"], first["topo"], out / f"{name}_gvg.png", paths=paths, start_xy=first["start"],
                      goals_xy=np.array([p["goal"] for p in ps]), waypoints=first["waypoints"],
                      title=f"{name}: paths of run seed {first['seed']}, every run's goal")
-
-
-STAGE = Stage(
-    name="eval",
-    config_cls=EvalConfig,
-    help="the benchmark: scenes x densities x methods x seeded episodes + long-horizon runs -> DATA_DIR/eval/",
-    output_dir=output_dir,
-    inputs=_inputs,
-    body=_body,
-    resumable=True,
-    in_place=True,
-    code=("pipeline", "sim", "rl", "evaluation", "pretrain", "recorder"),
-)
-
-
-def run(cfg: EvalConfig):
-    """Run the stage (library entry point); returns its :class:`pipeline.manifest.Manifest`."""
-    return run_stage(STAGE, cfg)

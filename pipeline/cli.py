@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from pipeline.config import (
+from pipeline.core.config import (
     available_profiles,
     describe_fields,
     field_types,
@@ -35,21 +35,21 @@ from pipeline.config import (
     nested_dataclass,
     profiles_dir,
 )
-from pipeline.errors import ConfigError, ICrowdNavError
-from pipeline.stage import Stage, run_stage_ex
+from pipeline.core.errors import ConfigError, ICrowdNavError
+from pipeline.core.stage import Stage, run_stage_ex
 
 PROG = "icrowdnav"
 
 VERBS: dict[str, str] = {
-    "rollout": "sim.rollout:STAGE",
-    "bench": "pipeline.bench:main",
-    "record": "recorder.record:STAGE",
-    "export": "recorder.export_stage:STAGE",
-    "pretrain": "pretrain.stage:STAGE",
-    "train": "rl.stage:STAGE",
-    "eval": "evaluation.stage:STAGE",
-    "doctor": "recorder.doctor:main",
-    "recover": "recorder.doctor:recover_main",
+    "rollout": "pipeline.verbs.rollout:STAGE",
+    "bench": "pipeline.verbs.bench:main",
+    "record": "pipeline.verbs.record:STAGE",
+    "export": "pipeline.verbs.export:STAGE",
+    "pretrain": "pipeline.verbs.pretrain:STAGE",
+    "train": "pipeline.verbs.train:STAGE",
+    "eval": "pipeline.verbs.eval:STAGE",
+    "doctor": "pipeline.verbs.doctor:main",
+    "recover": "pipeline.verbs.recover:main",
 }
 
 _LOG_FORMAT = "%(asctime)s %(levelname).1s %(message)s"

@@ -23,8 +23,8 @@ import torch
 
 
 def _ms(fn, seconds: float) -> float:
-    """Mean milliseconds per call (the bench's own timer, :func:`pipeline.bench.time_call`)."""
-    from pipeline.bench import time_call
+    """Mean milliseconds per call (the bench's own timer, :func:`pipeline.core.timing.time_call`)."""
+    from pipeline.core.timing import time_call
 
     return 1000.0 * time_call(fn, seconds)
 

@@ -25,9 +25,9 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from pipeline.artifacts import atomic_write_text
-from pipeline.errors import CorruptArtifactError, InputMissingError
-from pipeline.manifest import MANIFEST_NAME
+from pipeline.core.artifacts import atomic_write_text
+from pipeline.core.errors import CorruptArtifactError, InputMissingError
+from pipeline.core.manifest import MANIFEST_NAME
 from pretrain.geometry import Camera
 from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pretrain.geometry import BEVGrid, Camera, cameras_from_meta, sample_depth
 
 log = logging.getLogger("icrowdnav")

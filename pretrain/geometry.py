@@ -31,7 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 import torchvision
 from torch import nn
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from pretrain.geometry import BEVGrid, Camera, LiftGeometry, lift_splat, relative_pose, sample_depth, warp_bev
 
 _IMAGENET_MEAN = (0.485, 0.456, 0.406)

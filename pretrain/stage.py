@@ -25,10 +25,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.artifacts import atomic_write_json
-from pipeline.config import BaseStageConfig, check_run_name, config_hash
-from pipeline.errors import ConfigError, CorruptArtifactError
-from pipeline.stage import Stage, run_stage
+from pipeline.core.artifacts import atomic_write_json
+from pipeline.core.config import BaseStageConfig, check_run_name, config_hash
+from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.model import TARGETS, EncoderConfig
 
 log = logging.getLogger("icrowdnav")
@@ -86,7 +85,7 @@ def checkpoint_dir(cfg: PretrainConfig) -> Path:
     return Path(cfg.data_dir) / "checkpoints" / cfg.name
 
 
-def _inputs(cfg: PretrainConfig) -> list[Path]:
+def inputs(cfg: PretrainConfig) -> list[Path]:
     """The dataset; fails here, before any output exists, when it or the grid does not fit."""
     from pretrain.data import check_dataset, check_grid_in_local_map
     from pretrain.geometry import check_grid_fits_cameras
@@ -124,7 +123,7 @@ def load_backbone_weights(encoder, path: str) -> None:
     log.info("pretrain: trunk initialised from %s", p)
 
 
-def _body(cfg: PretrainConfig, out: Path) -> dict:
+def body(cfg: PretrainConfig, out: Path) -> dict:
     from pretrain.checkpoint import METRICS_JSON, write_encoder_checkpoint
     from pretrain.data import check_dataset, load_frames, split_episodes
     from pretrain.figures import plot_curves, plot_fov, plot_sample
@@ -200,24 +199,3 @@ def _body(cfg: PretrainConfig, out: Path) -> dict:
             counts[key] = round(float(v), 4)
     log.info("pretrain: validation %s", ", ".join(f"{k} {v}" for k, v in counts.items() if k.startswith("iou_")))
     return counts
-
-
-STAGE = Stage(
-    name="pretrain",
-    config_cls=PretrainConfig,
-    help="pretrain the spatio-temporal BEV encoder on a LeRobot dataset -> DATA_DIR/checkpoints/<name>/",
-    output_dir=checkpoint_dir,
-    inputs=_inputs,
-    body=_body,
-    resumable=True,
-    in_place=True,
-    code=("pipeline", "pretrain"),
-)
-
-
-def run(cfg: PretrainConfig):
-    """Run the stage (library entry point); returns its :class:`pipeline.manifest.Manifest`."""
-    return run_stage(STAGE, cfg)
-
-
-

@@ -27,8 +27,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pipeline.artifacts import fsync_dir
-from pipeline.errors import ConfigError, CorruptArtifactError
+from pipeline.core.artifacts import fsync_dir
+from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.data import FrameStore, make_batches, make_clips
 from pretrain.model import TARGETS, BEVEncoder, PretextHeads
 

@@ -17,7 +17,7 @@ import logging
 import sys
 from pathlib import Path
 
-from pipeline.errors import ICrowdNavError, InputMissingError
+from pipeline.core.errors import ICrowdNavError, InputMissingError
 from recorder.mcap_io import (
     METADATA_ABORTED,
     METADATA_EPISODE,

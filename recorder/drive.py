@@ -34,7 +34,7 @@ def drive_episode(sim_cfg: SimConfig, seed: int, driver: str = "expert") -> Epis
     closed when it is exhausted. Only the privileged ``expert`` driver exists so far (policies come with train).
     """
     if driver not in DRIVERS:
-        from pipeline.errors import ConfigError
+        from pipeline.core.errors import ConfigError
 
         raise ConfigError(f"driver: expected one of {list(DRIVERS)}, got {driver!r}")
     env = CrowdNavEnv(config=replace(sim_cfg, obs_mode="visual", info_level="full"))

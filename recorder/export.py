@@ -13,7 +13,7 @@ parquet writers open across episodes and rewrites ``meta/info.json`` per episode
 leave a dataset with footer-less parquet files or an episode-index gap. Hence the export:
 
 1. writes into a staging directory ``.<name>.staging-<pid>`` next to ``out_dir``
-   (:class:`pipeline.artifacts.OutputDir`; staging dirs of dead processes are removed by the next export);
+   (:class:`pipeline.core.artifacts.OutputDir`; staging dirs of dead processes are removed by the next export);
 2. ``LeRobotDataset.create`` → ``add_frame`` per frame (task :data:`recorder.features.TASK`) →
    ``save_episode`` per episode → ``finalize()``;
 3. writes ``meta/icrowdnav.json`` (cameras' intrinsics/extrinsics, feature docs, the local-map layout,
@@ -55,8 +55,8 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from pipeline.artifacts import OutputDir, atomic_write_json, atomic_write_text
-from pipeline.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
+from pipeline.core.artifacts import OutputDir, atomic_write_json, atomic_write_text
+from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
 from recorder.features import (
     DEFAULT_MAX_PEOPLE,
     N_MAX_PEDESTRIANS,
@@ -271,7 +271,7 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
     """Writes episodes into a new LeRobot dataset at ``root`` (no staging, no validation: the caller's job).
 
     Use :func:`export_dataset` unless the caller already provides a crash-safe directory (e.g. a stage body
-    writing into its :class:`pipeline.artifacts.OutputDir`).
+    writing into its :class:`pipeline.core.artifacts.OutputDir`).
 
     Args:
         inputs: MCAP paths and/or Episode-like objects (``.meta``, ``.occupancy``, ``.frames``), in order.

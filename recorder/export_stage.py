@@ -21,10 +21,9 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pipeline.config import BaseStageConfig, check_run_name
-from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
-from pipeline.manifest import MANIFEST_NAME
-from pipeline.stage import Stage, run_stage
+from pipeline.core.config import BaseStageConfig, check_run_name
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.manifest import MANIFEST_NAME
 
 _REPO_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[A-Za-z0-9][\w.-]*$")
 
@@ -52,7 +51,7 @@ def dataset_dir(cfg: ExportConfig) -> Path:
     return Path(cfg.data_dir) / "datasets" / cfg.repo_id
 
 
-def _inputs(cfg: ExportConfig) -> list[Path]:
+def inputs(cfg: ExportConfig) -> list[Path]:
     src = raw_dir(cfg)
     if src.is_dir() and not (src / MANIFEST_NAME).is_file():
         raise InputMissingError(f"recording {src} is unfinished (no {MANIFEST_NAME}); finish it with "
@@ -60,7 +59,7 @@ def _inputs(cfg: ExportConfig) -> list[Path]:
     return [src]
 
 
-def _body(cfg: ExportConfig, out: Path) -> dict:
+def body(cfg: ExportConfig, out: Path) -> dict:
     from recorder.doctor_dataset import check_dataset
     from recorder.export import write_dataset
 
@@ -81,19 +80,3 @@ def _body(cfg: ExportConfig, out: Path) -> dict:
         raise CorruptArtifactError(f"exported dataset failed validation, nothing published: {problems[0]}"
                                    + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""))
     return counts
-
-
-STAGE = Stage(
-    name="export",
-    config_cls=ExportConfig,
-    help="export a finished recording (MCAP) to a LeRobot v3.0 dataset under DATA_DIR/datasets/<repo_id>/",
-    output_dir=dataset_dir,
-    inputs=_inputs,
-    body=_body,
-    code=("pipeline", "sim", "recorder"),
-)
-
-
-def run(cfg: ExportConfig):
-    """Run the stage (library entry point); returns its :class:`pipeline.manifest.Manifest`."""
-    return run_stage(STAGE, cfg)

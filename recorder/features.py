@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.errors import CorruptArtifactError
+from pipeline.core.errors import CorruptArtifactError
 from recorder.schema import CAMERA_NAMES, EpisodeMeta, Frame
 
 TASK = "navigate to the goal through the crowd"

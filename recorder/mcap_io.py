@@ -127,8 +127,8 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import register_schema
 
-from pipeline.artifacts import fsync_dir
-from pipeline.errors import CorruptArtifactError, InputMissingError, OutputExistsError
+from pipeline.core.artifacts import fsync_dir
+from pipeline.core.errors import CorruptArtifactError, InputMissingError, OutputExistsError
 from recorder.schema import (
     CAMERA_NAMES,
     FRAME_BASE,
@@ -1717,7 +1717,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import tempfile
 
-    from pipeline.errors import ICrowdNavError
+    from pipeline.core.errors import ICrowdNavError
 
     ap = argparse.ArgumentParser(prog="python -m recorder.mcap_io", description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)

@@ -34,10 +34,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from pipeline.artifacts import atomic_write_json, atomic_write_text
-from pipeline.config import BaseStageConfig, check_run_name
-from pipeline.errors import ConfigError, ICrowdNavError
-from pipeline.stage import Stage, run_stage
+from pipeline.core.artifacts import atomic_write_json, atomic_write_text
+from pipeline.core.config import BaseStageConfig, check_run_name
+from pipeline.core.errors import ConfigError, ICrowdNavError
 from recorder.drive import DRIVERS
 from sim.env import SimConfig
 from sim.scene import check_episode_grid, scenes_of_split
@@ -89,7 +88,7 @@ def jobs_of(cfg: RecordConfig) -> list[Job]:
 
 def record_one(sim_cfg: SimConfig, job: Job, out: Path, driver: str) -> dict:
     """Record one episode to ``out/<job.name>.mcap``; returns its row for ``episodes.jsonl``."""
-    from pipeline.manifest import hash_file
+    from pipeline.core.manifest import hash_file
     from recorder.drive import drive_episode
     from recorder.mcap_io import EpisodeWriter
 
@@ -116,7 +115,7 @@ def _worker(args: tuple) -> dict:
         return record_one(*args)
 
 
-def _body(cfg: RecordConfig, out: Path) -> dict:
+def body(cfg: RecordConfig, out: Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     jobs = jobs_of(cfg)
     done_rows = _finished_rows(out, jobs)
@@ -212,7 +211,7 @@ def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: l
 def _finished_rows(out: Path, jobs: list[Job]) -> dict[str, dict]:
     """Rows of the episodes already finished in ``out``: every ``<name>.mcap`` of a job (a final name only exists
     once its writer finished). Rows come from ``episodes.jsonl`` when it has them, else from the file itself."""
-    from pipeline.manifest import hash_file
+    from pipeline.core.manifest import hash_file
     from recorder.mcap_io import episode_summary
 
     known: dict[str, dict] = {}
@@ -246,22 +245,3 @@ def _write_rows(out: Path, rows: dict[str, dict], jobs: list[Job]) -> None:
 
 def raw_dir(cfg) -> Path:
     return Path(cfg.data_dir) / "raw" / cfg.run_name
-
-
-STAGE = Stage(
-    name="record",
-    config_cls=RecordConfig,
-    help="drive episodes (expert) and log each to an MCAP file under DATA_DIR/raw/<run_name>/",
-    output_dir=raw_dir,
-    inputs=lambda cfg: [],
-    body=_body,
-    resumable=True,
-    in_place=True,
-    code=("pipeline", "sim", "recorder"),
-)
-
-
-def run(cfg: RecordConfig):
-    """Run the stage (library entry point); returns its :class:`pipeline.manifest.Manifest`."""
-    return run_stage(STAGE, cfg)
-

@@ -146,7 +146,7 @@ class Frame:
 
 def sim_config_hash(cfg) -> str:
     """sha256 of a sim config's canonical JSON."""
-    from pipeline.config import to_dict
+    from pipeline.core.config import to_dict
 
     return hashlib.sha256(json.dumps(to_dict(cfg), sort_keys=True).encode()).hexdigest()
 

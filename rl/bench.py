@@ -118,7 +118,7 @@ def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encod
 
     import torch.nn.functional as F
 
-    from pipeline.bench import time_call
+    from pipeline.core.timing import time_call
     from pretrain.model import BEVEncoder
     from rl.observe import BEV_POOL, StudentObserver, env_cameras, observer_for_env
     from rl.policy import act, build_policy

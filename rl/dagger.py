@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.artifacts import atomic_write_json
+from pipeline.core.artifacts import atomic_write_json
 from sim.env import CrowdNavEnv, SimConfig
 
 _CACHE: dict[str, Any] = {}
@@ -161,7 +161,7 @@ def load_features(iter_dirs: list[Path]) -> dict[str, np.ndarray]:
                 for k in z.files:
                     parts.setdefault(k, []).append(z[k])
     if not parts:
-        from pipeline.errors import InputMissingError
+        from pipeline.core.errors import InputMissingError
 
         raise InputMissingError(f"no DAgger features in {[str(d) for d in iter_dirs]}")
     return {k: np.concatenate(v) for k, v in parts.items()}

@@ -46,7 +46,7 @@ class I2FormerConfig:
     ffn_mult: int = 2  # FFN hidden width = ffn_mult * dim
 
     def validate(self) -> None:
-        from pipeline.errors import ConfigError
+        from pipeline.core.errors import ConfigError
 
         if self.dim < 4 or self.heads < 1 or self.dim % self.heads:
             raise ConfigError(f"i2former: dim must be >= 4 and divisible by heads, got dim={self.dim}, "

@@ -44,7 +44,7 @@ SUBGOAL_SCALE_M = 2.0  # the privileged sub-goal's scale (its lookahead along th
 def teacher_extractor_class(encoder: str) -> type[BaseFeaturesExtractor]:
     """The teacher's features extractor for ``net["encoder"]`` (checkpoints without the key are "flat")."""
     if encoder not in TEACHER_ENCODERS:
-        from pipeline.errors import ConfigError
+        from pipeline.core.errors import ConfigError
 
         raise ConfigError(f"teacher.net.encoder: expected one of {list(TEACHER_ENCODERS)}, got {encoder!r}")
     return {"set": SetTeacherExtractor, "flat": TeacherExtractor, "lookahead": LookaheadTeacherExtractor}[encoder]
@@ -53,7 +53,7 @@ def teacher_extractor_class(encoder: str) -> type[BaseFeaturesExtractor]:
 def variant_keys(variant: str, head: str = "mlp") -> tuple[str, ...]:
     """The observation keys a student variant consumes (with the ``lookahead`` head also its perceived ``scan`` and,
     for variants with poses, the pedestrian tracks ``peds``: :mod:`rl.perceive`)."""
-    from pipeline.errors import ConfigError
+    from pipeline.core.errors import ConfigError
 
     if variant not in VARIANTS:
         raise ConfigError(f"variant: expected one of {list(VARIANTS)}, got {variant!r}")
@@ -105,7 +105,7 @@ class StudentExtractor(BaseFeaturesExtractor):
         keys = variant_keys(variant)
         missing = [k for k in keys if k not in observation_space.spaces]
         if missing:
-            from pipeline.errors import ConfigError
+            from pipeline.core.errors import ConfigError
 
             raise ConfigError(f"variant {variant!r} needs observation keys {missing}, the env gives "
                               f"{sorted(observation_space.spaces)}")
@@ -163,7 +163,7 @@ class StudentLookaheadExtractor(StudentExtractor):
         super().__init__(observation_space, variant, **kwargs)
         missing = [k for k in variant_keys(variant, "lookahead") if k not in observation_space.spaces]
         if missing:
-            from pipeline.errors import ConfigError
+            from pipeline.core.errors import ConfigError
 
             raise ConfigError(f"the lookahead head of variant {variant!r} needs observation keys {missing}")
         self.subgoal = False
@@ -308,7 +308,7 @@ def init_lookahead(m: nn.Module, observation_space: gym.spaces.Dict, robot: dict
     the arc (a turn that passes through the target heading could stop there), ``"spin"`` the smallest error for
     the turns on the spot only (v = 0), the end error for every moving arc. Measured (README, Training): both
     remove most warehouse stops and triple the shelf collisions, so ``"end"`` stays the default."""
-    from pipeline.errors import ConfigError
+    from pipeline.core.errors import ConfigError
     from sim.robot import RobotConfig, action_grid
 
     if heading not in HEADING_MODES:

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from pretrain.geometry import Camera, LiftGeometry, lift_splat, sample_depth
 from pretrain.model import BEVEncoder, BEVStream, EncoderConfig
 from rl.networks import variant_keys

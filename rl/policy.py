@@ -18,8 +18,8 @@ import numpy as np
 import torch
 from stable_baselines3.common.policies import ActorCriticPolicy
 
-from pipeline.artifacts import atomic_write_text
-from pipeline.errors import CorruptArtifactError, InputMissingError
+from pipeline.core.artifacts import atomic_write_text
+from pipeline.core.errors import CorruptArtifactError, InputMissingError
 from rl.networks import StudentExtractor, StudentLookaheadExtractor, TakeScores, teacher_extractor_class
 
 POLICY_JSON = "policy.json"

@@ -44,10 +44,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.artifacts import atomic_write_json
-from pipeline.config import BaseStageConfig
-from pipeline.errors import ConfigError
-from pipeline.stage import Stage, run_stage
+from pipeline.core.artifacts import atomic_write_json
+from pipeline.core.config import BaseStageConfig
+from pipeline.core.errors import ConfigError
 from rl.baselines import BASELINES, baseline_module
 from rl.baselines.drl_vo import Config as DRLVOConfig
 from rl.baselines.sarl_om import Config as SARLOMConfig
@@ -202,7 +201,7 @@ def encoder_dir(cfg: TrainConfig) -> Path:
     return Path(cfg.data_dir) / "checkpoints" / cfg.encoder
 
 
-def _inputs(cfg: TrainConfig) -> list[Path]:
+def inputs(cfg: TrainConfig) -> list[Path]:
     """The teacher and the encoder a student needs; checked here, before any output exists."""
     if cfg.variant == "teacher":
         return []
@@ -214,7 +213,7 @@ def _inputs(cfg: TrainConfig) -> list[Path]:
     teacher = policy_root(cfg) / "teacher"
     read_policy_json(teacher)
     if not (teacher / "manifest.json").is_file():
-        from pipeline.errors import InputMissingError
+        from pipeline.core.errors import InputMissingError
 
         raise InputMissingError(f"teacher checkpoint {teacher} is unfinished (no manifest.json); run "
                                 "`icrowdnav train --variant teacher` first")
@@ -396,7 +395,7 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
 
 def _load_aggregate(out: Path, k: int) -> dict[str, np.ndarray]:
     """The imitation data of stages 0 .. k-1 (each ``imitation/<j>/data.npz`` holds that stage's new frames)."""
-    from pipeline.errors import CorruptArtifactError
+    from pipeline.core.errors import CorruptArtifactError
 
     parts = []
     for j in range(k):
@@ -641,8 +640,8 @@ def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir):
 
 
 # -------------------------------------------------------------------------------------------------------- the stage
-def _body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
-    from pipeline.config import dump_yaml
+def body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
+    from pipeline.core.config import dump_yaml
     from rl.figures import plot_training
 
     dump_yaml(cfg, out / "config.yaml")
@@ -672,21 +671,3 @@ def _body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     for cell, row in acc["table"].items():
         counts[f"sr_{cell}"] = round(row["sr"], 3)
     return counts
-
-
-STAGE = Stage(
-    name="train",
-    config_cls=TrainConfig,
-    help="train the privileged teacher or a visual student variant (DAgger + PPO) -> DATA_DIR/checkpoints/policy/",
-    output_dir=output_dir,
-    inputs=_inputs,
-    body=_body,
-    resumable=True,
-    in_place=True,
-    code=("pipeline", "rl", "sim", "pretrain", "recorder"),
-)
-
-
-def run(cfg: TrainConfig):
-    """Runs the train stage for ``cfg.variant``; returns its manifest."""
-    return run_stage(STAGE, cfg)

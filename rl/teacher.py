@@ -29,7 +29,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from sim.env import CrowdNavEnv, SimConfig
 from sim.robot import action_grid
 
@@ -260,7 +260,7 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
 
     if mirror and "bev" in keys:
         if "bev_mirror" not in data:
-            from pipeline.errors import InputMissingError
+            from pipeline.core.errors import InputMissingError
 
             raise InputMissingError("mirror augmentation of s_bev needs the mirrored world's s_bev ('bev_mirror') in "
                                     "the cached features (recorded with dagger.mirror true); clone without mirror")

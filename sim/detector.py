@@ -35,7 +35,7 @@ class DetectorConfig:
     miss_prob: float = 0.03  # probability that a visible joint is missed anyway
 
     def validate(self) -> None:
-        from pipeline.errors import ConfigError
+        from pipeline.core.errors import ConfigError
 
         if not 1 <= self.max_people <= 32:
             raise ConfigError(f"detector.max_people: expected 1..32, got {self.max_people}")

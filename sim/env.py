@@ -43,7 +43,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from sim.cameras import CameraSpec, pose_matrix
 from sim.crowd import Crowd, CrowdConfig, norm2d
 from sim.detector import CameraFrame, DetectorConfig, OracleDetector, PoseDetector

@@ -48,7 +48,7 @@ class BodyConfig:
     torso_limit_deg: float = 40.0  # torso yaw relative to the pelvis
 
     def validate(self) -> None:
-        from pipeline.errors import ConfigError
+        from pipeline.core.errors import ConfigError
 
         for k in ("height_m", "width_scale"):
             lo, hi = getattr(self, k)

@@ -19,7 +19,7 @@ class RobotConfig:
     n_rotations: int = 21  # ... × yaw rates (5 × 21 as in the authors' code)
 
     def validate(self) -> None:
-        from pipeline.errors import ConfigError
+        from pipeline.core.errors import ConfigError
 
         for k in ("radius_m", "v_max_mps", "omega_max_radps"):
             if getattr(self, k) <= 0:

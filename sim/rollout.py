@@ -33,10 +33,9 @@ from typing import Literal
 
 from tqdm import tqdm
 
-from pipeline.artifacts import atomic_write_json, atomic_write_text
-from pipeline.config import BaseStageConfig, check_run_name
-from pipeline.errors import ConfigError
-from pipeline.stage import Stage, run_stage
+from pipeline.core.artifacts import atomic_write_json, atomic_write_text
+from pipeline.core.config import BaseStageConfig, check_run_name
+from pipeline.core.errors import ConfigError
 from sim.env import SimConfig
 from sim.scene import check_episode_grid
 
@@ -125,7 +124,7 @@ def _video(sim_cfg: SimConfig, scene: str, density: float, seed: int, path: Path
     write_video(frames, path, fps=1.0 / sim_cfg.dt_s)
 
 
-def _body(cfg: RolloutConfig, out: Path) -> dict:
+def body(cfg: RolloutConfig, out: Path) -> dict:
     from sim.metrics import aggregate, metrics_table_markdown
 
     for sub in ("traces", "figures", "videos"):
@@ -169,19 +168,3 @@ def _finite(obj):
     if hasattr(obj, "item") and not isinstance(obj, str):
         return _finite(obj.item())
     return obj
-
-
-STAGE = Stage(
-    name="rollout",
-    config_cls=RolloutConfig,
-    help="run the privileged expert over scenes x densities x seeds; metrics, figures, videos",
-    output_dir=lambda cfg: Path(cfg.data_dir) / "rollouts" / cfg.run_name,
-    inputs=lambda cfg: [],
-    body=_body,
-    code=("pipeline", "sim"),
-)
-
-
-def run(cfg: RolloutConfig):
-    """Run the stage (library entry point); returns its :class:`pipeline.manifest.Manifest`."""
-    return run_stage(STAGE, cfg)

@@ -47,7 +47,7 @@ import yaml
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from pipeline.errors import ConfigError, InputMissingError
+from pipeline.core.errors import ConfigError, InputMissingError
 from sim.geometry import Box, Cylinder, Obstacle, StaticGeometry
 
 SCENES_DIR = Path(__file__).resolve().parent / "scenes"

@@ -21,7 +21,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from pipeline.artifacts import FILE_MODE
+from pipeline.core.artifacts import FILE_MODE
 
 OUTCOMES: tuple[str, ...] = ("success", "collision_pedestrian", "collision_obstacle", "timeout")
 """Every value :attr:`EpisodeTrace.outcome` may take."""

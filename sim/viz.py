@@ -27,7 +27,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Polygon, Wedge
 
-from pipeline.artifacts import FILE_MODE
+from pipeline.core.artifacts import FILE_MODE
 from sim.geometry import Box, Cylinder
 from sim.metrics import episode_metrics
 from sim.trace import EpisodeTrace

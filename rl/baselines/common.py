@@ -38,8 +38,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.artifacts import atomic_write_text
-from pipeline.errors import CorruptArtifactError
+from pipeline.core.artifacts import atomic_write_text
+from pipeline.core.errors import CorruptArtifactError
 from sim.env import CrowdNavEnv, SimConfig
 from sim.geometry import world_to_robot
 from sim.planners.global_path import GlobalPath, _distance_to_polyline  # noqa: F401 - re-exported

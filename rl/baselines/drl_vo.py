@@ -95,7 +95,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from rl.baselines.common import (
     GlobalPath,
     collect_expert_episodes,
@@ -677,7 +677,7 @@ class Driver:
             self.observer = Observer(**desc["observer"])
             self.v_max, self.w_max = float(desc["robot"]["v_max_mps"]), float(desc["robot"]["omega_max_radps"])
         except (KeyError, TypeError) as e:
-            from pipeline.errors import CorruptArtifactError
+            from pipeline.core.errors import CorruptArtifactError
 
             raise CorruptArtifactError(f"{Path(ckpt) / 'policy.json'}: not a drl_vo description "
                                        f"({type(e).__name__}: {e})") from None

@@ -101,7 +101,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipeline.errors import ConfigError, CorruptArtifactError
+from pipeline.core.errors import ConfigError, CorruptArtifactError
 from rl.baselines.common import (
     collect_expert_episodes,
     load_baseline,

@@ -90,7 +90,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from rl.baselines.common import load_baseline, save_baseline, to_robot_frame
 
 log = logging.getLogger("icrowdnav")

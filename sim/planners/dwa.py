@@ -65,7 +65,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 from scipy import ndimage
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from sim.cameras import CameraSpec
 from sim.geometry import robot_to_world, world_to_robot, wrap_angle
 

@@ -57,7 +57,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from sim.scene import GRID_RES_M, SceneLayout
 
 _EIGHT = np.ones((3, 3), dtype=bool)

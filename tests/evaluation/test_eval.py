@@ -15,7 +15,7 @@ import pytest
 from evaluation.harness import Job, initial_state, make_env, reset_episode, run_episode
 from evaluation.methods import MethodSpec, resolve_methods, state_toward
 from evaluation.report import mcnemar_exact, paired, report_markdown, results, results_csv, shape_checks
-from pipeline.errors import ConfigError, InputMissingError
+from pipeline.core.errors import ConfigError, InputMissingError
 from sim.env import CrowdNavEnv, SimConfig
 
 TINY = SimConfig(max_episode_s=2.0, camera=replace(SimConfig().camera, width_px=64, height_px=48))
@@ -122,7 +122,8 @@ def test_eval_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, args, match
 
 
 def test_results_json_is_written_by_a_tiny_run(tmp_path):
-    from evaluation.stage import EvalConfig, run
+    from evaluation.stage import EvalConfig
+    from pipeline.verbs.eval import run
 
     cfg = EvalConfig(data_dir=str(tmp_path), methods=["expert"], scenes=["office_lobby"], densities=[0.1],
                      episodes=2, workers=1, figures=0, videos=0, sim=TINY, progress=False)
@@ -141,7 +142,7 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
     assert len(rows) == 2 and len(list((out / "rows").glob("lh_*.json"))) == 1
     kept = rows[0].stat().st_mtime_ns
     rows[1].unlink()
-    from pipeline.errors import OutputExistsError
+    from pipeline.core.errors import OutputExistsError
 
     with pytest.raises(OutputExistsError, match="--resume"):
         run(cfg)

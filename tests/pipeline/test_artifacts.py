@@ -1,4 +1,4 @@
-"""Tests of pipeline.artifacts: atomic writes and crash-safe output directories."""
+"""Tests of pipeline.core.artifacts: atomic writes and crash-safe output directories."""
 
 from __future__ import annotations
 
@@ -10,15 +10,15 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import artifacts
-from pipeline.artifacts import (
+from pipeline.core import artifacts
+from pipeline.core.artifacts import (
     OutputDir,
     atomic_write_bytes,
     atomic_write_json,
     atomic_write_text,
     require_input,
 )
-from pipeline.errors import InputMissingError, OutputExistsError
+from pipeline.core.errors import InputMissingError, OutputExistsError
 
 
 def names(d: Path) -> list[str]:

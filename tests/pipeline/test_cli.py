@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from pipeline import cli
-from pipeline.config import PROFILES_ENV, BaseStageConfig
-from pipeline.stage import Stage
+from pipeline.core.config import PROFILES_ENV, BaseStageConfig
+from pipeline.core.stage import Stage
 
 REPO = Path(__file__).resolve().parents[2]
 BODY_CALLS: list[Path] = []

@@ -1,4 +1,4 @@
-"""Tests of pipeline.config: typed configs from YAML profiles, config files and CLI overrides."""
+"""Tests of pipeline.core.config: typed configs from YAML profiles, config files and CLI overrides."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Literal
 import pytest
 import yaml
 
-from pipeline.config import (
+from pipeline.core.config import (
     PROFILES_ENV,
     BaseStageConfig,
     apply_dict,
@@ -25,7 +25,7 @@ from pipeline.config import (
     to_dict,
     validate_tree,
 )
-from pipeline.errors import ConfigError, InputMissingError
+from pipeline.core.errors import ConfigError, InputMissingError
 
 VALIDATED: list[str] = []
 

@@ -1,4 +1,4 @@
-"""Tests of pipeline.manifest and pipeline.stage (provenance, idempotent stage runs)."""
+"""Tests of pipeline.core.manifest and pipeline.core.stage (provenance, idempotent stage runs)."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ import pytest
 import yaml
 
 import pipeline
-from pipeline.config import BaseStageConfig, apply_dict, config_hash, from_dict
-from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError, OutputExistsError
-from pipeline.manifest import FileRecord, Manifest, collect_versions, git_info, hash_file, hash_tree
-from pipeline.stage import Stage, mode_of, run_stage, run_stage_ex
+from pipeline.core.config import BaseStageConfig, apply_dict, config_hash, from_dict
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError, OutputExistsError
+from pipeline.core.manifest import FileRecord, Manifest, collect_versions, git_info, hash_file, hash_tree
+from pipeline.core.stage import Stage, mode_of, run_stage, run_stage_ex
 
 # ------------------------------------------------------------------ manifest
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from pretrain.data import (
     FrameStore,
     check_grid_in_local_map,

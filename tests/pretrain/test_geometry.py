@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.errors import ConfigError, CorruptArtifactError
+from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.geometry import (
     BEVGrid,
     Camera,

@@ -9,7 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from pretrain.geometry import Camera
 from pretrain.model import TARGETS, BEVEncoder, BEVStream, EncoderConfig, PretextHeads, TimeConv
 from sim.cameras import CameraSpec

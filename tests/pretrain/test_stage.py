@@ -11,12 +11,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from pipeline.config import load_config
-from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
-from pipeline.stage import run_stage_ex
+from pipeline.core.config import load_config
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.stage import run_stage_ex
+from pipeline.verbs.pretrain import STAGE
 from pretrain.checkpoint import ENCODER_WEIGHTS, load_encoder, load_heads
 from pretrain.model import BEVStream
-from pretrain.stage import STAGE, PretrainConfig, checkpoint_dir
+from pretrain.stage import PretrainConfig, checkpoint_dir
 
 REPO = "icrowdnav/tiny"
 ROOT = Path(__file__).resolve().parents[2]

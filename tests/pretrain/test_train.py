@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.errors import ConfigError, CorruptArtifactError
+from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.data import FrameStore, load_frames
 from pretrain.geometry import cameras_from_dataset, check_grid_fits_cameras
 from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError, OutputExistsError
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError, OutputExistsError
 from recorder.doctor_dataset import check_dataset
 from recorder.export import ICROWDNAV_EPISODES, ICROWDNAV_META, export_dataset, export_run
 from recorder.features import (

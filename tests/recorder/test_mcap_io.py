@@ -22,7 +22,7 @@ from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from mcap.reader import make_reader
 
-from pipeline.errors import CorruptArtifactError, InputMissingError, OutputExistsError
+from pipeline.core.errors import CorruptArtifactError, InputMissingError, OutputExistsError
 from recorder import mcap_io
 from recorder.doctor_mcap import check_mcap_dir
 from recorder.drive import drive_episode

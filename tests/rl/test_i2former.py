@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from rl.i2former import I2Former, I2FormerConfig
 from rl.networks import StudentExtractor, TeacherExtractor, variant_keys
 from rl.policy import N_ACTIONS, build_policy

@@ -142,7 +142,7 @@ def test_best_heading_prefers_the_turn_towards_the_route(space):
     stays put. The end-of-arc heading error (``heading: end``) prefers the 2 rad/s turn *away* from the route (4 rad
     to the right ends 171° off, 4 rad to the left 91° off); the best error along the arc (``heading: best``) is 0
     for the right turn, which passes through the route's direction, and the initial 40° for the left one."""
-    from pipeline.errors import ConfigError
+    from pipeline.core.errors import ConfigError
 
     a = math.radians(-40)
     obs = _obs(scan_m=0.33, goal=(3.0 * math.cos(a), 3.0 * math.sin(a)), path_dir=(math.cos(a), math.sin(a)))

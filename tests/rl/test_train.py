@@ -12,8 +12,8 @@ import pytest
 import torch
 import yaml
 
-from pipeline.config import load_config
-from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.config import load_config
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from rl.policy import act, build_policy, describe, load_policy, save_policy
 from rl.teacher import (
     SceneMixEnv,
@@ -199,7 +199,7 @@ def _train_cfg(data_dir, variant, **over):
 
 
 def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir):
-    from rl.stage import run
+    from pipeline.verbs.train import run
 
     a, b = tmp_path / "a", tmp_path / "b"
     for d in (a, b):
@@ -227,8 +227,8 @@ def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
     """The default student head: one DAgger iteration records perceived tracks and scans, the convex fit of the
     linear cost and the cloning lower the cross-entropy to the teacher's distribution on the iteration's frames, and
     the checkpoint rebuilds as the scored policy."""
+    from pipeline.verbs.train import run
     from rl.policy import ScoredPolicy
-    from rl.stage import run
 
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
     sizes = {"dagger.iterations": 1, "dagger.episodes_per_iter": 2, "sim.max_episode_s": 6.0, "dagger.bc_epochs": 3}
@@ -252,7 +252,7 @@ def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
 
 
 def test_missing_encoder_is_one_clear_error(tmp_path, teacher_dir):
-    from rl.stage import run
+    from pipeline.verbs.train import run
 
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
     with pytest.raises(InputMissingError, match="no BEV encoder checkpoint"):
@@ -261,17 +261,17 @@ def test_missing_encoder_is_one_clear_error(tmp_path, teacher_dir):
 
 
 def test_missing_teacher_is_one_clear_error(tmp_path):
-    from rl.stage import run
+    from pipeline.verbs.train import run
 
     with pytest.raises(InputMissingError, match="missing policy checkpoint"):
         run(_train_cfg(tmp_path, "no_bev"))
 
 
 def test_encoder_camera_mismatch_is_one_clear_error(tmp_path, teacher_dir):
+    from pipeline.verbs.train import run
     from pretrain.checkpoint import write_encoder_checkpoint
     from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
     from rl.observe import env_cameras
-    from rl.stage import run
     from sim.env import CrowdNavEnv
 
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
@@ -326,7 +326,8 @@ def test_mirror_batch_reflects_every_lateral_quantity():
 def test_teacher_stage_end_to_end_on_tiny_sizes(tmp_path):
     """The teacher stage on the smoke sizes: expert cloning with the lookahead's convex linear fit, one DAgger
     iteration, PPO with a critic warm-up (actor frozen for the first 256 steps), the acceptance run, provenance."""
-    from rl.stage import TrainConfig, run
+    from pipeline.verbs.train import run
+    from rl.stage import TrainConfig
 
     cfg = load_config(TrainConfig, "train", "smoke", {
         "data_dir": str(tmp_path), "variant": "teacher", "acceptance.scenes": "hallway", "acceptance.episodes": "1",

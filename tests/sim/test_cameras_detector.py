@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from sim.cameras import (
     backproject,
     depth_from_buffer,

@@ -10,7 +10,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import sim
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from sim.crowd import CrowdConfig
 from sim.env import CameraConfig, CrowdNavEnv, SimConfig
 from sim.expert import PrivilegedExpert

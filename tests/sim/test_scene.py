@@ -10,7 +10,7 @@ import pytest
 import yaml
 from scipy.sparse.csgraph import dijkstra
 
-from pipeline.errors import ConfigError, InputMissingError
+from pipeline.core.errors import ConfigError, InputMissingError
 from sim.env import CrowdNavEnv
 from sim.geometry import Box, Cylinder, StaticGeometry
 from sim.scene import (

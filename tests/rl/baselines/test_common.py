@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from rl.baselines import BASELINES
 from rl.baselines.common import (
     GlobalPath,

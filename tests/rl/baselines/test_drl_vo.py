@@ -13,7 +13,7 @@ import pytest
 import torch
 import yaml
 
-from pipeline.errors import ConfigError, CorruptArtifactError
+from pipeline.core.errors import ConfigError, CorruptArtifactError
 from rl.baselines import drl_vo
 from rl.baselines.common import save_baseline
 from rl.policy import freeze_actor

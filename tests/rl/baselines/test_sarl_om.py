@@ -12,7 +12,7 @@ import pytest
 import torch
 import yaml
 
-from pipeline.errors import ConfigError, CorruptArtifactError
+from pipeline.core.errors import ConfigError, CorruptArtifactError
 from rl.baselines import sarl_om as S
 from rl.stage import TrainConfig
 from rl.teacher import CurriculumStage

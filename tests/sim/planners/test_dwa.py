@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from sim.cameras import CameraSpec, backproject
 from sim.env import CameraConfig, CrowdNavEnv
 from sim.planners.dwa import (

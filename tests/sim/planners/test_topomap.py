@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 from sim.env import CameraConfig, CrowdNavEnv
 from sim.planners.dwa import DWAController
 from sim.planners.topomap import (

@@ -14,6 +14,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from recorder.doctor_dataset import main as dataset_main
+from recorder.doctor_mcap import main as mcap_main
+
 
 def main(argv: list[str]) -> int:
     if not argv or argv[0] in ("-h", "--help"):
@@ -21,20 +24,10 @@ def main(argv: list[str]) -> int:
         return 0 if argv else 2
     path = Path(argv[0])
     if (path / "meta" / "info.json").is_file():
-        from recorder.doctor_dataset import main as dataset_main
-
         return dataset_main(argv)
     if path.is_dir():
-        from recorder.doctor_mcap import main as mcap_main
-
         return mcap_main(argv)
     print(f"error: {path} is neither a recording directory nor a LeRobot dataset (no meta/info.json)",
           file=sys.stderr)
     return 2
 
-
-def recover_main(argv: list[str]) -> int:
-    """``icrowdnav recover FILE.mcap.partial``: salvage the complete frames into FILE.recovered.mcap."""
-    from recorder.mcap_io import main as mcap_main
-
-    return mcap_main(["recover", *argv])

@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline.artifacts import atomic_write_json
-from pipeline.errors import CorruptArtifactError, InputMissingError
+from pipeline.core.artifacts import atomic_write_json
+from pipeline.core.errors import CorruptArtifactError, InputMissingError
 
 MANIFEST_NAME = "manifest.json"
 _CHUNK_BYTES = 1 << 20
@@ -333,10 +333,10 @@ def code_hash(root: Path | None = None, packages: tuple[str, ...] = CODE_PACKAGE
     """sha256 over the sources of some of the pipeline's packages (``*.py`` and ``*.yaml``, sorted by path).
 
     A stage output made by other code is stale, like a DVC stage whose code dependency changed. Each stage hashes
-    only the packages it runs (:attr:`pipeline.stage.Stage.code`), so editing ``pretrain/`` does not make a
+    only the packages it runs (:attr:`pipeline.core.stage.Stage.code`), so editing ``pretrain/`` does not make a
     recording stale.
     """
-    base = Path(root) if root is not None else Path(__file__).resolve().parent.parent
+    base = Path(root) if root is not None else Path(__file__).resolve().parents[2]
     h = hashlib.sha256()
     for pkg in packages:
         d = base / pkg

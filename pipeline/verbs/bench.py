@@ -34,15 +34,15 @@ import argparse
 import json
 import os
 import platform
-import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.artifacts import atomic_write_json
-from pipeline.config import BaseStageConfig, load_config
-from pipeline.errors import ConfigError
+from pipeline.core.artifacts import atomic_write_json
+from pipeline.core.config import BaseStageConfig, load_config
+from pipeline.core.errors import ConfigError
+from pipeline.core.timing import throughput, time_call
 from sim.env import SimConfig
 
 
@@ -64,18 +64,6 @@ class BenchConfig(BaseStageConfig):
             raise ConfigError(f"seconds_per_figure: expected > 0, got {self.seconds_per_figure}")
 
 
-def _throughput(step, seconds: float) -> float:
-    """Calls of ``step`` per second over about ``seconds`` (after one warm-up call)."""
-    step()
-    n, t0 = 0, time.perf_counter()
-    while True:
-        step()
-        n += 1
-        dt = time.perf_counter() - t0
-        if dt >= seconds:
-            return n / dt
-
-
 def _env_rate(cfg: BenchConfig, seconds: float, **overrides) -> tuple[float, object]:
     import gymnasium as gym
 
@@ -91,12 +79,7 @@ def _env_rate(cfg: BenchConfig, seconds: float, **overrides) -> tuple[float, obj
         if term or trunc:
             env.reset()
 
-    return _throughput(step, seconds), env
-
-
-def time_call(fn, seconds: float) -> float:
-    """Mean seconds per call of ``fn``."""
-    return 1.0 / _throughput(fn, seconds)
+    return throughput(step, seconds), env
 
 
 def measure(cfg: BenchConfig) -> dict[str, float]:
@@ -191,7 +174,7 @@ def measure_recorder(cfg: BenchConfig) -> dict[str, float]:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     from recorder.export import write_dataset
     from recorder.record import RecordConfig
-    from recorder.record import _body as record_body
+    from recorder.record import body as record_body
 
     out: dict[str, float] = {}
     with tempfile.TemporaryDirectory(prefix="icrowdnav-bench-") as tmp:

@@ -23,10 +23,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from pipeline.artifacts import OutputDir, OutputMode, require_input
-from pipeline.config import config_hash, dump_yaml, to_dict, validate_tree
-from pipeline.errors import ConfigError, ICrowdNavError, OutputExistsError
-from pipeline.manifest import (
+from pipeline.core.artifacts import OutputDir, OutputMode, require_input
+from pipeline.core.config import config_hash, dump_yaml, to_dict, validate_tree
+from pipeline.core.errors import ConfigError, ICrowdNavError, OutputExistsError
+from pipeline.core.manifest import (
     CODE_PACKAGES,
     MANIFEST_NAME,
     FileRecord,

@@ -20,7 +20,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
-from pipeline.errors import InputMissingError, OutputExistsError
+from pipeline.core.errors import InputMissingError, OutputExistsError
 
 log = logging.getLogger("icrowdnav")
 

@@ -39,8 +39,8 @@ from typing import Any, Literal, TypeVar
 
 import yaml
 
-from pipeline.artifacts import atomic_write_text
-from pipeline.errors import ConfigError, InputMissingError
+from pipeline.core.artifacts import atomic_write_text
+from pipeline.core.errors import ConfigError, InputMissingError
 
 T = TypeVar("T")
 
@@ -515,7 +515,7 @@ def profiles_dir(override: Path | None = None) -> Path:
     env = os.environ.get(PROFILES_ENV)
     if env:
         return Path(env)
-    return Path(__file__).resolve().parent / "profiles"
+    return Path(__file__).resolve().parents[1] / "profiles"
 
 
 def available_profiles(directory: Path | None = None) -> list[str]:

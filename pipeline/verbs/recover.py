@@ -1,0 +1,9 @@
+"""``icrowdnav recover FILE.mcap.partial``: salvage the complete frames of a killed episode into FILE.recovered.mcap."""
+
+from __future__ import annotations
+
+from recorder.mcap_io import main as mcap_main
+
+
+def main(argv: list[str]) -> int:
+    return mcap_main(["recover", *argv])
