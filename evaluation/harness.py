@@ -8,17 +8,27 @@ a top-down trajectory figure, an mp4 (both cameras, the method's BEV input, top-
 
 from __future__ import annotations
 
+import json
 import logging
-import multiprocessing as mp
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import cv2
+import gymnasium as gym
 import numpy as np
 
 from evaluation.methods import MethodSpec
+from pipeline.core.artifacts import atomic_write_text
+from pipeline.core.errors import CorruptArtifactError
+from pipeline.core.parallel import map_jobs
+from recorder.mcap.writer import EpisodeWriter
+from recorder.schema import episode_meta_from_env, frame_from_env
 from sim.env import CrowdNavEnv, SimConfig
+from sim.episode import episode_steps
+from sim.metrics import episode_metrics
+from sim.viz import colorize_depth, compose_frame, plot_episode_topdown, write_video
+from sim.wrappers import FollowWaypoints
 
 log = logging.getLogger("icrowdnav")
 
@@ -59,77 +69,66 @@ def _driver(spec: MethodSpec):
     return _DRIVERS[key]
 
 
-def make_env(job: Job) -> CrowdNavEnv:
+def make_env(job: Job) -> gym.Env:
+    """The env of ``job``: its method's obs mode (rendered when a video or a log is asked), the long-horizon
+    waypoints (:class:`sim.wrappers.FollowWaypoints`), and what the method may know (:meth:`MethodSpec.wrap`)."""
     rendered = job.video or job.mcap
     over = job.method.env_overrides()
     if rendered:
         over["obs_mode"] = "visual"
     cfg = replace(job.sim, scene=job.scene, density=job.density, info_level="full" if job.mcap else "basic", **over)
-    return CrowdNavEnv(config=cfg, render_mode="rgb_array" if job.video else None)
+    env: gym.Env = CrowdNavEnv(config=cfg, render_mode="rgb_array" if job.video else None)
+    if job.waypoints is not None:
+        env = FollowWaypoints(env, job.waypoints)
+    return job.method.wrap(env)
 
 
-def initial_state(env: CrowdNavEnv) -> dict[str, np.ndarray]:
+def initial_state(env: gym.Env) -> dict[str, np.ndarray]:
     """What defines an episode's start: robot pose, goal, pedestrian positions/velocities/goals."""
-    return {"robot": np.asarray(env.robot, float).copy(), "goal": np.asarray(env.goal, float).copy(),
-            "peds": np.asarray(env.crowd.pos, float).copy(), "ped_vel": np.asarray(env.crowd.vel, float).copy()}
+    u = env.unwrapped
+    return {"robot": np.asarray(u.robot, float).copy(), "goal": np.asarray(u.goal, float).copy(),
+            "peds": np.asarray(u.crowd.pos, float).copy(), "ped_vel": np.asarray(u.crowd.vel, float).copy()}
 
 
-def reset_episode(env: CrowdNavEnv, job: Job):
-    options = None
-    if job.start is not None:
-        options = {"start": [float(v) for v in job.start], "goal": [float(v) for v in job.goal]}
-    return env.reset(seed=job.seed, options=options)
+def reset_options(job: Job) -> dict | None:
+    """The reset options of ``job``: a given start and goal (long-horizon runs on a map), else None."""
+    if job.start is None:
+        return None
+    return {"start": [float(v) for v in job.start], "goal": [float(v) for v in job.goal]}
 
 
 def run_episode(job: Job) -> dict[str, Any]:
-    """Runs ``job``; returns its metrics row (and writes what it was asked to)."""
-    from sim.metrics import episode_metrics
-
+    """Runs ``job`` through the episode loop (:func:`sim.episode.episode_steps`); returns its metrics row (and
+    writes what it was asked to)."""
     driver = _driver(job.method)
     env = make_env(job)
-    obs, info = reset_episode(env, job)
-    driver.reset(env, obs)
-    tracker = None
-    if job.waypoints is not None:
-        from sim.planners.topomap import WaypointFollower
-
-        tracker = WaypointFollower(job.waypoints, layout=env.layout)
+    u = env.unwrapped
     frames: list[np.ndarray] = []
     writer = None
-    if job.mcap:
-        from recorder.mcap_io import EpisodeWriter
-        from recorder.schema import episode_meta_from_env, frame_from_env
-
-        (job.out / "mcap").mkdir(parents=True, exist_ok=True)
-        path = job.out / "mcap" / f"{job.name}.mcap"
-        if path.exists():
-            path.unlink()
-        writer = EpisodeWriter(path, episode_meta_from_env(env, job.seed, f"eval:{job.method.name}"),
-                               env.layout.occupancy)
-        writer.start()
-        writer.add(frame_from_env(env, obs, info, 0))
-    step = 0
     try:
-        while True:
-            wp = tracker.current(env.robot[:2]) if tracker is not None else None
-            action = driver.act(env, obs, wp)
-            obs, reward, term, trunc, info = env.step(action)
-            step += 1
-            done = term or trunc
-            if writer is not None:
-                writer.add(frame_from_env(env, obs, info, step, command=tuple(env.robot_v), reward=reward, done=done))
-            if job.video:
-                frames.append(_video_frame(env, obs, info, driver))
-            if done:
-                break
+        for tr in episode_steps(env, driver, job.seed, reset_options(job)):
+            if tr.step == 0 and job.mcap:
+                (job.out / "mcap").mkdir(parents=True, exist_ok=True)
+                path = job.out / "mcap" / f"{job.name}.mcap"
+                if path.exists():
+                    path.unlink()
+                writer = EpisodeWriter(path, episode_meta_from_env(u, job.seed, f"eval:{job.method.name}"),
+                                       u.layout.occupancy)
+                writer.start()
+            if writer is not None:  # the log keeps the goal-directed state s (a waypoint re-targets the policy's)
+                obs = {**tr.obs, "state": u.robot_state()}
+                step_kw = {} if tr.step == 0 else {"command": tuple(u.robot_v), "reward": tr.reward, "done": tr.done}
+                writer.add(frame_from_env(u, obs, tr.info, tr.step, **step_kw))
+            if job.video and tr.step > 0:
+                frames.append(_video_frame(u, tr.obs, tr.info, driver))
         if writer is not None:
             writer.finish()
     except BaseException:
         if writer is not None:
             writer.abort()
         raise
-    trace = env.trace(method=job.method.name)
-    layout = env.layout
+    trace = u.trace(method=job.method.name)
+    layout = u.layout
     env.close()
     row = {"method": job.method.name, "scene": Path(job.scene).stem, "density": job.density, "seed": job.seed,
            "outcome": trace.outcome, "steps": trace.n_steps, **episode_metrics(trace), **job.extra}
@@ -137,8 +136,6 @@ def run_episode(job: Job) -> dict[str, Any]:
         (job.out / "traces").mkdir(parents=True, exist_ok=True)
         trace.save_npz(job.out / "traces" / f"{job.name}.npz")
     if job.figure:
-        from sim.viz import plot_episode_topdown
-
         (job.out / "figures").mkdir(parents=True, exist_ok=True)
         plot_episode_topdown(layout.obstacles, trace, job.out / "figures" / f"{job.name}.png",
                              bounds=layout.spec.bounds,
@@ -147,23 +144,15 @@ def run_episode(job: Job) -> dict[str, Any]:
                              title=f"{job.method.label} — {job.name}: {trace.outcome}, "
                                    f"PL {row['path_length_m']:.1f} m, TPZ {row['tpz_s']:.1f} s")
     if job.video and frames:
-        from sim.viz import write_video
-
         (job.out / "videos").mkdir(parents=True, exist_ok=True)
         write_video(frames, job.out / "videos" / f"{job.name}.mp4", fps=1.0 / job.sim.dt_s)
     if job.row_cache is not None:  # last: a row on disk means every file of the episode is complete
-        import json
-
-        from pipeline.core.artifacts import atomic_write_text
-
         job.row_cache.mkdir(parents=True, exist_ok=True)
         atomic_write_text(job.row_cache / f"{job.name}.json", json.dumps(row) + "\n")
     return row
 
 
 def _video_frame(env: CrowdNavEnv, obs: dict[str, np.ndarray], info: dict, driver) -> np.ndarray:
-    from sim.viz import colorize_depth, compose_frame
-
     panels = [obs["rgb_left"], obs["rgb_right"], colorize_depth(obs["depth_left"]),
               colorize_depth(obs["depth_right"])]
     labels = ["left RGB", "right RGB", "left depth", "right depth"]
@@ -177,8 +166,6 @@ def _video_frame(env: CrowdNavEnv, obs: dict[str, np.ndarray], info: dict, drive
 
 
 def _heat(a: np.ndarray) -> np.ndarray:
-    import cv2
-
     a = np.asarray(a, np.float32)
     a = (a - a.min()) / max(float(a.max() - a.min()), 1e-6)
     img = cv2.applyColorMap((a * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[..., ::-1]
@@ -189,10 +176,6 @@ def run_jobs_cached(jobs: list[Job], cache: Path, workers: int, desc: str, progr
                     ) -> list[dict[str, Any]]:
     """:func:`run_jobs` that keeps each finished row in ``cache`` and runs only the jobs without one (a killed run
     continues where it stopped); rows in job order."""
-    import json
-
-    from pipeline.core.errors import CorruptArtifactError
-
     jobs = [replace(j, row_cache=cache) for j in jobs]
     todo = [j for j in jobs if not (cache / f"{j.name}.json").is_file()]
     if len(todo) < len(jobs):
@@ -211,10 +194,4 @@ def run_jobs_cached(jobs: list[Job], cache: Path, workers: int, desc: str, progr
 
 def run_jobs(jobs: list[Job], workers: int, desc: str, progress: bool = True) -> list[dict[str, Any]]:
     """All ``jobs`` in a process pool (fork; each worker loads a method's weights once), rows in job order."""
-    from tqdm import tqdm
-
-    if workers <= 1:
-        return [run_episode(j) for j in tqdm(jobs, desc=desc, unit="ep", disable=not progress, dynamic_ncols=True)]
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
-        return list(tqdm(pool.map(run_episode, jobs, chunksize=1), total=len(jobs), desc=desc, unit="ep",
-                         disable=not progress, dynamic_ncols=True))
+    return map_jobs(run_episode, jobs, workers, desc, progress)

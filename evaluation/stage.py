@@ -37,11 +37,11 @@ from typing import Any
 import numpy as np
 
 from evaluation.methods import MethodSpec, resolve_methods
-from pipeline.core.artifacts import atomic_write_json, atomic_write_text
+from pipeline.core import layout
+from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
 from sim.env import SimConfig
-from sim.rollout import _finite
 from sim.scene import check_episode_grid
 
 log = logging.getLogger("icrowdnav")
@@ -95,7 +95,7 @@ class EvalConfig(BaseStageConfig):
 
 
 def output_dir(cfg: EvalConfig) -> Path:
-    return Path(cfg.data_dir) / "eval" / cfg.run_name
+    return layout.eval_dir(cfg.data_dir, cfg.run_name)
 
 
 def inputs(cfg: EvalConfig) -> list[Path]:
@@ -173,15 +173,15 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
         for p in plans:
             lh_seeds.setdefault(p["map"], []).append(p["seed"])
         atomic_write_text(out / "long_horizon" / "episodes.jsonl",
-                          "".join(json.dumps(r) + "\n" for r in _finite(lh_rows)))
+                          "".join(json.dumps(r) + "\n" for r in json_safe(lh_rows)))
     atomic_write_json(out / "seeds.json", {"benchmark": {"seeds": seeds, "scenes": cfg.scenes,
                                                          "densities": cfg.densities},
                                            "long_horizon": lh_seeds})
-    atomic_write_text(out / "episodes.jsonl", "".join(json.dumps(r) + "\n" for r in _finite(rows)))
+    atomic_write_text(out / "episodes.jsonl", "".join(json.dumps(r) + "\n" for r in json_safe(rows)))
     res = results(rows)
-    atomic_write_json(out / "results.json", _finite(res))
+    atomic_write_json(out / "results.json", json_safe(res))
     atomic_write_text(out / "results.csv", results_csv(res))
-    atomic_write_json(out / "paired.json", _finite(paired(rows)))
+    atomic_write_json(out / "paired.json", json_safe(paired(rows)))
     plot_sr(res, labels, out / "figures" / "sr_by_cell.png")
     header = (f"# Benchmark `{cfg.run_name}`\n\n{cfg.episodes} episodes per cell (seeds {seeds[0]}..{seeds[-1]}, "
               f"the same for every method; the paper uses 75 = 25 goals × 3 trials), "

@@ -7,9 +7,18 @@ Usage::
     icrowdnav <verb> [--profile P] [--data-dir D] [--config FILE] [--seed N] [--overwrite | --resume]
                      [--KEY=VALUE | --KEY VALUE | --BOOL_KEY | --no-BOOL_KEY ...]
 
-``KEY`` is any dotted config key (``--sim.camera.width 64``); dashes may replace underscores
-(``--max-episode-s 30``). Every user error (:class:`ICrowdNavError`) is printed as exactly one line
+``KEY`` is any dotted config key (``--sim.camera.width_px 320``, as in lerobot's draccus CLI); dashes may replace
+underscores (``--max-episode-s 30``). Every user error (:class:`ICrowdNavError`) is printed as exactly one line
 ``error: <message>`` on stderr, with exit status 2.
+
+The values are decoded into the stage's config dataclass by draccus (:mod:`pipeline.core.config`), and the help
+of each key comes from its field's comment or docstring as draccus reads it. The argv split itself
+(:func:`parse_stage_args`) stays ours, because draccus's argparse front end (``draccus.parse``, draccus 0.10.0)
+rejects spellings this grammar has always accepted: ``--max-episode-s 2.5`` ("unrecognized arguments"), a bare
+``--record_video`` ("expected one argument"), ``--sim.weights.b 2`` into a dict field ("unrecognized
+arguments"); it reads ``--config`` as an abbreviation of its own ``--config_path`` (one file decoded as the whole
+config, without our ``common``/``<stage>`` sections and profiles); and its ``--help`` lists ``list``/``dict``
+types without their items and nested sections under wrong names (``--camera`` for ``sim.camera``).
 
 Verbs are resolved lazily from :data:`VERBS` (``"module.path:OBJECT"``): only the chosen verb's module is
 imported. If the object is a :class:`Stage` it is run as a stage; otherwise it must be a callable taking the

@@ -18,6 +18,7 @@ Tree (``DATA_DIR/checkpoints/<name>/``, default name ``bev``)::
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -53,8 +54,10 @@ def save_safetensors(module: torch.nn.Module, path: Path, metadata: dict[str, st
     tmp.replace(path)
 
 
-def load_safetensors(module: torch.nn.Module, path: Path) -> None:
-    """Loads a state dict into ``module``; any problem names the file."""
+def load_safetensors(module: torch.nn.Module, path: Path,
+                     upgrade: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]] | None = None) -> None:
+    """Loads a state dict into ``module`` (strict); any problem names the file. ``upgrade``: maps the stored state
+    dict to the module's current key names first (checkpoints of an older layout)."""
     path = Path(path)
     if not path.is_file():
         raise InputMissingError(f"missing weights file {path}")
@@ -62,6 +65,8 @@ def load_safetensors(module: torch.nn.Module, path: Path) -> None:
         state = load_file(str(path))
     except (SafetensorError, OSError, ValueError, RuntimeError) as e:
         raise CorruptArtifactError(f"corrupt weights file {path}: {e}") from None
+    if upgrade is not None:
+        state = upgrade(state)
     try:
         module.load_state_dict(state, strict=True)
     except RuntimeError as e:

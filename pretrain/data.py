@@ -31,15 +31,16 @@ import numpy as np
 import torch
 
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.keys import OBS_ODOM, PRIV_LOCAL_OCCUPANCY, PRIV_PED_STATE, depth_key, image_key
 from pretrain.geometry import BEVGrid, Camera, cameras_from_meta, sample_depth
 
 log = logging.getLogger("icrowdnav")
 
-REQUIRED_FEATURES = ("observation.odom", "privileged.ped_state", "privileged.local_occupancy")
+REQUIRED_FEATURES = (OBS_ODOM, PRIV_PED_STATE, PRIV_LOCAL_OCCUPANCY)
 
 
 def camera_features(cameras: list[Camera]) -> list[str]:
-    return [f"observation.images.{c.name}" for c in cameras] + [f"observation.depth.{c.name}" for c in cameras]
+    return [image_key(c.name) for c in cameras] + [depth_key(c.name) for c in cameras]
 
 
 @dataclass
@@ -82,11 +83,11 @@ def check_dataset(root: Path, cameras: list[Camera] | None = None) -> DatasetMet
     if missing:
         raise InputMissingError(f"dataset {root} lacks the feature(s) pretraining needs: {', '.join(missing)} "
                                 f"(it has {len(features)} features; export it with `icrowdnav export`)")
-    ps = features["privileged.ped_state"].get("shape", [])
+    ps = features[PRIV_PED_STATE].get("shape", [])
     if len(ps) != 2 or ps[1] != 8:
         raise CorruptArtifactError(f"dataset {root}: privileged.ped_state: expected shape [n, 8], got {ps}")
     for c in cameras:
-        shape = features[f"observation.depth.{c.name}"].get("shape")
+        shape = features[depth_key(c.name)].get("shape")
         if list(shape) != [c.height, c.width]:
             raise CorruptArtifactError(f"dataset {root}: observation.depth.{c.name}: expected shape "
                                        f"[{c.height}, {c.width}] (the camera's), got {shape}")
@@ -229,8 +230,8 @@ def estimate_bytes(n_frames: int, cameras: list[Camera], grid: BEVGrid, stride: 
     return n_frames * (len(cameras) * (3 * c.height * c.width + 4 * lift) + targets * math.prod(grid.shape) + 40)
 
 
-def _decode_video_file(path: Path, expected: dict[int, tuple[float, float, int]], fps: float,
-                       sink: np.ndarray, cam: int, key: str) -> int:
+def decode_video_file(path: Path, expected: dict[int, tuple[float, float, int]], fps: float,
+                      sink: np.ndarray, cam: int, key: str) -> int:
     """Decodes one video file front to back and writes each frame into ``sink``.
 
     ``expected`` maps a dataset episode to ``(from_timestamp, to_timestamp, first store index)`` inside this file.
@@ -313,8 +314,8 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
         labels=np.zeros((n, 2 + len(future_frames), *grid.shape), np.uint8),
         valid=np.zeros((n, 2 + len(future_frames)), bool), episode_start=np.zeros(n, np.int64),
         episode_end=np.zeros(n, np.int64), episodes=eps, episode_slices=[])
-    cols = ["observation.odom", "privileged.ped_state", "privileged.local_occupancy"] + [
-        f"observation.depth.{c.name}" for c in cameras]
+    cols = [OBS_ODOM, PRIV_PED_STATE, PRIV_LOCAL_OCCUPANCY] + [
+        depth_key(c.name) for c in cameras]
     hf = ds.hf_dataset.select_columns(cols).with_format("numpy")
     first_of: dict[int, int] = {}
     pos = 0
@@ -326,18 +327,18 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
         rows = hf[a:b]
         sl = slice(pos, pos + length)
         for ci, c in enumerate(cameras):
-            store.depth[sl, ci] = sample_depth(torch.as_tensor(rows[f"observation.depth.{c.name}"]),
+            store.depth[sl, ci] = sample_depth(torch.as_tensor(rows[depth_key(c.name)]),
                                                lift_stride_px).numpy()
-        store.pose[sl] = rows["observation.odom"]
+        store.pose[sl] = rows[OBS_ODOM]
         store.labels[sl], store.valid[sl] = episode_labels(
-            grid, local_map, rows["privileged.local_occupancy"].astype(bool), rows["privileged.ped_state"],
-            rows["observation.odom"].astype(np.float64), future_frames)
+            grid, local_map, rows[PRIV_LOCAL_OCCUPANCY].astype(bool), rows[PRIV_PED_STATE],
+            rows[OBS_ODOM].astype(np.float64), future_frames)
         store.episode_start[sl], store.episode_end[sl] = pos, pos + length
         store.episode_slices.append((pos, pos + length))
         first_of[e] = pos
         pos += length
     for ci, c in enumerate(cameras):
-        key = f"observation.images.{c.name}"
+        key = image_key(c.name)
         files: dict[Path, dict[int, tuple[float, float, int]]] = {}
         for e in eps:
             path = root / ds.meta.get_video_file_path(e, key)
@@ -348,7 +349,7 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
                                    disable=not progress):
             if not path.is_file():
                 raise InputMissingError(f"dataset {root}: video file {path} is missing")
-            placed += _decode_video_file(path, expected, fps, store.rgb, ci, key)
+            placed += decode_video_file(path, expected, fps, store.rgb, ci, key)
         if placed != n:
             raise CorruptArtifactError(f"dataset {root}: {key}: decoded {placed} frames of the {n} its episodes list")
     log.info("pretrain: loaded %d episodes, %d frames (%.2f GB) from %s", len(eps), n, store.nbytes / 1e9, root)

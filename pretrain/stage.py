@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.config import BaseStageConfig, check_run_name, config_hash
 from pipeline.core.errors import ConfigError, CorruptArtifactError
@@ -78,11 +79,11 @@ class PretrainConfig(BaseStageConfig):
 
 
 def dataset_dir(cfg: PretrainConfig) -> Path:
-    return Path(cfg.data_dir) / "datasets" / cfg.repo_id
+    return layout.dataset_dir(cfg.data_dir, cfg.repo_id)
 
 
 def checkpoint_dir(cfg: PretrainConfig) -> Path:
-    return Path(cfg.data_dir) / "checkpoints" / cfg.name
+    return layout.checkpoint_dir(cfg.data_dir, cfg.name)
 
 
 def inputs(cfg: PretrainConfig) -> list[Path]:

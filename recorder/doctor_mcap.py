@@ -18,18 +18,16 @@ import sys
 from pathlib import Path
 
 from pipeline.core.errors import ICrowdNavError, InputMissingError
-from recorder.mcap_io import (
+from recorder.mcap.layout import (
     METADATA_ABORTED,
-    METADATA_EPISODE,
     METADATA_RECOVERY,
     PARTIAL_SUFFIX,
-    EpisodeScan,
-    count_frames,
     dt_ns_of,
-    recover,
     recovered_path_of,
-    scan_episode,
 )
+from recorder.mcap.reader import EpisodeScan, count_frames, scan_episode
+from recorder.mcap.recovery import recover
+from recorder.schema import METADATA_EPISODE
 
 log = logging.getLogger("icrowdnav")
 
@@ -40,7 +38,7 @@ def _episode_problems(scan: EpisodeScan) -> list[str]:
     out: list[str] = []
     if scan.meta is None:
         where = "missing" if METADATA_EPISODE not in scan.metadata_names else "malformed"
-        out.append(f"{p}: '{METADATA_EPISODE}' metadata record {where} (not an episode log of recorder.mcap_io)")
+        out.append(f"{p}: '{METADATA_EPISODE}' metadata record {where} (not an episode log of recorder.mcap)")
     n = scan.n_frames
     if n == 0:
         out.append(f"{p}: no frames")
@@ -115,7 +113,7 @@ def check_mcap_dir(directory: Path) -> list[str]:
 
 
 def recover_dir(directory: Path) -> list[str]:
-    """Runs :func:`recorder.mcap_io.recover` on every ``*.mcap.partial`` without a recovered sibling.
+    """Runs :func:`recorder.mcap.recovery.recover` on every ``*.mcap.partial`` without a recovered sibling.
 
     Returns:
         One line per file: what was salvaged, or why nothing could be.

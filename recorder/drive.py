@@ -7,9 +7,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from pipeline.core.errors import ConfigError
 from recorder.schema import EpisodeMeta, Frame, episode_meta_from_env, frame_from_env
 from sim.env import CrowdNavEnv, SimConfig
-from sim.expert import expert_steps
+from sim.episode import episode_steps
+from sim.expert import ExpertDriver
+from sim.wrappers import PrivilegedWorld
 
 DRIVERS = ("expert",)
 
@@ -34,19 +37,18 @@ def drive_episode(sim_cfg: SimConfig, seed: int, driver: str = "expert") -> Epis
     closed when it is exhausted. Only the privileged ``expert`` driver exists so far (policies come with train).
     """
     if driver not in DRIVERS:
-        from pipeline.core.errors import ConfigError
-
         raise ConfigError(f"driver: expected one of {list(DRIVERS)}, got {driver!r}")
     env = CrowdNavEnv(config=replace(sim_cfg, obs_mode="visual", info_level="full"))
-    steps = expert_steps(env, seed)
-    obs, info, _ = next(steps)  # the reset
+    steps = episode_steps(PrivilegedWorld(env), ExpertDriver(), seed)
+    first = next(steps)  # the reset
     meta = episode_meta_from_env(env, seed, driver)
 
     def frames() -> Iterator[Frame]:
         try:
-            yield frame_from_env(env, obs, info, 0)
-            for step, (o, inf, (r, done)) in enumerate(steps, start=1):
-                yield frame_from_env(env, o, inf, step, command=tuple(env.robot_v), reward=r, done=done)
+            yield frame_from_env(env, first.obs, first.info, 0)
+            for tr in steps:
+                yield frame_from_env(env, tr.obs, tr.info, tr.step, command=tuple(env.robot_v), reward=tr.reward,
+                                     done=tr.done)
         finally:
             env.close()
 

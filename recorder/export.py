@@ -57,6 +57,7 @@ from tqdm import tqdm
 
 from pipeline.core.artifacts import OutputDir, atomic_write_json, atomic_write_text
 from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
+from pipeline.core.keys import NEXT_DONE, NEXT_REWARD
 from recorder.features import (
     DEFAULT_MAX_PEOPLE,
     N_MAX_PEDESTRIANS,
@@ -118,8 +119,10 @@ def _unpack(obj: Any, name: str) -> tuple[EpisodeMeta, np.ndarray, Iterator[Fram
 
 
 def _read_mcap(path: Path) -> tuple[EpisodeMeta, np.ndarray, Iterator[Frame]]:
-    """Opens one complete MCAP episode with :func:`recorder.mcap_io.read_episode`."""
-    from recorder.mcap_io import read_episode  # imported late: the reader is optional for in-memory exports
+    """Opens one complete MCAP episode with :func:`recorder.mcap.reader.read_episode`."""
+    from recorder.mcap.reader import (
+        read_episode,  # imported late: the reader is optional for in-memory exports
+    )
 
     try:
         result = read_episode(path)
@@ -154,7 +157,7 @@ def check_inputs(paths: Iterable[Path]) -> list[Path]:
         if is_partial(p):
             raise CorruptArtifactError(
                 f"{p}: unfinished recording (*{PARTIAL_SUFFIX}); the export reads complete MCAP episodes only — "
-                "recover it first (recorder.mcap_io.recover) or leave it out")
+                "recover it first (recorder.mcap.recovery.recover) or leave it out")
         if not p.is_file():
             raise InputMissingError(f"missing MCAP episode: {p}")
         out.append(p)
@@ -329,9 +332,9 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
                 for key in scalar_keys:  # lerobot 0.4.4 + numpy >= 2.3: float() of a (1,) array raises later
                     ds.episode_buffer[key][-1] = ds.episode_buffer[key][-1].reshape(())
                 length += 1
-                ret += float(values["next.reward"][0])
+                ret += float(values[NEXT_REWARD][0])
                 outcome = str(getattr(fr, "outcome", "") or outcome)
-                done = bool(values["next.done"][0])
+                done = bool(values[NEXT_DONE][0])
                 bar.update(1)
             if length == 0:
                 raise FeatureError(f"{src.name}: frames: expected at least one frame, got none")

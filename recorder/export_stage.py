@@ -21,6 +21,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pipeline.core import layout
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pipeline.core.manifest import MANIFEST_NAME
@@ -44,11 +45,11 @@ class ExportConfig(BaseStageConfig):
 
 
 def raw_dir(cfg: ExportConfig) -> Path:
-    return Path(cfg.data_dir) / "raw" / cfg.run_name
+    return layout.raw_dir(cfg.data_dir, cfg.run_name)
 
 
 def dataset_dir(cfg: ExportConfig) -> Path:
-    return Path(cfg.data_dir) / "datasets" / cfg.repo_id
+    return layout.dataset_dir(cfg.data_dir, cfg.repo_id)
 
 
 def inputs(cfg: ExportConfig) -> list[Path]:

@@ -55,6 +55,27 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.errors import CorruptArtifactError
+from pipeline.core.keys import (
+    ACTION,
+    ACTION_TEACHER,
+    NEXT_DONE,
+    NEXT_REWARD,
+    NEXT_REWARD_TERMS,
+    OBS_GOAL,
+    OBS_ODOM,
+    OBS_POSE_CONF,
+    OBS_POSE_MASK,
+    OBS_POSES,
+    OBS_STATE,
+    PRIV_D_O,
+    PRIV_LOCAL_OCCUPANCY,
+    PRIV_PED_INTENT,
+    PRIV_PED_KEYPOINTS,
+    PRIV_PED_STATE,
+    PRIV_POSE_TRACK,
+    depth_key,
+    image_key,
+)
 from recorder.schema import CAMERA_NAMES, EpisodeMeta, Frame
 
 TASK = "navigate to the goal through the crowd"
@@ -73,16 +94,6 @@ PED_STATE_COLUMNS = ("x", "y", "vx", "vy", "radius", "body_yaw", "head_yaw", "pr
 
 class FeatureError(CorruptArtifactError):
     """A recorded frame or episode does not fit the dataset's feature spec (names file, field, expected, actual)."""
-
-
-def image_key(cam: str) -> str:
-    """The video feature of camera ``cam``."""
-    return f"observation.images.{cam}"
-
-
-def depth_key(cam: str) -> str:
-    """The depth feature of camera ``cam``."""
-    return f"observation.depth.{cam}"
 
 
 @dataclass(frozen=True)
@@ -219,25 +230,25 @@ class ExportSpec:
             h, w = self.camera_sizes[cam]
             feats[depth_key(cam)] = {"dtype": "float32", "shape": (h, w), "names": ["height", "width"]}
         feats.update({
-            "observation.state": {"dtype": "float32", "shape": (5,), "names": ["g_x", "g_y", "d_g", "v_x", "v_y"]},
-            "observation.odom": {"dtype": "float32", "shape": (3,), "names": ["x", "y", "yaw"]},
-            "observation.goal": {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
-            "observation.poses": {"dtype": "float32", "shape": (k, N_JOINTS, 3), "names": ["person", "joint", "xyz"]},
-            "observation.pose_mask": {"dtype": "bool", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
-            "observation.pose_conf": {"dtype": "float32", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
-            "action": {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]},
-            **({"action.teacher": {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]}} if self.labels else {}),
-            "next.reward": {"dtype": "float32", "shape": (1,), "names": ["reward"]},
-            "next.reward_terms": {"dtype": "float32", "shape": (len(REWARD_TERMS),), "names": list(REWARD_TERMS)},
-            "next.done": {"dtype": "bool", "shape": (1,), "names": ["done"]},
-            "privileged.ped_state": {"dtype": "float32", "shape": (n, len(PED_STATE_COLUMNS)),
+            OBS_STATE: {"dtype": "float32", "shape": (5,), "names": ["g_x", "g_y", "d_g", "v_x", "v_y"]},
+            OBS_ODOM: {"dtype": "float32", "shape": (3,), "names": ["x", "y", "yaw"]},
+            OBS_GOAL: {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
+            OBS_POSES: {"dtype": "float32", "shape": (k, N_JOINTS, 3), "names": ["person", "joint", "xyz"]},
+            OBS_POSE_MASK: {"dtype": "bool", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
+            OBS_POSE_CONF: {"dtype": "float32", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
+            ACTION: {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]},
+            **({ACTION_TEACHER: {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]}} if self.labels else {}),
+            NEXT_REWARD: {"dtype": "float32", "shape": (1,), "names": ["reward"]},
+            NEXT_REWARD_TERMS: {"dtype": "float32", "shape": (len(REWARD_TERMS),), "names": list(REWARD_TERMS)},
+            NEXT_DONE: {"dtype": "bool", "shape": (1,), "names": ["done"]},
+            PRIV_PED_STATE: {"dtype": "float32", "shape": (n, len(PED_STATE_COLUMNS)),
                                      "names": ["pedestrian", "state"]},
-            "privileged.ped_keypoints": {"dtype": "float32", "shape": (n, N_JOINTS, 3),
+            PRIV_PED_KEYPOINTS: {"dtype": "float32", "shape": (n, N_JOINTS, 3),
                                          "names": ["pedestrian", "joint", "xyz"]},
-            "privileged.ped_intent": {"dtype": "float32", "shape": (n, 2), "names": ["pedestrian", "xy"]},
-            "privileged.pose_track": {"dtype": "int64", "shape": (k,), "names": ["person"]},
-            "privileged.d_o": {"dtype": "float32", "shape": (1,), "names": ["d_o"]},
-            "privileged.local_occupancy": {"dtype": "bool", "shape": self.local_map.shape,
+            PRIV_PED_INTENT: {"dtype": "float32", "shape": (n, 2), "names": ["pedestrian", "xy"]},
+            PRIV_POSE_TRACK: {"dtype": "int64", "shape": (k,), "names": ["person"]},
+            PRIV_D_O: {"dtype": "float32", "shape": (1,), "names": ["d_o"]},
+            PRIV_LOCAL_OCCUPANCY: {"dtype": "bool", "shape": self.local_map.shape,
                                            "names": ["forward", "lateral"]},
         })
         return feats
@@ -255,28 +266,28 @@ class ExportSpec:
             "features": {
                 "observation.images.*": "RGB, video (AV1 mp4 via PyAV/SVT-AV1, yuv420p): lossy",
                 "observation.depth.*": "z-depth along the optical axis, m, 0 = invalid (float32)",
-                "observation.state": "[g_x, g_y, d_g, v_x, v_y]: goal in the robot frame (m), its distance (m), "
+                OBS_STATE: "[g_x, g_y, d_g, v_x, v_y]: goal in the robot frame (m), its distance (m), "
                                      "robot velocity in the robot frame (m/s)",
-                "observation.odom": "robot pose [x, y, yaw] in the world frame (m, rad)",
-                "observation.goal": "goal [x, y] in the world frame (m)",
-                "observation.poses": f"{k} detected people x COCO-17 joints x [x, y, z], robot frame (m), "
+                OBS_ODOM: "robot pose [x, y, yaw] in the world frame (m, rad)",
+                OBS_GOAL: "goal [x, y] in the world frame (m)",
+                OBS_POSES: f"{k} detected people x COCO-17 joints x [x, y, z], robot frame (m), "
                                      "nearest first, zeros where not detected",
-                "observation.pose_mask": "True where the joint was detected",
-                "observation.pose_conf": "detector confidence of each joint",
-                "action": "the physical command [v m/s, omega rad/s] that led to this frame (zeros at frame 0)",
-                **({"action.teacher": "the DAgger teacher's command [v m/s, omega rad/s] for this frame's "
+                OBS_POSE_MASK: "True where the joint was detected",
+                OBS_POSE_CONF: "detector confidence of each joint",
+                ACTION: "the physical command [v m/s, omega rad/s] that led to this frame (zeros at frame 0)",
+                **({ACTION_TEACHER: "the DAgger teacher's command [v m/s, omega rad/s] for this frame's "
                                       "observation (the behaviour-cloning label)"} if self.labels else {}),
-                "next.reward": "the paper's reward of the step that led to this frame (0 at frame 0)",
-                "next.reward_terms": "the reward's terms in reward_terms order",
-                "next.done": "True at the episode's last frame (terminated or truncated)",
-                "privileged.ped_state": f"{n} rows (row n = pedestrian n, zeros beyond the crowd) of "
+                NEXT_REWARD: "the paper's reward of the step that led to this frame (0 at frame 0)",
+                NEXT_REWARD_TERMS: "the reward's terms in reward_terms order",
+                NEXT_DONE: "True at the episode's last frame (terminated or truncated)",
+                PRIV_PED_STATE: f"{n} rows (row n = pedestrian n, zeros beyond the crowd) of "
                                         "[x, y, vx, vy] world (m, m/s), radius (m), body yaw, head yaw "
                                         "(world, rad), present (1 = a real pedestrian)",
-                "privileged.ped_keypoints": "true COCO-17 keypoints of each pedestrian row, world frame (m)",
-                "privileged.ped_intent": "each pedestrian row's pending goal [x, y], world frame (m)",
-                "privileged.pose_track": "row of privileged.ped_state each detection belongs to, -1 = padding",
-                "privileged.d_o": "robot centre to the nearest pedestrian/obstacle surface (m)",
-                "privileged.local_occupancy": "see local_map",
+                PRIV_PED_KEYPOINTS: "true COCO-17 keypoints of each pedestrian row, world frame (m)",
+                PRIV_PED_INTENT: "each pedestrian row's pending goal [x, y], world frame (m)",
+                PRIV_POSE_TRACK: "row of privileged.ped_state each detection belongs to, -1 = padding",
+                PRIV_D_O: "robot centre to the nearest pedestrian/obstacle surface (m)",
+                PRIV_LOCAL_OCCUPANCY: "see local_map",
             },
         }
 
@@ -388,58 +399,58 @@ def frame_to_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray, sp
     def f32(name: str, shape: tuple[int | None, ...], feature: str) -> np.ndarray:
         return chk.array(name, _field(frame, name, chk), shape, "f", feature).astype(np.float32, copy=False)
 
-    out["observation.state"] = f32("state", (5,), "observation.state")
-    odom = f32("odom", (3,), "observation.odom")
-    out["observation.odom"] = odom
-    out["observation.goal"] = f32("goal_xy", (2,), "observation.goal")
-    out["action"] = f32("action", (2,), "action")
+    out[OBS_STATE] = f32("state", (5,), OBS_STATE)
+    odom = f32("odom", (3,), OBS_ODOM)
+    out[OBS_ODOM] = odom
+    out[OBS_GOAL] = f32("goal_xy", (2,), OBS_GOAL)
+    out[ACTION] = f32(ACTION, (2,), ACTION)
     if spec.labels:
-        out["action.teacher"] = f32("label", (2,), "action.teacher")
+        out[ACTION_TEACHER] = f32("label", (2,), ACTION_TEACHER)
 
     k = spec.max_people
-    poses = chk.array("poses", _field(frame, "poses", chk), (None, N_JOINTS, 3), "f", "observation.poses")
+    poses = chk.array("poses", _field(frame, "poses", chk), (None, N_JOINTS, 3), "f", OBS_POSES)
     kf = poses.shape[0]
     if kf > k:
-        chk.fail("poses", f"at most {k} detected people (max_people)", f"{kf}", "observation.poses")
-    mask = chk.array("pose_mask", _field(frame, "pose_mask", chk), (kf, N_JOINTS), "b", "observation.pose_mask")
-    conf = chk.array("pose_conf", _field(frame, "pose_conf", chk), (kf, N_JOINTS), "f", "observation.pose_conf")
-    track = chk.array("pose_track", _field(frame, "pose_track", chk), (kf,), "i", "privileged.pose_track")
-    out["observation.poses"] = _pad(poses.astype(np.float32, copy=False), k, 0.0)
-    out["observation.pose_mask"] = _pad(mask.astype(bool, copy=False), k, False)
-    out["observation.pose_conf"] = _pad(conf.astype(np.float32, copy=False), k, 0.0)
-    out["privileged.pose_track"] = _pad(track.astype(np.int64, copy=False), k, -1)
+        chk.fail("poses", f"at most {k} detected people (max_people)", f"{kf}", OBS_POSES)
+    mask = chk.array("pose_mask", _field(frame, "pose_mask", chk), (kf, N_JOINTS), "b", OBS_POSE_MASK)
+    conf = chk.array("pose_conf", _field(frame, "pose_conf", chk), (kf, N_JOINTS), "f", OBS_POSE_CONF)
+    track = chk.array("pose_track", _field(frame, "pose_track", chk), (kf,), "i", PRIV_POSE_TRACK)
+    out[OBS_POSES] = _pad(poses.astype(np.float32, copy=False), k, 0.0)
+    out[OBS_POSE_MASK] = _pad(mask.astype(bool, copy=False), k, False)
+    out[OBS_POSE_CONF] = _pad(conf.astype(np.float32, copy=False), k, 0.0)
+    out[PRIV_POSE_TRACK] = _pad(track.astype(np.int64, copy=False), k, -1)
 
     n = int(meta.n_pedestrians)
     if n > spec.n_max:
         chk.fail("ped_pos", f"at most {spec.n_max} pedestrians (n_max; raise it)", f"{n} (meta.n_pedestrians)",
-                 "privileged.ped_state")
-    pos = f32("ped_pos", (n, 2), "privileged.ped_state")
-    vel = f32("ped_vel", (n, 2), "privileged.ped_state")
-    radius = f32("ped_radius", (n,), "privileged.ped_state")
-    yaw = f32("ped_yaw", (n, 3), "privileged.ped_state")
-    intent = f32("ped_intent_xy", (n, 2), "privileged.ped_intent")
-    kp = f32("ped_keypoints", (n, N_JOINTS, 3), "privileged.ped_keypoints")
+                 PRIV_PED_STATE)
+    pos = f32("ped_pos", (n, 2), PRIV_PED_STATE)
+    vel = f32("ped_vel", (n, 2), PRIV_PED_STATE)
+    radius = f32("ped_radius", (n,), PRIV_PED_STATE)
+    yaw = f32("ped_yaw", (n, 3), PRIV_PED_STATE)
+    intent = f32("ped_intent_xy", (n, 2), PRIV_PED_INTENT)
+    kp = f32("ped_keypoints", (n, N_JOINTS, 3), PRIV_PED_KEYPOINTS)
     state = np.zeros((spec.n_max, len(PED_STATE_COLUMNS)), np.float32)
     state[:n, 0:2], state[:n, 2:4], state[:n, 4] = pos, vel, radius
     state[:n, 5], state[:n, 6], state[:n, 7] = yaw[:, 0], yaw[:, 2], 1.0
-    out["privileged.ped_state"] = state
-    out["privileged.ped_keypoints"] = _pad(kp, spec.n_max, 0.0)
-    out["privileged.ped_intent"] = _pad(intent, spec.n_max, 0.0)
-    out["privileged.d_o"] = np.array([chk.scalar("d_o", _field(frame, "d_o", chk), "privileged.d_o")], np.float32)
+    out[PRIV_PED_STATE] = state
+    out[PRIV_PED_KEYPOINTS] = _pad(kp, spec.n_max, 0.0)
+    out[PRIV_PED_INTENT] = _pad(intent, spec.n_max, 0.0)
+    out[PRIV_D_O] = np.array([chk.scalar("d_o", _field(frame, "d_o", chk), PRIV_D_O)], np.float32)
 
-    out["next.reward"] = np.array([chk.scalar("reward", _field(frame, "reward", chk), "next.reward")], np.float32)
+    out[NEXT_REWARD] = np.array([chk.scalar("reward", _field(frame, "reward", chk), NEXT_REWARD)], np.float32)
     terms = _field(frame, "reward_terms", chk)
     if not isinstance(terms, dict) or set(terms) - set(REWARD_TERMS):
         chk.fail("reward_terms", f"a dict with keys from {list(REWARD_TERMS)}",
-                 _describe(terms) if not isinstance(terms, dict) else f"keys {sorted(terms)}", "next.reward_terms")
-    out["next.reward_terms"] = np.array(
-        [chk.scalar(f"reward_terms[{t}]", terms.get(t, 0.0), "next.reward_terms") for t in REWARD_TERMS], np.float32)
+                 _describe(terms) if not isinstance(terms, dict) else f"keys {sorted(terms)}", NEXT_REWARD_TERMS)
+    out[NEXT_REWARD_TERMS] = np.array(
+        [chk.scalar(f"reward_terms[{t}]", terms.get(t, 0.0), NEXT_REWARD_TERMS) for t in REWARD_TERMS], np.float32)
     done = _field(frame, "done", chk)
     if not isinstance(done, bool | np.bool_):
-        chk.fail("done", "a bool", _describe(done), "next.done")
-    out["next.done"] = np.array([bool(done)], dtype=bool)
+        chk.fail("done", "a bool", _describe(done), NEXT_DONE)
+    out[NEXT_DONE] = np.array([bool(done)], dtype=bool)
 
-    out["privileged.local_occupancy"] = local_occupancy(
+    out[PRIV_LOCAL_OCCUPANCY] = local_occupancy(
         occupancy, meta.occupancy_origin_xy, meta.occupancy_resolution_m, odom, spec.local_map)
     return out
 

@@ -10,7 +10,7 @@ Output tree (``DATA_DIR/raw/<run_name>/``)::
     config.yaml, manifest.json        written when every episode is finished
     seeds.json                        the (scene, density, seed) of every episode
     episodes.jsonl                    one row per finished episode: file, frames, outcome, sha256
-    <scene>_d<density>_s<seed>.mcap   one MCAP per episode (recorder.mcap_io); ``*.mcap.partial`` while open
+    <scene>_d<density>_s<seed>.mcap   one MCAP per episode (recorder.mcap.writer); ``*.mcap.partial`` while open
 
 Recording writes in place, never in a staging copy: a killed run keeps every finished episode (and leaves the
 open one as ``*.mcap.partial``, which ``icrowdnav recover`` salvages). ``--resume`` continues such a run:
@@ -34,6 +34,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError, ICrowdNavError
@@ -90,7 +91,7 @@ def record_one(sim_cfg: SimConfig, job: Job, out: Path, driver: str) -> dict:
     """Record one episode to ``out/<job.name>.mcap``; returns its row for ``episodes.jsonl``."""
     from pipeline.core.manifest import hash_file
     from recorder.drive import drive_episode
-    from recorder.mcap_io import EpisodeWriter
+    from recorder.mcap.writer import EpisodeWriter
 
     t0 = time.perf_counter()
     ep = drive_episode(replace(sim_cfg, scene=job.scene, density=job.density), job.seed, driver)
@@ -109,7 +110,7 @@ def record_one(sim_cfg: SimConfig, job: Job, out: Path, driver: str) -> dict:
 
 
 def _worker(args: tuple) -> dict:
-    from recorder.mcap_io import graceful_signals
+    from recorder.mcap.signals import graceful_signals
 
     with graceful_signals():
         return record_one(*args)
@@ -145,7 +146,7 @@ def body(cfg: RecordConfig, out: Path) -> dict:
 def _init_worker() -> None:
     """Pool workers: ignore Ctrl-C while idle (the main process coordinates the stop) and die on SIGTERM.
 
-    While a worker records, :func:`_worker` installs :func:`recorder.mcap_io.graceful_signals`, so SIGTERM or
+    While a worker records, :func:`_worker` installs :func:`recorder.mcap.signals.graceful_signals`, so SIGTERM or
     SIGINT then abort the open episode cleanly (a valid ``*.mcap.partial``).
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -169,7 +170,7 @@ def _stop_pool(pool: ProcessPoolExecutor, grace_s: float = 3.0) -> None:
 
 
 def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: list[Job]) -> None:
-    from recorder.mcap_io import graceful_signals
+    from recorder.mcap.signals import graceful_signals
 
     bar = tqdm(total=len(todo), desc=f"record {cfg.driver}", unit="ep")
     try:
@@ -212,7 +213,7 @@ def _finished_rows(out: Path, jobs: list[Job]) -> dict[str, dict]:
     """Rows of the episodes already finished in ``out``: every ``<name>.mcap`` of a job (a final name only exists
     once its writer finished). Rows come from ``episodes.jsonl`` when it has them, else from the file itself."""
     from pipeline.core.manifest import hash_file
-    from recorder.mcap_io import episode_summary
+    from recorder.mcap.reader import episode_summary
 
     known: dict[str, dict] = {}
     p = out / "episodes.jsonl"
@@ -244,4 +245,4 @@ def _write_rows(out: Path, rows: dict[str, dict], jobs: list[Job]) -> None:
 
 
 def raw_dir(cfg) -> Path:
-    return Path(cfg.data_dir) / "raw" / cfg.run_name
+    return layout.raw_dir(cfg.data_dir, cfg.run_name)

@@ -3,7 +3,7 @@
 Iteration ``k`` (β_k = ``beta0 · beta_decay^k``; β_0 = 1 means the teacher drives the first iteration):
 
 1. **Roll out** ``episodes_per_iter`` rendered episodes over the training scenes and densities (process pool). At
-   every step the teacher labels the observation from privileged state (:func:`rl.observe.teacher_observation`)
+   every step the teacher labels the observation from privileged state (:func:`sim.wrappers.privileged_observation`)
    and the robot executes the teacher's action with probability β_k, else the current student's.
 2. **Record** each episode through the recorder: one MCAP log (``Frame.label`` = the teacher's command) and, after
    the iteration, one LeRobot dataset of the iteration (``action.teacher`` feature) — the data-centric loop: every
@@ -19,48 +19,59 @@ resumes at the first unfinished episode of the first unfinished iteration.
 
 from __future__ import annotations
 
+import itertools
 import json
-import os
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from pipeline.core.artifacts import atomic_write_json
+from pipeline.core.errors import InputMissingError
+from recorder.export import export_run
+from recorder.mcap.writer import EpisodeWriter
+from recorder.schema import episode_meta_from_env, frame_from_env
+from rl.driver import cached_policy, cached_student_encoder
+from rl.observe import observer_for_env
+from rl.policy import act, action_logits
 from sim.env import CrowdNavEnv, SimConfig
-
-_CACHE: dict[str, Any] = {}
-
-
-def _cached(key: str, make):
-    if key not in _CACHE:
-        _CACHE[key] = make()
-    return _CACHE[key]
-
-
-def _policy(path: Path | None):
-    if path is None:
-        return None
-    from rl.policy import load_policy
-
-    return _cached(f"policy:{path}:{os.path.getmtime(Path(path) / 'policy.safetensors')}",
-                   lambda: load_policy(path)[0])
+from sim.episode import episode_steps
+from sim.wrappers import PrivilegedObservation
 
 
 def episode_name(scene: str, density: float, seed: int) -> str:
     return f"{Path(scene).stem}_d{density:g}_s{seed}"
 
 
-def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
-    """One DAgger episode (see the module docstring); writes ``raw/<name>.mcap`` and ``features/<name>.npz``."""
-    from recorder.mcap_io import EpisodeWriter
-    from recorder.schema import episode_meta_from_env, frame_from_env
-    from rl.observe import load_student_encoder, observer_for_env, teacher_observation
-    from rl.policy import act, action_logits
+class _DaggerDriver:
+    """Executes the teacher's label of the current frame (set by :func:`dagger_episode` before each act) with
+    probability β, else the student's action on the same frame."""
 
+    def __init__(self, student, beta: float, rng: np.random.Generator) -> None:
+        self.student, self.beta, self.rng = student, beta, rng
+        self.label, self.s_obs, self.student_steps = 0, None, 0
+
+    def reset(self, obs, info) -> None:
+        self.student_steps = 0
+
+    def act(self, obs, info):
+        if self.student is not None and self.rng.random() >= self.beta:
+            self.student_steps += 1
+            return act(self.student, self.s_obs)
+        return self.label
+
+
+def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
+    """One DAgger episode (see the module docstring); writes ``raw/<name>.mcap`` and ``features/<name>.npz``.
+
+    Every frame (the last included) is seen by the student's observer, labelled by the teacher from the privileged
+    channels (:class:`sim.wrappers.PrivilegedObservation`) and logged; the episode loop then executes the label or
+    the student's action (:class:`_DaggerDriver`)."""
     torch.set_num_threads(1)
     sim_cfg: SimConfig = args["sim"]
     name = episode_name(args["scene"], args["density"], args["seed"])
@@ -68,39 +79,32 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     env = CrowdNavEnv(config=replace(sim_cfg, scene=args["scene"], density=args["density"], obs_mode="visual",
                                      info_level="full", action_type="discrete"))
-    encoder = _cached(f"enc:{args['variant']}:{args['encoder']}",
-                      lambda: load_student_encoder(args["variant"], args["encoder"]))
-    teacher = _policy(args["teacher"])
-    student = _policy(args["student"])
+    encoder = cached_student_encoder(args["variant"], args["encoder"])
+    teacher = cached_policy(args["teacher"])
+    driver = _DaggerDriver(cached_policy(args["student"]), args["beta"], np.random.default_rng(args["seed"] + 7919))
     observer = observer_for_env(env, args["variant"], encoder, args.get("head", "mlp"), mirror=args.get("mirror", False))
-    rng = np.random.default_rng(args["seed"] + 7919)
-    obs, info = env.reset(seed=args["seed"])
+    steps = episode_steps(PrivilegedObservation(env), driver, args["seed"])
+    first = next(steps)
     meta = episode_meta_from_env(env, args["seed"], f"dagger:{args['variant']}:iter{args['iteration']}:"
                                                     f"beta{args['beta']:g}")
     rows: dict[str, list] = {}
     labels: list[int] = []
     teacher_logits: list[np.ndarray] = []
-    student_steps = 0
-    cmd, reward, done, step = (0.0, 0.0), 0.0, False, 0
+    info = first.info
     with EpisodeWriter(raw / f"{name}.mcap", meta, env.layout.occupancy) as writer:
-        while True:
-            s_obs = observer(obs)
-            logits = action_logits(teacher, teacher_observation(env))
+        for tr in itertools.chain([first], steps):
+            info = tr.info
+            s_obs = observer(tr.obs)
+            logits = action_logits(teacher, tr.obs)
             label = int(np.argmax(logits))
-            writer.add(frame_from_env(env, obs, info, step, command=cmd, reward=reward, done=done,
-                                      label=env.decode_action(label)))
+            cmd = (0.0, 0.0) if tr.step == 0 else tuple(env.robot_v)
+            writer.add(frame_from_env(env, tr.obs, tr.info, tr.step, command=cmd, reward=tr.reward or 0.0,
+                                      done=tr.done, label=env.decode_action(label)))
             for k, v in s_obs.items():
                 rows.setdefault(k, []).append(v.astype(np.float16) if k.startswith("bev") else v)
             labels.append(label)
             teacher_logits.append(logits.astype(np.float32))
-            if done:
-                break
-            a = label
-            if student is not None and rng.random() >= args["beta"]:
-                a = act(student, s_obs)
-                student_steps += 1
-            obs, reward, term, trunc, info = env.step(a)
-            cmd, done, step = tuple(env.robot_v), bool(term or trunc), step + 1
+            driver.label, driver.s_obs = label, s_obs
     env.close()
     outcome = info.get("outcome") or "timeout"
     arrays = {k: np.stack(v) for k, v in rows.items()}
@@ -110,16 +114,12 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
     np.savez(tmp, **arrays)
     tmp.replace(feat / f"{name}.npz")
     return {"episode": name, "scene": Path(args["scene"]).stem, "density": args["density"], "seed": args["seed"],
-            "frames": len(labels), "student_steps": student_steps, "outcome": outcome,
+            "frames": len(labels), "student_steps": driver.student_steps, "outcome": outcome,
             "seconds": round(time.perf_counter() - t0, 2)}
 
 
 def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, progress: bool = True) -> list[dict]:
     """Runs the iteration's episodes that have no ``features/<name>.npz`` yet (process pool); returns all rows."""
-    from concurrent.futures import ProcessPoolExecutor
-
-    from tqdm import tqdm
-
     iter_dir = Path(iter_dir)
     for sub in ("raw", "features"):
         (iter_dir / sub).mkdir(parents=True, exist_ok=True)
@@ -161,8 +161,6 @@ def load_features(iter_dirs: list[Path]) -> dict[str, np.ndarray]:
                 for k in z.files:
                     parts.setdefault(k, []).append(z[k])
     if not parts:
-        from pipeline.core.errors import InputMissingError
-
         raise InputMissingError(f"no DAgger features in {[str(d) for d in iter_dirs]}")
     return {k: np.concatenate(v) for k, v in parts.items()}
 
@@ -176,8 +174,6 @@ def bev_stats(data: dict[str, np.ndarray], max_frames: int = 2000) -> tuple[torc
 
 def export_iteration(iter_dir: Path, repo_id: str, progress: bool = True) -> dict[str, Any]:
     """The iteration's MCAP logs → ``iter_dir/dataset`` (a validated LeRobot dataset with ``action.teacher``)."""
-    from recorder.export import export_run
-
     return export_run(Path(iter_dir) / "raw", Path(iter_dir) / "dataset", repo_id, overwrite=True,
                       progress=progress)
 

@@ -1,27 +1,63 @@
-"""Seeded evaluation episodes of a saved policy (teacher: privileged, no rendering; student: rendered), with the
-metrics of :mod:`sim.metrics`, through the benchmark's episode runner (:mod:`evaluation.harness`). ``train`` uses it
-for its acceptance figures.
+"""Seeded evaluation episodes of a saved policy or learned baseline (teacher: privileged, no rendering; student:
+rendered), with the metrics of :mod:`sim.metrics`, through the one episode loop (:func:`sim.episode.run_episode`).
+``train`` uses it for its acceptance figures; the benchmark (:mod:`evaluation`) runs the same drivers and loop.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from sim.env import SimConfig
+from pipeline.core.parallel import map_jobs
+from rl.baselines import BASELINES, baseline_module
+from rl.driver import PolicyDriver, process_cached
+from rl.policy import read_policy_json
+from sim.env import CrowdNavEnv, SimConfig
+from sim.episode import Driver, run_episode
+from sim.metrics import episode_metrics
+from sim.wrappers import with_privileges
+
+
+def checkpoint_env(ckpt: Path) -> dict[str, str]:
+    """The env options the driver of the checkpoint in ``ckpt`` needs: ``obs_mode`` and ``action_type``."""
+    desc = read_policy_json(Path(ckpt))
+    if desc["kind"] == "baseline":
+        info = BASELINES[desc["variant"]]
+        return {"obs_mode": info.obs_mode, "action_type": info.action_type}
+    return {"obs_mode": "visual" if desc["kind"] == "student" else "privileged", "action_type": "discrete"}
+
+
+def checkpoint_driver(ckpt: Path) -> Driver:
+    """The driver of the policy or baseline saved in ``ckpt`` (built once per process)."""
+    def make() -> Driver:
+        desc = read_policy_json(Path(ckpt))
+        if desc["kind"] == "baseline":
+            return baseline_module(desc["variant"]).Driver(Path(ckpt))
+        return PolicyDriver(Path(ckpt))
+
+    return process_cached(f"driver:{ckpt}", make)
+
+
+def _episode(job: tuple[Path, str, SimConfig, str, float, int]) -> dict[str, Any]:
+    ckpt, method, sim_cfg, scene, density, seed = job
+    driver = checkpoint_driver(ckpt)
+    over = checkpoint_env(ckpt)
+    env = with_privileges(CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, info_level="basic",
+                                                     **over)), over["obs_mode"])
+    trace = run_episode(env, driver, seed, method)
+    env.close()
+    return {"method": method, "scene": Path(scene).stem, "density": density, "seed": seed, "outcome": trace.outcome,
+            "steps": trace.n_steps, **episode_metrics(trace)}
 
 
 def evaluate(policy_dir: Path, sim_cfg: SimConfig, cells: list[tuple[str, float]], seeds: list[int],
              workers: int = 2, method: str | None = None, progress: bool = True) -> list[dict[str, Any]]:
-    """Every (scene, density) of ``cells`` x ``seeds`` (the same seeds for every method), run by the benchmark
-    harness (:mod:`evaluation.harness`) in a process pool; one metrics row per episode."""
-    from evaluation.harness import Job, run_jobs
-    from evaluation.methods import spec_from_checkpoint
-
-    spec = spec_from_checkpoint(Path(policy_dir), method)
-    name = spec.name
-    jobs = [Job(spec, sim_cfg, s, d, k, Path(policy_dir), save_trace=False) for s, d in cells for k in seeds]
-    return run_jobs(jobs, workers, f"evaluate {name}", progress)
+    """Every (scene, density) of ``cells`` x ``seeds`` (the same seeds for every method) in a process pool; one
+    metrics row per episode, named ``method`` (default: the checkpoint folder's name)."""
+    name = method or Path(policy_dir).name
+    jobs = [(Path(policy_dir), name, sim_cfg, s, d, k) for s, d in cells for k in seeds]
+    return map_jobs(_episode, jobs, workers, f"evaluate {name}", progress)
 
 
 def success_table(rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:

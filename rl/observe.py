@@ -27,8 +27,8 @@ image centre), so this is the map the robot would see in the mirrored world — 
 augmentation while cloning (:func:`rl.teacher.mirror_batch`). The encoder's latent is not mirror-equivariant, so
 flipping ``s_bev`` itself would not be. Costs one more encoder pass per step (batched with the first).
 
-:func:`teacher_observation` builds the privileged teacher's observation (as ``obs_mode="privileged"`` would) from a
-visual-mode env, so one rendered episode gives both the student's input and the teacher's label (DAgger).
+The privileged teacher's observation of a visual-mode env (its DAgger labels) comes from the env side:
+:class:`sim.wrappers.PrivilegedObservation`.
 """
 
 from __future__ import annotations
@@ -52,7 +52,12 @@ OCC_STRIDE_PX = 2  # depth pixels lifted for the occupancy map (every 2nd row an
 
 def env_cameras(env) -> list[Camera]:
     """The encoder-side :class:`pretrain.geometry.Camera` list of an (unwrapped) env, left then right."""
-    return [Camera.from_dict(spec.to_dict(), f"env camera {spec.name}") for spec in env.cameras]
+    return cameras_of(env.cameras)
+
+
+def cameras_of(specs) -> list[Camera]:
+    """The encoder-side :class:`pretrain.geometry.Camera` list of camera specs (``info["cameras"]`` at reset)."""
+    return [Camera.from_dict(spec.to_dict(), f"env camera {spec.name}") for spec in specs]
 
 
 def check_encoder_matches(encoder: BEVEncoder, cameras: list[Camera], where: str) -> None:
@@ -188,19 +193,26 @@ class StudentObserver:
         return F.max_pool2d((count > 0).float(), BEV_POOL)
 
 
-def perception_params(env) -> dict[str, Any]:
-    """The lookahead head's perception layout of an (unwrapped) env: control period, tracks and scan as the
-    teacher's privileged observation has them."""
-    c = env.cfg
+def perception_params(sim_cfg) -> dict[str, Any]:
+    """The lookahead head's perception layout for a :class:`sim.env.SimConfig`: control period, tracks and scan as
+    the teacher's privileged observation has them."""
+    c = sim_cfg
     return {"dt_s": float(c.dt_s), "k": int(c.privileged_peds), "rays": int(c.scan_rays),
             "range_m": float(c.scan_range_m)}
+
+
+def observer_for(camera_specs, sim_cfg, variant: str, encoder: BEVEncoder | None, head: str = "mlp",
+                 mirror: bool = False) -> StudentObserver:
+    """The :class:`StudentObserver` of a student variant for the cameras and config an env reports at reset
+    (``info["cameras"]``, ``info["config"]``)."""
+    return StudentObserver(variant, cameras_of(camera_specs), encoder, sim_cfg.detector.max_people, mirror=mirror,
+                           head=head, perception=perception_params(sim_cfg))
 
 
 def observer_for_env(env, variant: str, encoder: BEVEncoder | None, head: str = "mlp",
                      mirror: bool = False) -> StudentObserver:
     """The :class:`StudentObserver` of a student variant on an (unwrapped) env."""
-    return StudentObserver(variant, env_cameras(env), encoder, env.cfg.detector.max_people, mirror=mirror, head=head,
-                           perception=perception_params(env))
+    return observer_for(env.cameras, env.cfg, variant, encoder, head, mirror)
 
 
 def check_mirror_symmetric(cameras: list[Camera]) -> None:
@@ -215,14 +227,6 @@ def check_mirror_symmetric(cameras: list[Camera]) -> None:
             and abs(ka[0, 2] - cameras[0].width / 2.0) < 1e-6):
         raise ConfigError("mirror augmentation: the cameras are not a mirror-symmetric pair (mount, yaw, intrinsics); "
                           "set dagger.mirror false")
-
-
-def teacher_observation(env, target: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """The privileged observation of an unwrapped env in any obs mode (what ``obs_mode="privileged"`` returns);
-    with ``target`` (a world-frame waypoint) the sub-goal leads there instead of to the goal."""
-    return {"state": env.robot_state(), "odom": env.robot.astype(np.float32), "peds": env.privileged_peds(),
-            "scan": env.static_scan().astype(np.float32), "subgoal": env.privileged_subgoal(target),
-            "path": env.privileged_path(target)}
 
 
 class StudentEnv(gym.Wrapper):

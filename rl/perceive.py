@@ -20,7 +20,7 @@ velocities and a range scan of the *static map* (:class:`rl.networks.LookaheadTe
   serves both. Undetected people stay in the scan as obstacles without velocity.
 
 Nothing here is learned or privileged; the numbers are checked against the simulator's truth in
-``tests/rl/test_perceive.py`` and measured in the README.
+``tests/rl/test_perceive.py`` and measured in docs/results.md ("The students' perception").
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sim.depth import ObstacleMemory, depth_to_points
 from sim.geometry import robot_to_world, world_to_robot
-from sim.planners.dwa import ObstacleMemory, depth_to_points
 
 SURFACE_TO_CENTRE_M = 0.1  # detected joints → body centre, along the viewing ray
 PED_RADIUS_M = 0.25  # nominal body radius of a perceived person (the simulator's bodies: 0.2-0.3 m)
@@ -146,8 +146,7 @@ class DepthScan:
         pixel_stride: every n-th depth pixel in both directions.
         memory_s, voxel_m: the obstacle memory (points older than ``memory_s`` are dropped; one per voxel).
             (5 s also covers an obstacle the robot stopped in front of, closer than the cameras' minimum depth; a
-            rule that kept points within 1 m from expiring was measured worse — ghosts of people who had passed
-            beside the robot trapped it: lobby SR 0.73 vs 0.93, N = 30 — and removed.)
+            rule that kept near points from expiring was measured worse: docs/notes/2026-11-depth-scan-keep-near.md.)
         person_clear_m: points this close (x, y) to a detected person's centre are not obstacles.
     """
 
@@ -224,125 +223,3 @@ class Perception:
             out["peds"] = self.tracker.observation(pose, self.k)
         out["scan"] = self.scan.update(depths, pose, self.dt_s, centres)
         return out
-
-
-def evaluate_perception(scene: str = "office_lobby", density: float = 0.2, seed: int = 0, steps: int = 150,
-                        width_px: int = 160, height_px: int = 120, figure: str | None = None,
-                        figure_step: int = 60) -> dict[str, float]:
-    """Drives the privileged expert through one rendered episode and compares what the lookahead head perceives with
-    the simulator's truth: the error of each track against the nearest true pedestrian within 0.6 m (position, and
-    velocity once the track is 1 s old), the share of true pedestrians within 4 m in the cameras' view that have a
-    track within 0.6 m, and the share of in-view scan bins (±35°) that match the static map within 0.3 m or end on a
-    pedestrian. With ``figure`` also a top-down figure of the robot frame at ``figure_step``."""
-    from dataclasses import replace
-
-    from rl.observe import observer_for_env
-    from sim.env import CrowdNavEnv, SimConfig
-    from sim.expert import PrivilegedExpert
-
-    cfg = SimConfig()
-    cfg = replace(cfg, scene=scene, density=density, obs_mode="visual", info_level="basic",
-                  camera=replace(cfg.camera, width_px=width_px, height_px=height_px))
-    env = CrowdNavEnv(config=cfg)
-    obs, _ = env.reset(seed=seed)
-    observer = observer_for_env(env, "no_bev", None, head="lookahead")
-    observer.reset()
-    expert = PrivilegedExpert()
-    expert.reset(env)
-    pos_err, vel_err, recall, scan_ok = [], [], [], []
-    ahead = np.r_[0:8, 65:72]
-    snap = None
-    for step in range(steps):
-        o = observer(obs)
-        people = world_to_robot(env.crowd.pos, env.robot)
-        pvel = world_to_robot(env.crowd.vel, env.robot, vectors=True)
-        tracks = o["peds"][o["peds"][:, 5] > 0]
-        if len(people) and len(tracks):
-            d = np.linalg.norm(tracks[:, None, :2] - people[None], axis=-1)
-            for i, j in enumerate(d.argmin(1)):
-                if d[i, j] < 0.6:
-                    pos_err.append(d[i, j])
-                    if step >= 10:
-                        vel_err.append(float(np.linalg.norm(tracks[i, 2:4] - pvel[j])))
-        bearing = np.degrees(np.arctan2(people[:, 1], people[:, 0]))
-        seen = (np.abs(bearing) < 65) & (np.hypot(people[:, 0], people[:, 1]) < 4.0)
-        for p in people[seen]:
-            recall.append(bool(len(tracks)) and float(np.linalg.norm(tracks[:, :2] - p, axis=-1).min()) < 0.6)
-        static_scan = env.static_scan()
-        rng = np.minimum(o["scan"][ahead], 4.0)
-        static = np.minimum(static_scan[ahead], 4.0)
-        ang = ahead * (2 * np.pi / len(o["scan"]))
-        hit = np.stack([rng * np.cos(ang), rng * np.sin(ang)], -1)
-        on_person = (np.linalg.norm(hit[:, None] - people[None], axis=-1).min(1) < 0.6) if len(people) else False
-        scan_ok.append((np.abs(rng - static) < 0.3) | (on_person & (rng < 4.0)))
-        if step == figure_step:
-            snap = (o, people, pvel, static_scan)
-        obs, _, term, trunc, _ = env.step(env.encode_command(*expert.command(env)))
-        if term or trunc:
-            break
-    env.close()
-    out = {"frames": step + 1, "track_pos_err_median_m": float(np.median(pos_err)),
-           "track_pos_err_p90_m": float(np.percentile(pos_err, 90)),
-           "track_vel_err_median_mps": float(np.median(vel_err)), "track_vel_err_p90_mps": float(np.percentile(vel_err, 90)),
-           "track_recall_in_view_4m": float(np.mean(recall)), "scan_bins_explained_in_view": float(np.mean(np.concatenate(scan_ok)))}
-    if figure and snap is not None:
-        _plot_snapshot(snap, figure, f"{scene} @ {density:g} ped/m², seed {seed}, step {figure_step}")
-    return out
-
-
-def _plot_snapshot(snap, path: str, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from sim.viz import save_figure
-
-    o, people, pvel, static = snap
-    rays = len(o["scan"])
-    ang = np.arange(rays) * (2 * np.pi / rays)
-    fig, ax = plt.subplots(figsize=(6.4, 5.6))
-    for r, style, label in ((static, dict(c="0.6", s=14, marker="s"), "static map (truth)"),
-                            (o["scan"], dict(c="k", s=22, marker="x"), "depth scan (perceived)")):
-        m = r < 9.99
-        ax.scatter(r[m] * np.cos(ang[m]), r[m] * np.sin(ang[m]), label=label, **style)
-    ax.scatter(people[:, 0], people[:, 1], s=120, facecolors="none", edgecolors="tab:blue", label="pedestrians (truth)")
-    ax.quiver(people[:, 0], people[:, 1], pvel[:, 0], pvel[:, 1], color="tab:blue", angles="xy", scale_units="xy",
-              scale=1.0, width=0.004)
-    tr = o["peds"][o["peds"][:, 5] > 0]
-    ax.scatter(tr[:, 0], tr[:, 1], s=40, c="tab:red", label="tracks from detected poses")
-    ax.quiver(tr[:, 0], tr[:, 1], tr[:, 2], tr[:, 3], color="tab:red", angles="xy", scale_units="xy", scale=1.0,
-              width=0.004)
-    for a in (np.radians(70), -np.radians(70)):
-        ax.plot([0, 6 * np.cos(a)], [0, 6 * np.sin(a)], ls=":", c="0.4", lw=0.8)
-    ax.add_patch(plt.Circle((0, 0), 0.3, color="tab:green", alpha=0.6))
-    ax.set_xlim(-3, 6)
-    ax.set_ylim(-4.5, 4.5)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x forward [m] (robot frame; arrows: velocity over 1 s)")
-    ax.set_ylabel("y left [m]")
-    ax.set_title(title, fontsize=10)
-    ax.legend(loc="lower left", fontsize=7)
-    fig.tight_layout()
-    save_figure(fig, path, 110)
-    plt.close(fig)
-
-
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-    import json
-
-    ap = argparse.ArgumentParser(description="measure the lookahead head's perception against the simulator's truth")
-    ap.add_argument("--scene", default="office_lobby")
-    ap.add_argument("--density", type=float, default=0.2)
-    ap.add_argument("--seeds", default="0,1,2")
-    ap.add_argument("--figure", default=None)
-    a = ap.parse_args(argv)
-    rows = [evaluate_perception(a.scene, a.density, int(s), figure=a.figure if i == 0 else None)
-            for i, s in enumerate(a.seeds.split(","))]
-    print(json.dumps({k: round(float(np.mean([r[k] for r in rows])), 3) for k in rows[0]} | {"episodes": len(rows)}))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

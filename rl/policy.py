@@ -10,6 +10,7 @@ one error naming the file.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -130,6 +131,28 @@ def read_policy_json(ckpt: Path) -> dict[str, Any]:
     return desc
 
 
+# a key of the lookahead head's learned layers as saved before the head was a module (upgrade_state_dict)
+_PRE_HEAD_KEY = re.compile(r"^((?:pi_|vf_)?features_extractor\.)(context|scorer|linear)\.")
+
+
+def upgrade_state_dict(sd: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """A policy's stored state dict with the keys of older layouts renamed to the current ones (the same tensors;
+    current checkpoints and every other key pass through unchanged). Applied once, by :func:`load_policy`.
+
+    The lookahead head (teacher ``encoder: lookahead``, student ``head: lookahead``) was attributes set on the
+    features extractor by free functions; it is now the extractor's submodule ``lookahead``
+    (:class:`rl.lookahead.LookaheadHead`). For each extractor prefix ``P`` of SB3's shared extractor
+    (``features_extractor.``, ``pi_features_extractor.``, ``vf_features_extractor.``), old → new::
+
+        P context.0.weight, P context.0.bias                 →  P lookahead.context.0.weight, ...bias
+        P scorer.{0,2,4}.weight, P scorer.{0,2,4}.bias       →  P lookahead.scorer.{0,2,4}.weight, ...bias
+        P linear.weight, P linear.bias                       →  P lookahead.linear.weight, ...bias
+
+    The head's rollout geometry (``grid_norm``, ``times``, ``arcs``, ``end_heading``, ``spin``, ``disc``,
+    ``path_s``, ``ray_dir``) is non-persistent in both layouts: in no checkpoint, so nothing is added."""
+    return {_PRE_HEAD_KEY.sub(r"\1lookahead.\2.", k): v for k, v in sd.items()}
+
+
 def load_policy(ckpt: Path) -> tuple[ActorCriticPolicy, dict[str, Any]]:
     """The policy saved in ``ckpt`` (eval mode) and its description.
 
@@ -145,7 +168,7 @@ def load_policy(ckpt: Path) -> tuple[ActorCriticPolicy, dict[str, Any]]:
         policy = build_policy(desc["kind"], desc.get("variant"), space, desc["net"])
     except (KeyError, TypeError, ValueError) as e:
         raise CorruptArtifactError(f"{ckpt / POLICY_JSON}: cannot build the policy ({type(e).__name__}: {e})") from None
-    load_safetensors(policy, ckpt / POLICY_WEIGHTS)
+    load_safetensors(policy, ckpt / POLICY_WEIGHTS, upgrade=upgrade_state_dict)
     policy.set_training_mode(False)
     return policy, desc
 

@@ -44,13 +44,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.core.artifacts import atomic_write_json
+from pipeline.core import layout
+from pipeline.core.artifacts import atomic_save_npz, atomic_write_json
 from pipeline.core.config import BaseStageConfig
 from pipeline.core.errors import ConfigError
 from rl.baselines import BASELINES, baseline_module
-from rl.baselines.drl_vo import Config as DRLVOConfig
-from rl.baselines.sarl_om import Config as SARLOMConfig
-from rl.baselines.vint import Config as ViNTConfig
+from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
+from rl.baselines.sarl_om.configuration import Config as SARLOMConfig
+from rl.baselines.vint.configuration import Config as ViNTConfig
+from rl.callbacks import checkpoint_callback, progress_callback
 from rl.networks import VARIANTS
 from rl.teacher import CurriculumStage, check_curriculum
 from sim.env import SimConfig
@@ -100,7 +102,7 @@ class DaggerConfig:
     mirror: bool = True  # left-right mirror augmentation while cloning (bev variants record the mirrored s_bev)
     # the lookahead head's linear cost: "teacher" = the lookahead teacher's own (the same layer on the student's
     # perceived tracks and scan; frozen, the MLP scorer learns the rest), "fit" = convex regression to the teacher's
-    # distribution on the DAgger frames (measured weaker: README, Training)
+    # distribution on the DAgger frames (measured weaker: docs/notes/2026-11-lookahead-student-variants.md)
     linear_cost: str = "teacher"
     scenes: list[str] = field(default_factory=lambda: ["hallway", "corner", "doorway", "cluttered_room", "open_crowd"])
     densities: list[float] = field(default_factory=lambda: [0.1, 0.2])
@@ -139,7 +141,7 @@ class TrainConfig(BaseStageConfig):
     net: dict[str, Any] = field(default_factory=dict)  # student network sizes (rl.networks.StudentExtractor)
     # the student's actor: "lookahead" scores each action by rolling it out against the pedestrians tracked from its
     # detected poses and a depth obstacle scan (rl.perceive, rl.networks.StudentLookaheadExtractor); "mlp" is the
-    # paper's MLP head on z alone (README, Training: why the default differs)
+    # paper's MLP head on z alone (why the default differs: docs/notes/2026-11-paper-mlp-head-student.md)
     head: str = "lookahead"
     scorer_bound: float = 3.0  # lookahead head: its learned correction is bounded to ± this many nats (0 = unbounded)
     drl_vo: DRLVOConfig = field(default_factory=DRLVOConfig)  # the learned baselines (rl.baselines.<name>)
@@ -190,7 +192,7 @@ class TrainConfig(BaseStageConfig):
 
 
 def policy_root(cfg: TrainConfig) -> Path:
-    return Path(cfg.data_dir) / "checkpoints" / "policy"
+    return layout.policy_root(cfg.data_dir)
 
 
 def output_dir(cfg: TrainConfig) -> Path:
@@ -198,7 +200,7 @@ def output_dir(cfg: TrainConfig) -> Path:
 
 
 def encoder_dir(cfg: TrainConfig) -> Path:
-    return Path(cfg.data_dir) / "checkpoints" / cfg.encoder
+    return layout.checkpoint_dir(cfg.data_dir, cfg.encoder)
 
 
 def inputs(cfg: TrainConfig) -> list[Path]:
@@ -332,7 +334,7 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                      linear_fit["frames"], linear_fit["ce_before"], linear_fit["ce_after"])
         rows = behaviour_clone(policy, data, t.bc_epochs if k == 0 else t.dagger_epochs,
                                lr=t.bc_lr if k == 0 else t.bc_lr / 2, seed=cfg.seed + k,
-                               frozen=("features_extractor.linear.",) if linear_fit else (), cache=cache, **clone)
+                               frozen=("features_extractor.lookahead.linear.",) if linear_fit else (), cache=cache, **clone)
         del cache
         for r in rows:
             logger.add("teacher_bc" if k == 0 else f"teacher_dagger{k}", r["epoch"], bc_loss=r["bc_loss"],
@@ -369,8 +371,8 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         attach_lookahead_cache(model)
         done = model.num_timesteps
         t0 = time.perf_counter()
-        cb = [curriculum_callback(t.curriculum, t.ppo_steps), _checkpoint_callback(out / "ppo", model, 20_000),
-              _progress_callback(t.ppo_steps, "teacher PPO", cfg.progress)]
+        cb = [curriculum_callback(t.curriculum, t.ppo_steps), checkpoint_callback(out / "ppo", model, 20_000),
+              progress_callback(t.ppo_steps, "teacher PPO", cfg.progress)]
         warm = min(t.critic_warmup_steps, t.ppo_steps)
         if done < warm:  # fit the cloned critic on-policy before the actor moves
             frozen = freeze_actor(model.policy)
@@ -407,51 +409,6 @@ def _load_aggregate(out: Path, k: int) -> dict[str, np.ndarray]:
             raise CorruptArtifactError(f"{path}: unreadable imitation data ({type(e).__name__}: {e}); delete "
                                        f"{path.parent} to redo that stage") from None
     return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-
-
-def atomic_save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
-
-
-def _checkpoint_callback(path: Path, model, every: int):
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    class Save(BaseCallback):
-        def __init__(self) -> None:
-            super().__init__()
-            self.next = model.num_timesteps + every
-
-        def _on_step(self) -> bool:
-            if self.num_timesteps >= self.next:
-                path.mkdir(parents=True, exist_ok=True)
-                tmp = path / "last.tmp.zip"
-                self.model.save(tmp)
-                tmp.replace(path / "last.zip")
-                self.next += every
-            return True
-
-    return Save()
-
-
-def _progress_callback(total: int, desc: str, enabled: bool):
-    from stable_baselines3.common.callbacks import BaseCallback
-    from tqdm import tqdm
-
-    class Bar(BaseCallback):
-        def _on_training_start(self) -> None:
-            self.bar = tqdm(total=total, initial=min(self.num_timesteps, total), desc=desc, unit="step",
-                            disable=not enabled, dynamic_ncols=True)
-
-        def _on_step(self) -> bool:
-            self.bar.update(self.training_env.num_envs)
-            return True
-
-        def _on_training_end(self) -> None:
-            self.bar.close()
-
-    return Bar()
 
 
 # --------------------------------------------------------------------------------------------------------- student
@@ -527,7 +484,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                          cfg.variant, k, linear_fit["frames"], linear_fit["ce_before"], linear_fit["ce_after"])
         hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, cfg.seed + k, progress=cfg.progress,
                                soft_tau=d.soft_tau if soft else 0.0, mirror=d.mirror, n_rot=n_rot,
-                               frozen=("features_extractor.linear.",) if (linear_fit or inherited) else (),
+                               frozen=("features_extractor.lookahead.linear.",) if (linear_fit or inherited) else (),
                                cache=cache)
         del cache
         after = bc_loss(policy, new)
@@ -569,10 +526,10 @@ def inherit_linear_cost(policy, teacher_dir: Path) -> None:
     from rl.policy import load_policy
 
     teacher, _ = load_policy(teacher_dir)
-    src, dst = teacher.features_extractor, policy.features_extractor
-    if not hasattr(src, "linear") or src.linear.weight.shape != dst.linear.weight.shape:
+    src, dst = getattr(teacher.features_extractor, "lookahead", None), policy.features_extractor.lookahead
+    if src is None or src.linear.weight.shape != dst.linear.weight.shape:
         raise ConfigError(f"dagger.linear_cost 'teacher' needs a lookahead teacher ({teacher_dir} has "
-                          f"{type(src).__name__}); use dagger.linear_cost fit")
+                          f"{type(teacher.features_extractor).__name__}); use dagger.linear_cost fit")
     with torch.no_grad():
         dst.linear.load_state_dict(src.linear.state_dict())
         dst.scorer[-1].weight.zero_()
@@ -592,7 +549,7 @@ def student_net(cfg: TrainConfig) -> dict[str, Any]:
 
 
 def teacher_heading(teacher_dir: Path) -> str:
-    """The heading error mode of a lookahead teacher's rollout features (``rl.networks.init_lookahead``; checkpoints
+    """The heading error mode of a lookahead teacher's rollout features (``rl.lookahead.LookaheadHead``; checkpoints
     from before the option have ``"end"``): a student's lookahead head computes its features the same way, so the
     teacher's linear cost it inherits means the same thing."""
     from rl.policy import read_policy_json
@@ -629,8 +586,8 @@ def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir):
     done = model.num_timesteps
     t0 = time.perf_counter()
     model.learn(max(0, f.ppo_steps - done), reset_num_timesteps=False, tb_log_name="finetune",
-                callback=[_checkpoint_callback(out / "ppo", model, 2048),
-                          _progress_callback(f.ppo_steps, "student PPO", cfg.progress)])
+                callback=[checkpoint_callback(out / "ppo", model, 2048),
+                          progress_callback(f.ppo_steps, "student PPO", cfg.progress)])
     rate = round((model.num_timesteps - done) / max(time.perf_counter() - t0, 1e-9), 2)
     (out / "ppo").mkdir(exist_ok=True)
     model.save(last)

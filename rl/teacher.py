@@ -30,8 +30,13 @@ import numpy as np
 import torch
 
 from pipeline.core.errors import ConfigError
+from rl.lookahead import N_LINEAR, SCORE_SCALE
+from rl.policy import act
 from sim.env import CrowdNavEnv, SimConfig
+from sim.episode import episode_steps
+from sim.expert import PrivilegedExpert
 from sim.robot import action_grid
+from sim.wrappers import PrivilegedWorld
 
 
 @dataclass
@@ -126,7 +131,7 @@ def expert_grid_costs(expert, env: CrowdNavEnv) -> np.ndarray:
     return expert.costs(env, action_grid(env.cfg.robot))
 
 
-def _discounted(rewards: list[float], gamma: float) -> np.ndarray:
+def discounted(rewards: list[float], gamma: float) -> np.ndarray:
     """Discounted Monte-Carlo returns of one episode (nothing is bootstrapped after a timeout)."""
     ret = np.zeros(len(rewards), np.float32)
     acc = 0.0
@@ -173,41 +178,52 @@ def _init_dagger_worker(kind: str, obs_space, net: dict[str, Any], state: dict[s
     _WORKER_POLICY["policy"] = policy
 
 
+class _ExpertDaggerDriver:
+    """The privileged expert labels every visited state (its cost of each action of the grid, from
+    ``info["world"]``); the worker's policy acts, the expert's label with probability ``beta`` (always without a
+    policy). Records the observations, labels and costs of the states it acted in."""
+
+    def __init__(self, policy, beta: float, rng: np.random.Generator) -> None:
+        self.policy, self.beta, self.rng = policy, beta, rng
+        self.expert = PrivilegedExpert()
+
+    def reset(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> None:
+        self.codec = info["action_codec"]
+        self.expert.reset(info["world"])
+        self.rows: dict[str, list] = {k: [] for k in obs}
+        self.labels: list[int] = []
+        self.costs: list[np.ndarray] = []
+
+    def act(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> int:
+        cost = expert_grid_costs(self.expert, info["world"])
+        label = int(np.argmin(cost))
+        a = label if self.policy is None or self.rng.random() < self.beta else act(self.policy, obs)
+        self.expert.executed(self.codec.decode(a)[1])  # smoothness relative to what was executed
+        for k, v in obs.items():
+            self.rows[k].append(v)
+        self.labels.append(label)
+        self.costs.append(cost)
+        return a
+
+
 def expert_dagger_episode(args: tuple[SimConfig, str, float, int, float, float]) -> dict[str, np.ndarray]:
     """One DAgger episode on privileged observations: the policy of this worker drives (the expert with probability
     ``beta`` per step), the privileged expert labels every visited state with the action it would take."""
-    from rl.policy import act
-    from sim.expert import PrivilegedExpert
-
     sim_cfg, scene, density, seed, beta, gamma = args
     policy = _WORKER_POLICY["policy"] if beta < 1.0 else None
-    env = CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, obs_mode="privileged",
-                                     action_type="discrete", info_level="basic"))
-    rng = np.random.default_rng(seed + 7_919)
-    expert = PrivilegedExpert()
-    obs, _ = env.reset(seed=seed)
-    expert.reset(env)
-    rows: dict[str, list] = {k: [] for k in obs}
-    labels, rewards, costs = [], [], []
-    outcome = "timeout"
-    while True:
-        cost = expert_grid_costs(expert, env)
-        label = int(np.argmin(cost))
-        a = label if policy is None or rng.random() < beta else act(policy, obs)
-        expert._prev_w = float(env.decode_action(a)[1])  # smoothness relative to what was executed
-        for k, v in obs.items():
-            rows[k].append(v)
-        labels.append(label)
-        costs.append(cost)
-        obs, r, term, trunc, info = env.step(a)
-        rewards.append(r)
-        if term or trunc:
-            outcome = info["outcome"] or "timeout"
-            break
-    out = {k: np.stack(v).astype(np.float32) for k, v in rows.items()}
-    out["action"] = np.asarray(labels, np.int64)
-    out["costs"] = np.stack(costs).astype(np.float32)
-    out["return"] = _discounted(rewards, gamma)
+    env = PrivilegedWorld(CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, obs_mode="privileged",
+                                                     action_type="discrete", info_level="basic")))
+    driver = _ExpertDaggerDriver(policy, beta, np.random.default_rng(seed + 7_919))
+    rewards, outcome = [], "timeout"
+    for tr in episode_steps(env, driver, seed):
+        if tr.step > 0:
+            rewards.append(tr.reward)
+        if tr.done:
+            outcome = tr.info["outcome"] or "timeout"
+    out = {k: np.stack(v).astype(np.float32) for k, v in driver.rows.items()}
+    out["action"] = np.asarray(driver.labels, np.int64)
+    out["costs"] = np.stack(driver.costs).astype(np.float32)
+    out["return"] = discounted(rewards, gamma)
     out["success"] = np.array([outcome == "success"])
     out["outcome"] = np.array([outcome])
     env.close()
@@ -326,7 +342,7 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
     sees every frame reflected. ``cache``: :func:`lookahead_feature_cache` of all of ``data`` (with the same
     ``mirror``) when the caller has it; otherwise only the subsample's features are computed. Returns the
     cross-entropy to the targets before and after."""
-    ext = policy.features_extractor
+    head = policy.features_extractor.lookahead  # rl.lookahead.LookaheadHead
     rng = np.random.default_rng(seed)
     n = len(data["action"])
     idx = np.sort(rng.choice(n, min(n, max_frames), replace=False))
@@ -344,17 +360,16 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
         feats = torch.cat([feats, torch.as_tensor(cache[1], dtype=torch.float32)])
     tau = soft_tau if soft_tau > 0 else 0.1
     target = torch.softmax(-(cost - cost.min(1, keepdim=True).values) / tau, -1)
-    from rl.networks import N_LINEAR, SCORE_SCALE
 
     def ce() -> torch.Tensor:
-        logits = SCORE_SCALE * ext.linear(feats[..., -N_LINEAR:]).squeeze(-1)
+        logits = SCORE_SCALE * head.linear(feats[..., -N_LINEAR:]).squeeze(-1)
         return -(target * torch.log_softmax(logits, -1)).sum(-1).mean()
 
     with torch.no_grad():
-        ext.scorer[-1].weight.zero_()
-        ext.scorer[-1].bias.zero_()
+        head.scorer[-1].weight.zero_()
+        head.scorer[-1].bias.zero_()
         before = float(ce())
-    opt = torch.optim.LBFGS(ext.linear.parameters(), lr=1.0, max_iter=200, line_search_fn="strong_wolfe")
+    opt = torch.optim.LBFGS(head.linear.parameters(), lr=1.0, max_iter=200, line_search_fn="strong_wolfe")
 
     def closure() -> torch.Tensor:
         opt.zero_grad()
@@ -378,7 +393,7 @@ def lookahead_feature_cache(policy, data: dict[str, np.ndarray], mirror: bool, n
     ext = policy.features_extractor
     keys = keys or tuple(policy.observation_space.spaces)
     n = len(data["action"])
-    out = [np.empty((n, ext.n_actions, ext.n_feat), np.float16) for _ in range(1 + mirror)]
+    out = [np.empty((n, ext.lookahead.n_actions, ext.lookahead.n_feat), np.float16) for _ in range(1 + mirror)]
     for s in range(0, n, chunk):
         obs = {k: torch.as_tensor(data[k][s:s + chunk], dtype=torch.float32) for k in keys}
         out[0][s:s + chunk] = ext.action_features(obs).numpy()

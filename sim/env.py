@@ -27,8 +27,13 @@ Actions (``action_type``): ``continuous`` — Box([-1, 1]²) mapped to v = (a₀
 turns a physical (v, ω) into either.
 
 ``info`` carries each reward term, ``d_o`` (distance from the robot centre to the nearest pedestrian or
-obstacle surface), ``d_goal``, ``outcome`` and, under ``privileged``, the true pedestrian states, their 3D
-keypoints and yaws, and a range scan of the static map; ``reset`` adds the occupancy grid. The episode ends on
+obstacle surface), ``d_goal``, ``outcome``, ``command`` (the executed [v, ω]), ``odom`` (the robot pose
+[x, y, yaw], world frame, float64; ``obs["odom"]`` is its float32 copy) and ``privileged`` (the true pedestrian
+states, yaws and, at ``info_level="full"``, 3D keypoints and a range scan of the static map; for recording — a
+driver must not read it). ``reset`` adds what stays fixed for the episode: ``occupancy`` (the static grid),
+``cameras`` (the camera specs: intrinsics, extrinsics), ``action_codec`` (:class:`sim.robot.ActionCodec`),
+``goal_xy`` (world frame) and ``config`` (this env's :class:`SimConfig`: control period, sensor layout). Drivers (:mod:`sim.episode`) act on ``obs`` and ``info`` only; the privileged world and
+waypoints come from wrappers (:mod:`sim.wrappers`). The episode ends on
 reaching the goal, on a collision (terminated) or at ``max_episode_s`` (truncated). ``render()`` returns a
 top-down RGB image.
 """
@@ -50,7 +55,7 @@ from sim.detector import CameraFrame, DetectorConfig, OracleDetector, PoseDetect
 from sim.geometry import world_to_robot
 from sim.humans import Bodies, BodyConfig
 from sim.reward import RewardConfig, reward_terms
-from sim.robot import RobotConfig, action_grid, unicycle_step
+from sim.robot import ActionCodec, RobotConfig, unicycle_step
 from sim.scene import SceneLayout, SceneSpec, load_scene
 from sim.trace import EpisodeTrace
 
@@ -176,7 +181,8 @@ class CrowdNavEnv(gym.Env):
         self.spec_scene: SceneSpec = load_scene(cfg.scene)
         self.cameras = cfg.camera.specs()
         self.detector: PoseDetector = detector or OracleDetector(cfg.detector)
-        self._grid = action_grid(cfg.robot)
+        self.codec = ActionCodec(cfg.action_type, cfg.robot)
+        self._grid = self.codec.grid
         self._renderer = None
         self._topdown = None
         self.observation_space = self._make_obs_space()
@@ -252,6 +258,10 @@ class CrowdNavEnv(gym.Env):
         info["occupancy"] = {"grid": self.layout.occupancy.copy(), "origin_xy": self.layout.grid_origin,
                              "resolution_m": 0.05}
         info["episode_seed"] = ep_seed
+        info["cameras"] = self.cameras
+        info["action_codec"] = self.codec
+        info["goal_xy"] = self.goal.copy()
+        info["config"] = self.cfg
         return obs, info
 
     @property
@@ -273,22 +283,11 @@ class CrowdNavEnv(gym.Env):
     # -------------------------------------------------------------------------------------------------- step
     def decode_action(self, action) -> tuple[float, float]:
         """Physical (v m/s, ω rad/s) of an action of this env's action space (clipped to the limits)."""
-        r = self.cfg.robot
-        if self.cfg.action_type == "discrete":
-            v, w = self._grid[int(action)]
-            return float(v), float(w)
-        a = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -1.0, 1.0)
-        return float((a[0] + 1.0) / 2.0 * r.v_max_mps), float(a[1] * r.omega_max_radps)
+        return self.codec.decode(action)
 
     def encode_command(self, v: float, omega: float):
         """The action of this env's action space closest to the physical command (v, ω)."""
-        r = self.cfg.robot
-        v = float(np.clip(v, 0.0, r.v_max_mps))
-        omega = float(np.clip(omega, -r.omega_max_radps, r.omega_max_radps))
-        if self.cfg.action_type == "discrete":
-            d = ((self._grid[:, 0] - v) / r.v_max_mps) ** 2 + ((self._grid[:, 1] - omega) / r.omega_max_radps) ** 2
-            return int(np.argmin(d))
-        return np.array([2.0 * v / r.v_max_mps - 1.0, omega / r.omega_max_radps], dtype=np.float32)
+        return self.codec.encode(v, omega)
 
     def step(self, action):
         if self.layout is None:
@@ -347,13 +346,13 @@ class CrowdNavEnv(gym.Env):
         """``N x 17 x 3`` true COCO keypoints of every pedestrian, world frame, m."""
         return self.bodies.keypoints(self.crowd.pos, self.skeleton())
 
-    def robot_state(self) -> np.ndarray:
-        """The paper's s = [g_x, g_y, d_g, v_x, v_y] (goal and velocity in the robot frame)."""
-        x, y, yaw = self.robot
-        dx, dy = self.goal[0] - x, self.goal[1] - y
-        c, s = math.cos(yaw), math.sin(yaw)
-        return np.array([c * dx + s * dy, -s * dx + c * dy, math.hypot(dx, dy), self.robot_v[0], 0.0],
-                        dtype=np.float32)
+    def robot_state(self, target: np.ndarray | None = None) -> np.ndarray:
+        """The paper's s = [g_x, g_y, d_g, v_x, v_y] (goal and velocity in the robot frame); with ``target`` (a
+        world-frame point, e.g. a waypoint) in place of the goal."""
+        tx, ty = (self.goal if target is None else np.asarray(target, np.float64).reshape(2))
+        dx, dy = float(tx) - self.robot[0], float(ty) - self.robot[1]
+        g = world_to_robot(np.array([tx, ty], np.float64), self.robot)
+        return np.array([g[0], g[1], math.hypot(dx, dy), self.robot_v[0], 0.0], dtype=np.float32)
 
     def camera_poses(self) -> list[np.ndarray]:
         """World-from-camera 4 x 4 transforms of the left and right cameras."""
@@ -440,7 +439,7 @@ class CrowdNavEnv(gym.Env):
         info: dict[str, Any] = {
             "d_o": self.d_o, "d_goal": self.d_goal, "time_s": self.t * self.cfg.dt_s, "outcome": outcome,
             "reward_terms": terms or {},
-            "command": self.robot_v.copy(),
+            "command": self.robot_v.copy(), "odom": self.robot.copy(),
         }
         info["privileged"] = {
             "robot_pose": self.robot.copy(), "goal_xy": self.goal.copy(),

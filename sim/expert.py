@@ -19,10 +19,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from sim.episode import run_episode
 from sim.geometry import wrap_angle
+from sim.robot import ActionCodec
+from sim.trace import EpisodeTrace
+from sim.wrappers import PrivilegedWorld
 
 
 @dataclass
@@ -46,14 +51,17 @@ class ExpertConfig:
 
 
 class PrivilegedExpert:
-    """Drives a :class:`sim.env.CrowdNavEnv` from its privileged state.
+    """Plans (v, ω) from the privileged state of the world: a :class:`sim.wrappers.WorldView` (what
+    :class:`sim.wrappers.PrivilegedWorld` puts in ``info["world"]``) or, equivalently, an unwrapped
+    :class:`sim.env.CrowdNavEnv` (the teacher's labels are computed env-side).
 
-    Usage::
+    Usage (as a driver: :class:`ExpertDriver`)::
 
-        expert = PrivilegedExpert()
+        env = PrivilegedWorld(env)
         obs, info = env.reset(seed=0)
-        expert.reset(env.unwrapped)
-        action = env.unwrapped.encode_command(*expert.command(env.unwrapped))
+        expert = PrivilegedExpert()
+        expert.reset(info["world"])
+        action = info["action_codec"].encode(*expert.command(info["world"]))
     """
 
     def __init__(self, cfg: ExpertConfig | None = None):
@@ -89,6 +97,11 @@ class PrivilegedExpert:
         gx = self.ctg[i, np.minimum(j + 1, w - 1)] - self.ctg[i, np.maximum(j - 1, 0)]
         gy = self.ctg[np.minimum(i + 1, h - 1), j] - self.ctg[np.maximum(i - 1, 0), j]
         return np.arctan2(-gy, -gx)
+
+    def executed(self, omega: float) -> None:
+        """The yaw rate actually executed this step, when another driver overrode the expert's choice (DAgger): the
+        smoothness cost of the next step is relative to it."""
+        self._prev_w = float(omega)
 
     def command(self, env) -> tuple[float, float]:
         """Best (v m/s, ω rad/s) for the env's current state."""
@@ -146,34 +159,30 @@ class PrivilegedExpert:
         return cost
 
 
-def expert_steps(env, seed: int, expert: PrivilegedExpert | None = None):
-    """Reset ``env`` with ``seed`` and let the expert drive it to the end of the episode.
+class ExpertDriver:
+    """The privileged expert as a :class:`sim.episode.Driver`; its env must be wrapped in
+    :class:`sim.wrappers.PrivilegedWorld` (it plans on ``info["world"]``). A long-horizon waypoint is ignored: the
+    expert plans on the full map to the final goal (a reference, not a competitor)."""
 
-    Yields ``(obs, info, None)`` after the reset, then ``(obs, info, (reward, done))`` after every step; the
-    executed command is ``env.unwrapped.robot_v``.
-    """
-    expert = expert or PrivilegedExpert()
-    u = env.unwrapped
-    obs, info = env.reset(seed=seed)
-    expert.reset(u)
-    yield obs, info, None
-    while True:
-        obs, reward, terminated, truncated, info = env.step(u.encode_command(*expert.command(u)))
-        yield obs, info, (reward, terminated or truncated)
-        if terminated or truncated:
-            return
+    def __init__(self, expert: PrivilegedExpert | None = None) -> None:
+        self.expert = expert or PrivilegedExpert()
+        self.codec: ActionCodec | None = None
+        self.last_command: tuple[float, float] = (0.0, 0.0)
+
+    def reset(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> None:
+        self.codec = info["action_codec"]
+        self.expert.reset(info["world"])
+
+    def act(self, obs: dict[str, np.ndarray], info: dict[str, Any]):
+        self.last_command = self.expert.command(info["world"])  # (v m/s, ω rad/s) before encoding
+        return self.codec.encode(*self.last_command)
 
 
-def run_expert_episode(env, seed: int, expert: PrivilegedExpert | None = None, on_step=None):
-    """Run one episode of the expert on ``env`` (a gymnasium env); returns its :class:`sim.trace.EpisodeTrace`.
+def run_expert_episode(env, seed: int, expert: PrivilegedExpert | None = None, on_step=None) -> EpisodeTrace:
+    """Run one episode of the expert on ``env`` (a gymnasium env, wrapped here in :class:`PrivilegedWorld`);
+    returns its :class:`sim.trace.EpisodeTrace`.
 
     Args:
-        env: the env (wrapped or not).
-        seed: reset seed.
-        expert: the expert (a new one by default).
-        on_step: optional ``callback(obs, reward, info)`` after every step (e.g. to collect video frames).
+        on_step: optional ``callback(transition)`` for every :class:`sim.episode.Transition` (the reset included).
     """
-    for obs, info, result in expert_steps(env, seed, expert):
-        if result is not None and on_step is not None:
-            on_step(obs, result[0], info)
-    return env.unwrapped.trace(method="expert")
+    return run_episode(PrivilegedWorld(env), ExpertDriver(expert), seed, "expert", on_step=on_step)

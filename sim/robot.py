@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -38,6 +39,44 @@ def action_grid(cfg: RobotConfig) -> np.ndarray:
     w = np.linspace(-cfg.omega_max_radps, cfg.omega_max_radps, cfg.n_rotations)
     vv, ww = np.meshgrid(v, w, indexing="ij")
     return np.stack([vv.ravel(), ww.ravel()], -1)
+
+
+@dataclass(frozen=True)
+class ActionCodec:
+    """Physical commands (v m/s, ω rad/s) ↔ actions of an env's action space.
+
+    ``continuous``: Box([-1, 1]²), v = (a₀ + 1)/2 · v_max and ω = a₁ · ω_max; ``discrete``: an index into
+    :func:`action_grid`. The env returns its codec in ``info["action_codec"]`` at reset, so that a driver turns
+    its command into an action without reading the env.
+    """
+
+    action_type: str  # "continuous" | "discrete"
+    robot: RobotConfig
+
+    @functools.cached_property
+    def grid(self) -> np.ndarray:
+        """The discrete action table (:func:`action_grid`)."""
+        return action_grid(self.robot)
+
+    def decode(self, action) -> tuple[float, float]:
+        """Physical (v m/s, ω rad/s) of an action (clipped to the limits)."""
+        r = self.robot
+        if self.action_type == "discrete":
+            v, w = self.grid[int(action)]
+            return float(v), float(w)
+        a = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -1.0, 1.0)
+        return float((a[0] + 1.0) / 2.0 * r.v_max_mps), float(a[1] * r.omega_max_radps)
+
+    def encode(self, v: float, omega: float):
+        """The action closest to the physical command (v, ω)."""
+        r = self.robot
+        v = float(np.clip(v, 0.0, r.v_max_mps))
+        omega = float(np.clip(omega, -r.omega_max_radps, r.omega_max_radps))
+        if self.action_type == "discrete":
+            g = self.grid
+            d = ((g[:, 0] - v) / r.v_max_mps) ** 2 + ((g[:, 1] - omega) / r.omega_max_radps) ** 2
+            return int(np.argmin(d))
+        return np.array([2.0 * v / r.v_max_mps - 1.0, omega / r.omega_max_radps], dtype=np.float32)
 
 
 def unicycle_step(x: float, y: float, yaw: float, v: float, omega: float, dt: float) -> tuple[float, float, float]:

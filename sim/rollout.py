@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import multiprocessing as mp
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -33,7 +32,7 @@ from typing import Literal
 
 from tqdm import tqdm
 
-from pipeline.core.artifacts import atomic_write_json, atomic_write_text
+from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
 from sim.env import SimConfig
@@ -112,7 +111,10 @@ def _video(sim_cfg: SimConfig, scene: str, density: float, seed: int, path: Path
     env = gym.make("icrowdnav/CrowdNav-v0", config=cfg, render_mode="rgb_array")
     frames: list[np.ndarray] = []
 
-    def grab(obs, reward, info):
+    def grab(tr):
+        if tr.step == 0:  # frames of the steps, not of the reset
+            return
+        obs, info = tr.obs, tr.info
         frames.append(compose_frame(
             [obs["rgb_left"], obs["rgb_right"], obs["depth_left"], obs["depth_right"], env.render()],
             ["left RGB", "right RGB", "left depth", "right depth", f"top-down t={info['time_s']:.1f}s"]))
@@ -142,12 +144,12 @@ def body(cfg: RolloutConfig, out: Path) -> dict:
             for r in tqdm(pool.map(_episode_job, jobs), total=len(jobs), desc=desc, unit="ep"):
                 rows.append(r)
     atomic_write_json(out / "seeds.json", {"seeds": seeds, "scenes": cfg.scenes, "densities": cfg.densities})
-    atomic_write_text(out / "episodes.jsonl", "".join(json.dumps(_finite(r)) + "\n" for r in rows))
+    atomic_write_text(out / "episodes.jsonl", "".join(json.dumps(json_safe(r)) + "\n" for r in rows))
     summary, by_cell = {}, {}
     for s in cfg.scenes:
         for d in cfg.densities:
             cell = [r for r in rows if r["scene"] == Path(s).stem and r["density"] == d]
-            summary[cell_name(s, d)] = _finite(aggregate(cell))
+            summary[cell_name(s, d)] = json_safe(aggregate(cell))
             by_cell[f"{Path(s).stem} @ {d:g} ped/m²"] = cell
     atomic_write_json(out / "summary.json", summary)
     atomic_write_text(out / "summary.md", f"# Expert rollouts ({cfg.run_name})\n\nEpisodes per cell: {cfg.episodes}; "
@@ -155,16 +157,3 @@ def body(cfg: RolloutConfig, out: Path) -> dict:
     n_succ = sum(r["success"] for r in rows)
     return {"episodes": len(rows), "success_rate": round(n_succ / len(rows), 4),
             "cells": len(cfg.scenes) * len(cfg.densities)}
-
-
-def _finite(obj):
-    """JSON-safe copy: nan/inf floats become None."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if hasattr(obj, "item") and not isinstance(obj, str):
-        return _finite(obj.item())
-    return obj

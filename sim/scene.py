@@ -30,6 +30,11 @@ not marked optional is required)::
       region: [x_min, x_max, y_min, y_max]   # optional spawn/goal region
       max_count: 40                    # optional cap
 
+A file is decoded and checked by the same machinery as the stage configs (:mod:`pipeline.core.config`: draccus
+decodes it into :class:`SceneFile`, then every ``validate()`` runs), so its errors name the file, the key, the
+expected and the actual value in the same words. ``from`` is a Python keyword, so a wall's ``from`` is read into
+the field ``from_`` (and named so in error messages).
+
 Density (ped/m²) is a run parameter, not part of the file: the pedestrian count is
 ``round(density * free_area_m2)`` with the free area measured on the occupancy grid.
 """
@@ -40,13 +45,13 @@ import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
-import yaml
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from pipeline.core.config import FieldValueError, from_dict, read_yaml, validate_tree
 from pipeline.core.errors import ConfigError, InputMissingError
 from sim.geometry import Box, Cylinder, Obstacle, StaticGeometry
 
@@ -54,11 +59,6 @@ SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 SPLITS = ("train", "test", "long_horizon")
 GRID_RES_M = 0.05  # occupancy grid resolution
 NAV_RES_M = 0.1  # shortest-path grid resolution
-
-_TOP_KEYS = {
-    "name", "split", "description", "bounds", "wall_height_m", "wall_thickness_m", "wall_color", "floor_color",
-    "obstacles", "random_obstacles", "start_goal", "pedestrians",
-}
 
 
 def check_episode_grid(scenes: list[str], densities: list[float], episodes: int, workers: int) -> None:
@@ -460,87 +460,201 @@ class _NavGraph:
 
 
 # ---------------------------------------------------------------------------------------------------- loading
-def _err(src: str, key: str, expected: str, actual: Any) -> ConfigError:
-    return ConfigError(f"scene file {src}: field '{key}': expected {expected}, got {actual!r}")
+# The file schema as config dataclasses: a scene file is decoded and checked by the same machinery as the stage
+# configs (pipeline.core.config: draccus decoding, then every validate(), children first).
+Vec2 = tuple[float, float]
+Range = tuple[float, float]  # [min, max]
+Rect = tuple[float, float, float, float]  # [x_min, x_max, y_min, y_max]
+Color = tuple[float, float, float]  # r, g, b in [0, 1]
 
 
-def _num_list(src: str, key: str, v: Any, n: int, positive: bool = False) -> tuple[float, ...]:
-    if not isinstance(v, list | tuple) or len(v) != n or not all(
-        isinstance(x, int | float) and not isinstance(x, bool) for x in v
-    ):
-        raise _err(src, key, f"a list of {n} numbers", v)
-    if positive and any(x <= 0 for x in v):
-        raise _err(src, key, "positive numbers", v)
-    return tuple(float(x) for x in v)
+def _check_num(name: str, v: float, lo: float, hi: float) -> None:
+    if not lo <= v <= hi:
+        raise FieldValueError(name, f"a number in [{lo}, {hi}]", v)
 
 
-def _num(src: str, key: str, v: Any, lo: float = -math.inf, hi: float = math.inf) -> float:
-    if not isinstance(v, int | float) or isinstance(v, bool) or not (lo <= v <= hi):
-        raise _err(src, key, f"a number in [{lo}, {hi}]", v)
-    return float(v)
+def _check_range(name: str, r: Range) -> None:
+    if r[0] > r[1]:
+        raise FieldValueError(name, "[min, max] with min <= max", list(r))
 
 
-def _range(src: str, key: str, v: Any) -> tuple[float, float]:
-    a, b = _num_list(src, key, v, 2)
-    if a > b:
-        raise _err(src, key, "[min, max] with min <= max", v)
-    return a, b
+def _check_rect(name: str, r: Rect | None) -> None:
+    if r is not None and (r[0] >= r[1] or r[2] >= r[3]):
+        raise FieldValueError(name, "[x_min, x_max, y_min, y_max] with min < max", list(r))
 
 
-def _rect(src: str, key: str, v: Any) -> tuple[float, float, float, float]:
-    r = _num_list(src, key, v, 4)
-    if r[0] >= r[1] or r[2] >= r[3]:
-        raise _err(src, key, "[x_min, x_max, y_min, y_max] with min < max", v)
-    return r  # type: ignore[return-value]
+def _check_color(name: str, c: Color | None) -> None:
+    if c is not None and any(x < 0 or x > 1 for x in c):
+        raise FieldValueError(name, "three numbers in [0, 1]", list(c))
 
 
-def _color(src: str, key: str, v: Any) -> tuple[float, float, float]:
-    c = _num_list(src, key, v, 3)
-    if any(x < 0 or x > 1 for x in c):
-        raise _err(src, key, "three numbers in [0, 1]", v)
-    return c  # type: ignore[return-value]
+@dataclass
+class BoxFile:
+    """``box:`` an upright box."""
+
+    center: Vec2  # m, world frame
+    size: Vec2  # m, along its own x and y
+    yaw_deg: float = 0.0
+    height_m: float = 1.0
+    color: Color = (0.55, 0.4, 0.25)
+
+    def validate(self) -> None:
+        if any(x <= 0 for x in self.size):
+            raise FieldValueError("size", "positive numbers", list(self.size))
+        _check_num("height_m", self.height_m, 0.01, 20)
+        _check_color("color", self.color)
 
 
-def _check_keys(src: str, key: str, d: Any, allowed: set[str], required: set[str]) -> None:
-    if not isinstance(d, dict):
-        raise _err(src, key, "a mapping", d)
-    unknown = set(d) - allowed
-    if unknown:
-        raise ConfigError(f"scene file {src}: unknown field '{key}.{sorted(unknown)[0]}'; allowed: {sorted(allowed)}")
-    missing = required - set(d)
-    if missing:
-        raise ConfigError(f"scene file {src}: missing field '{key}.{sorted(missing)[0]}'")
+@dataclass
+class WallFile:
+    """``wall:`` a straight wall segment (``from`` is a Python keyword: the file key is renamed ``from_``)."""
+
+    from_: Vec2  # m, one end
+    to: Vec2  # m, the other end
+    thickness_m: float = 0.2
+    height_m: float | None = None  # default: the scene's wall_height_m
+    color: Color | None = None  # default: the scene's wall_color
+
+    def validate(self) -> None:
+        if self.from_ == self.to:
+            raise ValueError(f"expected 'from' and 'to' to differ, got both {list(self.to)}")
+        _check_num("thickness_m", self.thickness_m, 0.01, 5)
+        if self.height_m is not None:
+            _check_num("height_m", self.height_m, 0.01, 20)
+        _check_color("color", self.color)
 
 
-def _parse_obstacle(src: str, i: int, item: Any, wall_h: float, wall_c: tuple) -> Obstacle:
-    key = f"obstacles[{i}]"
-    if not isinstance(item, dict) or len(item) != 1:
-        raise _err(src, key, "a mapping with exactly one of box / wall / cylinder", item)
-    kind, d = next(iter(item.items()))
-    k = f"{key}.{kind}"
-    if kind == "box":
-        _check_keys(src, k, d, {"center", "size", "yaw_deg", "height_m", "color"}, {"center", "size"})
-        return Box(_num_list(src, k + ".center", d["center"], 2), _num_list(src, k + ".size", d["size"], 2, True),
-                   math.radians(_num(src, k + ".yaw_deg", d.get("yaw_deg", 0.0))),
-                   _num(src, k + ".height_m", d.get("height_m", 1.0), 0.01, 20),
-                   _color(src, k + ".color", d.get("color", [0.55, 0.4, 0.25])))
-    if kind == "wall":
-        _check_keys(src, k, d, {"from", "to", "thickness_m", "height_m", "color"}, {"from", "to"})
-        a = np.array(_num_list(src, k + ".from", d["from"], 2))
-        b = np.array(_num_list(src, k + ".to", d["to"], 2))
-        length = float(np.hypot(*(b - a)))
-        if length <= 0:
-            raise _err(src, k, "'from' and 'to' to differ", d)
-        t = _num(src, k + ".thickness_m", d.get("thickness_m", 0.2), 0.01, 5)
-        yaw = math.atan2(b[1] - a[1], b[0] - a[0])
-        return Box(tuple((a + b) / 2), (length, t), yaw, _num(src, k + ".height_m", d.get("height_m", wall_h), 0.01, 20),
-                   _color(src, k + ".color", d.get("color", list(wall_c))))
-    if kind == "cylinder":
-        _check_keys(src, k, d, {"center", "radius_m", "height_m", "color"}, {"center", "radius_m"})
-        return Cylinder(_num_list(src, k + ".center", d["center"], 2), _num(src, k + ".radius_m", d["radius_m"], 0.01, 20),
-                        _num(src, k + ".height_m", d.get("height_m", 1.0), 0.01, 20),
-                        _color(src, k + ".color", d.get("color", [0.6, 0.6, 0.65])))
-    raise _err(src, key, "one of box / wall / cylinder", kind)
+@dataclass
+class CylinderFile:
+    """``cylinder:`` an upright cylinder."""
+
+    center: Vec2  # m, world frame
+    radius_m: float
+    height_m: float = 1.0
+    color: Color = (0.6, 0.6, 0.65)
+
+    def validate(self) -> None:
+        _check_num("radius_m", self.radius_m, 0.01, 20)
+        _check_num("height_m", self.height_m, 0.01, 20)
+        _check_color("color", self.color)
+
+
+@dataclass
+class ObstacleFile:
+    """One item of ``obstacles``: exactly one of its keys."""
+
+    box: BoxFile | None = None
+    wall: WallFile | None = None
+    cylinder: CylinderFile | None = None
+
+    def validate(self) -> None:
+        kinds = [k for k in ("box", "wall", "cylinder") if getattr(self, k) is not None]
+        if len(kinds) != 1:
+            raise ValueError(f"expected exactly one of box / wall / cylinder, got {kinds or 'none'}")
+
+    def build(self, wall_height_m: float, wall_color: Color) -> Obstacle:
+        if self.box is not None:
+            b = self.box
+            return Box(b.center, b.size, math.radians(b.yaw_deg), b.height_m, b.color)
+        if self.wall is not None:
+            w = self.wall
+            a, b = np.array(w.from_), np.array(w.to)
+            height = w.height_m if w.height_m is not None else wall_height_m
+            color = w.color if w.color is not None else wall_color
+            return Box(tuple((a + b) / 2), (float(np.hypot(*(b - a))), w.thickness_m),
+                       math.atan2(b[1] - a[1], b[0] - a[0]), height, color)
+        c = self.cylinder
+        assert c is not None
+        return Cylinder(c.center, c.radius_m, c.height_m, c.color)
+
+
+@dataclass
+class RandomObstaclesFile:
+    """``random_obstacles:`` see :class:`RandomObstacles`."""
+
+    count: tuple[int, int]
+    size_m: Range
+    region: Rect
+    height_m: Range = (0.5, 1.2)
+    clearance_m: float = 0.6
+
+    def validate(self) -> None:
+        if self.count[0] < 0 or self.count[0] > self.count[1]:
+            raise FieldValueError("count", "two non-negative integers [min, max] with min <= max", list(self.count))
+        _check_range("size_m", self.size_m)
+        _check_range("height_m", self.height_m)
+        _check_rect("region", self.region)
+        _check_num("clearance_m", self.clearance_m, 0, 5)
+
+
+@dataclass
+class StartGoalFile:
+    """``start_goal:`` see :class:`StartGoalSpec`."""
+
+    distance_m: Range = (5.5, 6.5)
+    metric: Literal["euclidean", "geodesic"] = "euclidean"
+    clearance_m: float = 0.5
+    region: Rect | None = None
+
+    def validate(self) -> None:
+        _check_range("distance_m", self.distance_m)
+        if self.distance_m[0] <= 0:
+            raise FieldValueError("distance_m", "positive distances", list(self.distance_m))
+        _check_num("clearance_m", self.clearance_m, 0.0, 5.0)
+        _check_rect("region", self.region)
+
+
+@dataclass
+class PedestriansFile:
+    """``pedestrians:`` optional spawn/goal region and a cap on the count."""
+
+    region: Rect | None = None
+    max_count: int = 60
+
+    def validate(self) -> None:
+        _check_rect("region", self.region)
+        _check_num("max_count", self.max_count, 0, 500)
+
+
+@dataclass
+class SceneFile:
+    """A scene file as written (the schema in the module docstring)."""
+
+    name: str  # must equal the file stem
+    split: Literal["train", "test", "long_horizon"]
+    bounds: Rect  # m, the free interior
+    description: str = ""
+    wall_height_m: float = 2.5
+    wall_thickness_m: float = 0.2
+    wall_color: Color = (0.82, 0.8, 0.76)
+    floor_color: Color = (0.55, 0.55, 0.52)
+    obstacles: list[ObstacleFile] = field(default_factory=list)
+    random_obstacles: RandomObstaclesFile | None = None
+    start_goal: StartGoalFile | None = None
+    pedestrians: PedestriansFile | None = None
+
+    def validate(self) -> None:
+        if not self.name:
+            raise FieldValueError("name", "a non-empty string", self.name)
+        _check_rect("bounds", self.bounds)
+        _check_num("wall_height_m", self.wall_height_m, 0.1, 20)
+        _check_num("wall_thickness_m", self.wall_thickness_m, 0.01, 5)
+        _check_color("wall_color", self.wall_color)
+        _check_color("floor_color", self.floor_color)
+
+    def spec(self, path: str) -> SceneSpec:
+        """The runtime :class:`SceneSpec` of this (validated) file."""
+        ro, sg, peds = self.random_obstacles, self.start_goal or StartGoalFile(), self.pedestrians or PedestriansFile()
+        return SceneSpec(
+            name=self.name, split=self.split, bounds=self.bounds, description=self.description,
+            obstacles=tuple(o.build(self.wall_height_m, self.wall_color) for o in self.obstacles),
+            wall_height_m=self.wall_height_m, wall_thickness_m=self.wall_thickness_m, wall_color=self.wall_color,
+            floor_color=self.floor_color,
+            random_obstacles=None if ro is None else RandomObstacles(ro.count, ro.size_m, ro.height_m, ro.region,
+                                                                     ro.clearance_m),
+            start_goal=StartGoalSpec(sg.distance_m, sg.metric, sg.clearance_m, sg.region),
+            ped_region=peds.region, ped_max_count=peds.max_count, path=path,
+        )
 
 
 def parse_scene(data: Any, src: str, stem: str | None = None) -> SceneSpec:
@@ -549,61 +663,21 @@ def parse_scene(data: Any, src: str, stem: str | None = None) -> SceneSpec:
     Raises:
         ConfigError: naming the file, the field, what was expected and what was found.
     """
-    _check_keys(src, "<top>", data, _TOP_KEYS, {"name", "split", "bounds"})
-    name = data["name"]
-    if not isinstance(name, str) or not name:
-        raise _err(src, "name", "a non-empty string", name)
-    if stem is not None and name != stem:
-        raise _err(src, "name", f"the file stem {stem!r}", name)
-    if data["split"] not in SPLITS:
-        raise _err(src, "split", f"one of {list(SPLITS)}", data["split"])
-    bounds = _rect(src, "bounds", data["bounds"])
-    wall_h = _num(src, "wall_height_m", data.get("wall_height_m", 2.5), 0.1, 20)
-    wall_c = _color(src, "wall_color", data.get("wall_color", [0.82, 0.8, 0.76]))
-    obstacles_raw = data.get("obstacles") or []
-    if not isinstance(obstacles_raw, list):
-        raise _err(src, "obstacles", "a list", obstacles_raw)
-    obstacles = tuple(_parse_obstacle(src, i, it, wall_h, wall_c) for i, it in enumerate(obstacles_raw))
-    ro = None
-    if data.get("random_obstacles") is not None:
-        d = data["random_obstacles"]
-        _check_keys(src, "random_obstacles", d, {"count", "size_m", "height_m", "region", "clearance_m"},
-                    {"count", "size_m", "region"})
-        cnt = _range(src, "random_obstacles.count", d["count"])
-        if cnt[0] < 0 or cnt != tuple(int(x) for x in cnt):
-            raise _err(src, "random_obstacles.count", "two non-negative integers", d["count"])
-        ro = RandomObstacles((int(cnt[0]), int(cnt[1])), _range(src, "random_obstacles.size_m", d["size_m"]),
-                             _range(src, "random_obstacles.height_m", d.get("height_m", [0.5, 1.2])),
-                             _rect(src, "random_obstacles.region", d["region"]),
-                             _num(src, "random_obstacles.clearance_m", d.get("clearance_m", 0.6), 0, 5))
-    sg = StartGoalSpec()
-    if data.get("start_goal") is not None:
-        d = data["start_goal"]
-        _check_keys(src, "start_goal", d, {"distance_m", "metric", "clearance_m", "region"}, set())
-        metric = d.get("metric", "euclidean")
-        if metric not in ("euclidean", "geodesic"):
-            raise _err(src, "start_goal.metric", "euclidean or geodesic", metric)
-        dist = _range(src, "start_goal.distance_m", d.get("distance_m", [5.5, 6.5]))
-        if dist[0] <= 0:
-            raise _err(src, "start_goal.distance_m", "positive distances", d.get("distance_m"))
-        sg = StartGoalSpec(dist, metric, _num(src, "start_goal.clearance_m", d.get("clearance_m", 0.5), 0.0, 5.0),
-                           _rect(src, "start_goal.region", d["region"]) if d.get("region") is not None else None)
-    ped_region, ped_max = None, 60
-    if data.get("pedestrians") is not None:
-        d = data["pedestrians"]
-        _check_keys(src, "pedestrians", d, {"region", "max_count"}, set())
-        if d.get("region") is not None:
-            ped_region = _rect(src, "pedestrians.region", d["region"])
-        ped_max = int(_num(src, "pedestrians.max_count", d.get("max_count", 60), 0, 500))
-    desc = data.get("description", "")
-    if not isinstance(desc, str):
-        raise _err(src, "description", "a string", desc)
-    return SceneSpec(
-        name=name, split=data["split"], bounds=bounds, obstacles=obstacles, description=desc,
-        wall_height_m=wall_h, wall_thickness_m=_num(src, "wall_thickness_m", data.get("wall_thickness_m", 0.2), 0.01, 5),
-        wall_color=wall_c, floor_color=_color(src, "floor_color", data.get("floor_color", [0.55, 0.55, 0.52])),
-        random_obstacles=ro, start_goal=sg, ped_region=ped_region, ped_max_count=ped_max, path=src,
-    )
+    source = f"scene file {src}"
+    if isinstance(data, dict) and isinstance(data.get("obstacles"), list):  # `from` cannot be a dataclass field
+        data = {**data, "obstacles": [
+            {**item, "wall": {("from_" if k == "from" else k): v for k, v in item["wall"].items()}}
+            if isinstance(item, dict) and isinstance(item.get("wall"), dict) else item
+            for item in data["obstacles"]
+        ]}
+    scene = from_dict(SceneFile, data, source)
+    try:
+        validate_tree(scene)
+    except ConfigError as e:
+        raise ConfigError(f"{source}: {e}") from None
+    if stem is not None and scene.name != stem:
+        raise ConfigError(f"{source}: config key 'name': expected the file stem {stem!r}, got {scene.name!r}")
+    return scene.spec(src)
 
 
 def load_scene(name_or_path: str) -> SceneSpec:
@@ -629,8 +703,4 @@ def load_scene(name_or_path: str) -> SceneSpec:
 def _load_scene_file(path: str, mtime_ns: int) -> SceneSpec:
     """Parse one scene file (cached per path and modification time, so edits are picked up)."""
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as e:
-        raise ConfigError(f"scene file {p}: not valid YAML ({str(e).splitlines()[0]})") from None
-    return parse_scene(data, str(p), stem=p.stem)
+    return parse_scene(read_yaml(p, "scene file"), str(p), stem=p.stem)

@@ -62,8 +62,8 @@ def tiny_episodes() -> list[MemEpisode]:
 
 @pytest.fixture(scope="session")
 def tiny_mcap_dir(tmp_path_factory: pytest.TempPathFactory, tiny_episodes: list[MemEpisode]) -> Path:
-    """The two episodes logged as complete MCAP files (``recorder.mcap_io.EpisodeWriter``)."""
-    from recorder.mcap_io import EpisodeWriter
+    """The two episodes logged as complete MCAP files (``recorder.mcap.writer.EpisodeWriter``)."""
+    from recorder.mcap.writer import EpisodeWriter
 
     raw = tmp_path_factory.mktemp("raw")
     for k, ep in enumerate(tiny_episodes):

@@ -1,7 +1,7 @@
 """Crash-safe file and directory writing.
 
-* :func:`atomic_write_bytes` / :func:`atomic_write_text` / :func:`atomic_write_json` write a file so that a
-  reader sees either the old content or the complete new content, never a torn file.
+* :func:`atomic_write_bytes` / :func:`atomic_write_text` / :func:`atomic_write_json` / :func:`atomic_save_npz`
+  write a file so that a reader sees either the old content or the complete new content, never a torn file.
 * :class:`OutputDir` gives a stage a directory to write into and publishes it under its final name only when
   the stage finished without an exception, so a crash at any point never leaves a half-written output
   directory and never loses the previous one before the new one is complete.
@@ -13,12 +13,14 @@ import contextlib
 import glob
 import json
 import logging
+import math
 import os
 import shutil
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal
+from typing import IO, Any, Literal
 
 from pipeline.core.errors import InputMissingError, OutputExistsError
 
@@ -58,13 +60,35 @@ def atomic_write_bytes(path: Path, data: bytes) -> Path:
     Returns:
         ``path``.
     """
+    return _atomic_write(path, lambda f: f.write(data))
+
+
+def atomic_save_npz(path: Path, arrays: dict[str, Any]) -> Path:
+    """Writes ``arrays`` as an uncompressed ``.npz`` archive (:func:`numpy.savez`) to ``path`` atomically (see
+    :func:`atomic_write_bytes`; the archive is written straight into the temporary file, not held in memory).
+
+    Args:
+        path: Destination file (its name is kept as given: no ``.npz`` is appended).
+        arrays: Array name -> array (anything :func:`numpy.savez` accepts).
+
+    Returns:
+        ``path``.
+    """
+    import numpy as np  # the kernel imports no numpy at import time (see _json_default): only this writer needs it
+
+    return _atomic_write(path, lambda f: np.savez(f, **arrays))
+
+
+def _atomic_write(path: Path, write: Callable[[IO[bytes]], object]) -> Path:
+    """The atomic pattern of :func:`atomic_write_bytes`: ``write(f)`` fills a temporary file in the same directory,
+    which is flushed, fsynced, renamed over ``path``; then the directory is fsynced."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     tmp = Path(tmp_name)
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, FILE_MODE)
@@ -100,6 +124,19 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, set | frozenset):
         return sorted(obj)
     raise TypeError(f"object of type {type(obj).__name__} is not JSON serialisable: {obj!r}")
+
+
+def json_safe(obj: Any) -> Any:
+    """JSON-safe copy: nan/inf floats become None."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if hasattr(obj, "item") and not isinstance(obj, str):
+        return json_safe(obj.item())
+    return obj
 
 
 def atomic_write_json(path: Path, data: Any) -> Path:

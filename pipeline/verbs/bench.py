@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.config import BaseStageConfig, load_config
 from pipeline.core.errors import ConfigError
@@ -206,7 +207,7 @@ def main(argv: list[str]) -> int:
         overrides["seconds_per_figure"] = a.seconds_per_figure
     cfg = load_config(BenchConfig, "bench", a.profile, overrides)
     figures = measure(cfg)
-    path = Path(cfg.data_dir) / "bench" / "bench.json"
+    path = layout.bench_file(cfg.data_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
     current = {}
     if path.exists():

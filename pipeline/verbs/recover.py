@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from recorder.mcap_io import main as mcap_main
+from recorder.mcap.cli import main as mcap_main
 
 
 def main(argv: list[str]) -> int:

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
+from pipeline.core import layout
 from pipeline.core.stage import Stage, run_stage
 from sim.rollout import RolloutConfig, body
 
@@ -11,7 +10,7 @@ STAGE = Stage(
     name="rollout",
     config_cls=RolloutConfig,
     help="run the privileged expert over scenes x densities x seeds; metrics, figures, videos",
-    output_dir=lambda cfg: Path(cfg.data_dir) / "rollouts" / cfg.run_name,
+    output_dir=lambda cfg: layout.rollout_dir(cfg.data_dir, cfg.run_name),
     inputs=lambda cfg: [],
     body=body,
     code=("pipeline", "sim"),

@@ -2,8 +2,8 @@
 
 ``icrowdnav train --variant <name>`` trains one (``make train`` trains every name of ``TRAIN_VARIANTS``);
 ``icrowdnav eval --methods '[..., <name>]'`` benchmarks it through the same harness, seeds and metrics as the
-paper's methods. Each lives in its own module ``rl.baselines.<name>`` (the contract is in
-:mod:`rl.baselines.common`); this table is what the pipeline needs without importing them.
+paper's methods. Each lives in its own package ``rl.baselines.<name>`` (configuration, model, training, driver, ...;
+the contract is in :mod:`rl.baselines.common`); this table is what the pipeline needs without importing them.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ BASELINES: dict[str, BaselineInfo] = {
 
 
 def baseline_module(name: str):
-    """The module of baseline ``name`` (imported on first use)."""
+    """The package of baseline ``name`` (imported on first use): ``Config``, ``inputs``, ``train``, ``Driver``, ..."""
     import importlib
 
     return importlib.import_module(f"rl.baselines.{name}")

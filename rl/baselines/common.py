@@ -1,6 +1,7 @@
-"""What every learned baseline shares: the module contract, checkpoints, expert data, sensors and the sub-goal.
+"""What every learned baseline shares: the package contract, checkpoints, expert data, sensors and the sub-goal.
 
-A baseline is a module ``rl.baselines.<name>`` (listed in :data:`rl.baselines.BASELINES`) with::
+A baseline is a package ``rl.baselines.<name>`` (listed in :data:`rl.baselines.BASELINES`; one module per concern:
+``configuration``, ``model``, ``training``, ``driver``, ...) whose ``__init__`` exposes::
 
     Config                            dataclass of its training options (``TrainConfig.<name>``; profiles set it)
     inputs(cfg) -> list[Path]         files it reads besides the simulator, checked before any output exists
@@ -17,7 +18,8 @@ A baseline is a module ``rl.baselines.<name>`` (listed in :data:`rl.baselines.BA
 
 A driver builds its observation from the ``env`` object (the true state it is allowed to see, e.g. tracks within
 sensor range), not from the ``obs`` dict: the harness renders cameras for videos and MCAP logs, which changes
-``obs`` but must not change what a privileged baseline sees. A waypoint (long-horizon runs) replaces the goal.
+``obs`` but must not change what a privileged baseline sees. A waypoint (long-horizon runs) replaces the goal; the
+sub-goal on the static map's shortest path is :class:`sim.planners.global_path.GlobalPath`.
 
 Checkpoint (in ``DATA_DIR/checkpoints/policy/<name>/``): ``policy.safetensors`` (every parameter and buffer) and
 ``policy.json`` (``kind: baseline``, ``variant: <name>``, ``net``: what to build, ``observation_space``: a
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing as mp
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
@@ -37,12 +40,17 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError
+from rl.policy import read_policy_json
+from rl.teacher import discounted, stage_pairs_all
 from sim.env import CrowdNavEnv, SimConfig
+from sim.episode import episode_steps
+from sim.expert import ExpertDriver
 from sim.geometry import world_to_robot
-from sim.planners.global_path import GlobalPath, _distance_to_polyline  # noqa: F401 - re-exported
+from sim.wrappers import PrivilegedWorld
 
 POLICY_JSON = "policy.json"
 POLICY_WEIGHTS = "policy.safetensors"
@@ -52,6 +60,7 @@ POLICY_WEIGHTS = "policy.safetensors"
 def save_baseline(out: Path, name: str, model: torch.nn.Module, net: dict[str, Any], inputs: dict[str, Any],
                   produced_by: dict[str, Any], **extra: Any) -> None:
     """Writes ``policy.safetensors`` and ``policy.json`` (each atomically) for baseline ``name``."""
+    # lazily: pretrain.checkpoint takes ~3 s to import (torchvision, via pretrain.model)
     from pretrain.checkpoint import save_safetensors
 
     out = Path(out)
@@ -76,8 +85,8 @@ def load_baseline(ckpt: Path, name: str, build: Callable[[dict[str, Any]], torch
                   ) -> tuple[torch.nn.Module, dict[str, Any]]:
     """The model of baseline ``name`` saved in ``ckpt`` (eval mode) and its description; ``build(net)`` makes the
     network from ``policy.json``'s ``net``."""
+    # lazily: pretrain.checkpoint takes ~3 s to import (torchvision, via pretrain.model)
     from pretrain.checkpoint import load_safetensors
-    from rl.policy import read_policy_json
 
     ckpt = Path(ckpt)
     desc = read_policy_json(ckpt)
@@ -96,45 +105,38 @@ def load_baseline(ckpt: Path, name: str, build: Callable[[dict[str, Any]], torch
 # ------------------------------------------------------------------------------------------------- training data
 def training_pairs(cfg) -> list[tuple[str, float]]:
     """The (scene, density) pairs of the training scenes (the teacher's curriculum, every stage)."""
-    from rl.teacher import stage_pairs_all
-
     return stage_pairs_all(cfg.teacher.curriculum)
 
 
 def _expert_episode(args: tuple) -> dict[str, np.ndarray]:
-    from sim.expert import PrivilegedExpert
-
+    """One episode driven by the privileged expert; the baseline's observer (which reads the true world,
+    ``info["world"]``) observes every state the expert acted in."""
     sim_cfg, scene, density, seed, gamma, make_observer, obs_mode, action_type = args
-    env = CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, obs_mode=obs_mode,
-                                     action_type=action_type, info_level="basic"))
+    env = PrivilegedWorld(CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, obs_mode=obs_mode,
+                                                     action_type=action_type, info_level="basic")))
     observer = make_observer()
-    expert = PrivilegedExpert()
-    obs, _ = env.reset(seed=seed)
-    expert.reset(env)
-    observer.reset(env, obs)
+    driver = ExpertDriver()
     rows: dict[str, list] = {}
     cmds, actions, rewards = [], [], []
     outcome = "timeout"
-    while True:
-        for k, v in observer(env, obs).items():
-            rows.setdefault(k, []).append(np.asarray(v))
-        v, w = expert.command(env)
-        a = env.encode_command(v, w)
-        cmds.append((v, w))
-        actions.append(a)
-        obs, r, term, trunc, info = env.step(a)
-        rewards.append(r)
-        if term or trunc:
-            outcome = info["outcome"] or "timeout"
+    for tr in episode_steps(env, driver, seed):
+        if tr.step == 0:
+            observer.reset(tr.info["world"], tr.obs)
+        else:
+            cmds.append(driver.last_command)
+            actions.append(tr.action)
+            rewards.append(tr.reward)
+        if tr.done:
+            outcome = tr.info["outcome"] or "timeout"
             break
+        for k, v in observer(tr.info["world"], tr.obs).items():
+            rows.setdefault(k, []).append(np.asarray(v))
     env.close()
-    from rl.teacher import _discounted
-
     out = {k: np.stack(v) for k, v in rows.items()}
     out["command"] = np.asarray(cmds, np.float32)
     out["action"] = np.asarray(actions)
     out["reward"] = np.asarray(rewards, np.float32)
-    out["return"] = _discounted(rewards, gamma)
+    out["return"] = discounted(rewards, gamma)
     done = np.zeros(len(rewards), bool)
     done[-1] = True
     out["done"] = done
@@ -152,8 +154,6 @@ def collect_expert_episodes(sim_cfg: SimConfig, pairs: list[tuple[str, float]], 
     (v, ω)), ``action`` (that command in the env's action space), ``reward`` (the paper's), ``return``
     (discounted with ``gamma``), ``done`` (last step of an episode), ``success`` (the episode's outcome, per
     step) and ``episode`` (its index)."""
-    from tqdm import tqdm
-
     jobs = [(sim_cfg, *pairs[k % len(pairs)], seed + k, gamma, make_observer, obs_mode, action_type)
             for k in range(episodes)]
     parts = []
@@ -161,8 +161,6 @@ def collect_expert_episodes(sim_cfg: SimConfig, pairs: list[tuple[str, float]], 
         it = map(_expert_episode, jobs)
         parts = list(tqdm(it, total=len(jobs), desc=desc, unit="ep", disable=not progress, dynamic_ncols=True))
     else:
-        import multiprocessing as mp
-
         with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
             parts = list(tqdm(pool.map(_expert_episode, jobs), total=len(jobs), desc=desc, unit="ep",
                               disable=not progress, dynamic_ncols=True))

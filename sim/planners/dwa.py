@@ -67,6 +67,7 @@ from scipy import ndimage
 
 from pipeline.core.errors import ConfigError
 from sim.cameras import CameraSpec
+from sim.depth import ObstacleMemory, depth_to_points
 from sim.geometry import robot_to_world, world_to_robot, wrap_angle
 
 
@@ -137,33 +138,6 @@ class DWAConfig:
 
 
 # ---------------------------------------------------------------------------------------------------- costmap
-def depth_to_points(depth: np.ndarray, spec: CameraSpec, stride: int = 1) -> np.ndarray:
-    """Back-project the valid pixels of one depth image into the robot's base frame.
-
-    Args:
-        depth: ``H x W`` z-depth, m (0 = invalid), as rendered by :class:`sim.renderer.WorldRenderer`.
-        spec: the camera (intrinsics ``K`` and base-from-camera ``T_base_cam``).
-        stride: use pixels ``[::stride, ::stride]``.
-
-    Returns:
-        ``N x 3`` points, base frame (x forward, y left, z up from the floor), m.
-    """
-    d = np.asarray(depth, dtype=np.float64)
-    if d.shape != (spec.height_px, spec.width_px):
-        raise ValueError(f"depth image of camera {spec.name!r}: expected shape "
-                         f"{(spec.height_px, spec.width_px)}, got {d.shape}")
-    rows = np.arange(0, spec.height_px, stride)
-    cols = np.arange(0, spec.width_px, stride)
-    z = d[np.ix_(rows, cols)]
-    valid = z > 0
-    vv, uu = np.meshgrid(rows + 0.5, cols + 0.5, indexing="ij")  # pixel centres (u = col, v = row)
-    k = spec.K
-    z = z[valid]
-    pc = np.stack([(uu[valid] - k[0, 2]) / k[0, 0] * z, (vv[valid] - k[1, 2]) / k[1, 1] * z, z], -1)
-    t = spec.T_base_cam
-    return pc @ t[:3, :3].T + t[:3, 3]
-
-
 @dataclass
 class LocalCostmap:
     """A robot-centred, robot-aligned obstacle grid and its distance field.
@@ -259,69 +233,6 @@ def _band(points: np.ndarray, cfg: DWAConfig) -> np.ndarray:
     return points[(z >= cfg.min_height_m) & (z <= cfg.max_height_m)]
 
 
-class ObstacleMemory:
-    """Obstacle points in the odometry frame, one per voxel, each with the time it was last observed.
-
-    Args:
-        memory_s: points older than this are dropped, s.
-        voxel_m: voxel size, m.
-    """
-
-    def __init__(self, memory_s: float, voxel_m: float):
-        self.memory_s = memory_s
-        self.voxel_m = voxel_m
-        self.xyz = np.zeros((0, 3))
-        self.stamp = np.zeros(0)
-
-    def __len__(self) -> int:
-        return len(self.xyz)
-
-    def update(self, new_xyz: np.ndarray, t_s: float, keep: np.ndarray | None = None) -> None:
-        """Add points observed at ``t_s``, drop expired ones and (optionally) those where ``keep`` is False.
-
-        Args:
-            new_xyz: ``N x 3`` odometry-frame points, m.
-            t_s: observation time, s.
-            keep: ``M`` bool over the current points (e.g. False where a camera sees through them).
-        """
-        old_xyz, old_t = self.xyz, self.stamp
-        if keep is not None:
-            old_xyz, old_t = old_xyz[keep], old_t[keep]
-        live = t_s - old_t < self.memory_s - 1e-9
-        xyz = np.concatenate([np.asarray(new_xyz, dtype=np.float64).reshape(-1, 3), old_xyz[live]])
-        stamp = np.concatenate([np.full(len(new_xyz), float(t_s)), old_t[live]])
-        if len(xyz) == 0:
-            self.xyz, self.stamp = xyz, stamp
-            return
-        ijk = np.floor(xyz / self.voxel_m).astype(np.int64) + (1 << 20)  # 21 bits per axis: ±100 km at 0.1 m
-        key = (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
-        # the first occurrence of each voxel wins: new points come first, so a re-observed voxel is refreshed
-        _, first = np.unique(key, return_index=True)
-        self.xyz, self.stamp = xyz[first], stamp[first]
-
-    def seen_through(self, depths: Sequence[np.ndarray], cameras: Sequence[CameraSpec], pose: Sequence[float],
-                     tol_m: float) -> np.ndarray:
-        """``M`` bool: remembered points some camera now sees through (valid depth > point depth + tol)."""
-        out = np.zeros(len(self.xyz), dtype=bool)
-        if not len(self.xyz):
-            return out
-        base = world_to_robot(self.xyz, pose)
-        for depth, spec in zip(depths, cameras, strict=True):
-            t = spec.T_base_cam
-            pc = (base - t[:3, 3]) @ t[:3, :3]  # camera frame
-            z = pc[:, 2]
-            front = z > spec.min_depth_m
-            zs = np.where(front, z, 1.0)
-            u = spec.K[0, 0] * pc[:, 0] / zs + spec.K[0, 2]
-            v = spec.K[1, 1] * pc[:, 1] / zs + spec.K[1, 2]
-            inside = front & (u >= 0) & (u < spec.width_px) & (v >= 0) & (v < spec.height_px)
-            col = np.clip(u.astype(np.int64), 0, spec.width_px - 1)
-            row = np.clip(v.astype(np.int64), 0, spec.height_px - 1)
-            measured = np.asarray(depth)[row, col]
-            out |= inside & (measured > 0) & (measured > z + tol_m)
-        return out
-
-
 # ------------------------------------------------------------------------------------------------- controller
 class DWAController:
     """The Dynamic Window Approach on depth + odometry (see the module docstring).
@@ -359,13 +270,23 @@ class DWAController:
             env: the unwrapped :class:`sim.env.CrowdNavEnv`.
             goal_xy: the final goal, world frame, m; ``env.goal`` by default.
         """
-        r = env.cfg.robot
-        self.radius_m = float(r.radius_m)
-        self.v_max = float(r.v_max_mps)
-        self.w_max = float(r.omega_max_radps)
-        self.dt = float(env.cfg.dt_s)
-        self.cameras = tuple(env.cameras)
-        self.goal = np.asarray(env.goal if goal_xy is None else goal_xy, dtype=np.float64).reshape(2).copy()
+        self.start(env.cameras, env.cfg.robot, env.cfg.dt_s, env.goal if goal_xy is None else goal_xy)
+
+    def start(self, cameras: Sequence[CameraSpec], robot, dt_s: float, goal_xy: Sequence[float]) -> None:
+        """Start an episode from what the env reports at reset (what :meth:`reset` reads from an env).
+
+        Args:
+            cameras: the camera specs (``info["cameras"]``).
+            robot: the :class:`sim.robot.RobotConfig` (radius, limits).
+            dt_s: the control period, s.
+            goal_xy: the final goal, world frame, m.
+        """
+        self.radius_m = float(robot.radius_m)
+        self.v_max = float(robot.v_max_mps)
+        self.w_max = float(robot.omega_max_radps)
+        self.dt = float(dt_s)
+        self.cameras = tuple(cameras)
+        self.goal = np.asarray(goal_xy, dtype=np.float64).reshape(2).copy()
         self.memory = ObstacleMemory(self.cfg.memory_s, self.cfg.memory_voxel_m)
         self.t_s = 0.0
         c = self.cfg
@@ -500,3 +421,27 @@ class DWAController:
         self.last_debug = {"v": v[:, 0], "w": w[:, 0], "score": score, "admissible": admissible,
                            "free_len_m": free_len, "heading": heading, "dist": dist}
         return float(v[k, 0]), float(w[k, 0])
+
+
+class DWADriver:
+    """DWA as a :class:`sim.episode.Driver`: depth from ``obs``, odometry from ``info`` (``odom``, ``command``),
+    the cameras, limits and goal from the reset ``info``, a long-horizon waypoint from ``info["waypoint"]``."""
+
+    def __init__(self, cfg: DWAConfig | None = None) -> None:
+        self.dwa = DWAController(cfg)
+        self.codec = None
+
+    def reset(self, obs: dict[str, np.ndarray], info: dict) -> None:
+        self.codec = info["action_codec"]
+        self.dwa.start(info["cameras"], self.codec.robot, info["config"].dt_s, info["goal_xy"])
+
+    def act(self, obs: dict[str, np.ndarray], info: dict):
+        depths = [obs[f"depth_{c.name}"] for c in self.dwa.cameras]
+        v0, w0 = (float(x) for x in np.asarray(info["command"], dtype=np.float64).reshape(2))
+        pose = np.asarray(info["odom"], dtype=np.float64).reshape(3)
+        return self.codec.encode(*self.dwa.command_from(depths, pose, v0, w0, info.get("waypoint")))
+
+    def bev_panel(self) -> np.ndarray | None:
+        """The occupied cells of the latest costmap (videos), or None."""
+        cm = self.dwa.last_costmap
+        return None if cm is None else np.asarray(cm.occupied, np.float32)

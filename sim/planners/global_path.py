@@ -49,10 +49,10 @@ class GlobalPath:
         target = np.asarray(env.goal if target is None else target, float)
         if self.path is None or self.target is None or np.hypot(*(self.target - target)) > 1e-6:
             self._plan(xy, target)
-        seg_d = _distance_to_polyline(xy, self.path)
+        seg_d = distance_to_polyline(xy, self.path)
         if seg_d[0] > self.replan_m:
             self._plan(xy, target)
-            seg_d = _distance_to_polyline(xy, self.path)
+            seg_d = distance_to_polyline(xy, self.path)
         # walk along the path from the closest point
         k = int(seg_d[1])
         p = self.path
@@ -71,7 +71,7 @@ class GlobalPath:
         return out
 
 
-def _distance_to_polyline(xy: np.ndarray, path: np.ndarray) -> tuple[float, int, np.ndarray]:
+def distance_to_polyline(xy: np.ndarray, path: np.ndarray) -> tuple[float, int, np.ndarray]:
     """(distance, index of the closest segment's start, closest point) of ``xy`` to the polyline ``path``."""
     if len(path) == 1:
         return float(np.hypot(*(xy - path[0]))), 0, path[0].copy()

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.harness import Job, initial_state, make_env, reset_episode, run_episode
-from evaluation.methods import MethodSpec, resolve_methods, state_toward
+from evaluation.harness import Job, initial_state, make_env, reset_options, run_episode
+from evaluation.methods import MethodSpec, resolve_methods
 from evaluation.report import mcnemar_exact, paired, report_markdown, results, results_csv, shape_checks
 from pipeline.core.errors import ConfigError, InputMissingError
 from sim.env import CrowdNavEnv, SimConfig
@@ -28,8 +28,9 @@ def test_same_seed_list_gives_the_same_episodes_for_two_methods(tmp_path):
     for seed in (20_000, 20_001):
         states = []
         for m in (expert, dwa):
-            env = make_env(Job(m, TINY, "office_lobby", 0.2, seed, tmp_path))
-            reset_episode(env, Job(m, TINY, "office_lobby", 0.2, seed, tmp_path))
+            job = Job(m, TINY, "office_lobby", 0.2, seed, tmp_path)
+            env = make_env(job)
+            env.reset(seed=seed, options=reset_options(job))
             states.append(initial_state(env))
             env.close()
         assert len(states[0]["peds"]) > 0
@@ -43,7 +44,7 @@ def test_given_start_and_goal_override_the_sampled_pair():
     np.testing.assert_allclose(env.robot[:2], [3.0, 10.0])
     np.testing.assert_allclose(env.goal, [27.0, 10.0])
     assert env.shortest_path_m == pytest.approx(24.0, abs=0.3)
-    s = state_toward(env, np.array([env.robot[0] + np.cos(env.robot[2]) * 2, env.robot[1] + np.sin(env.robot[2]) * 2]))
+    s = env.robot_state(np.array([env.robot[0] + np.cos(env.robot[2]) * 2, env.robot[1] + np.sin(env.robot[2]) * 2]))
     np.testing.assert_allclose(s[:3], [2.0, 0.0, 2.0], atol=1e-5)  # a point 2 m straight ahead
     env.close()
 

@@ -42,7 +42,7 @@ def golden_artifacts(tmp: Path) -> tuple[Path, Path]:
     """One tiny MCAP episode and the parquet file exported from two of them (the test fixtures' world)."""
     from recorder.drive import drive_episode
     from recorder.export import export_run
-    from recorder.mcap_io import EpisodeWriter
+    from recorder.mcap.writer import EpisodeWriter
     from tests.conftest import TINY_SEEDS, tiny_sim_config
 
     raw = tmp / "raw"

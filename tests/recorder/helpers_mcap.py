@@ -7,8 +7,8 @@
 Episode ``i`` uses seed ``i`` and goes to ``OUT_DIR/ep<i>.mcap``. Stdout gets one flushed line per frame,
 ``frame ep=<i> step=<k> durable=<n>`` (``n`` = frames already in complete chunks on disk), and per finished
 episode ``finished ep=<i> frames=<n> file=<name>``, so a test can stop the process at a known point. SIGTERM /
-SIGINT are turned into :class:`recorder.mcap_io.Interrupted` by :func:`recorder.mcap_io.graceful_signals` (the
-pattern the record stage uses): the open episode is closed as ``*.mcap.partial``, a line starting with
+SIGINT are turned into :class:`recorder.mcap.signals.Interrupted` by
+:func:`recorder.mcap.signals.graceful_signals` (the pattern the record stage uses): the open episode is closed as ``*.mcap.partial``, a line starting with
 ``interrupted`` says what is complete, and the exit status is ``128 + signum``.
 """
 
@@ -24,7 +24,8 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from recorder.drive import drive_episode
-from recorder.mcap_io import EpisodeWriter, Interrupted, graceful_signals
+from recorder.mcap.signals import Interrupted, graceful_signals
+from recorder.mcap.writer import EpisodeWriter
 from sim.env import CameraConfig, SimConfig
 
 

@@ -12,7 +12,7 @@ import pytest
 
 from recorder.doctor_mcap import check_mcap_dir, main
 from recorder.drive import drive_episode
-from recorder.mcap_io import EpisodeWriter
+from recorder.mcap.writer import EpisodeWriter
 from tests.recorder.helpers_mcap import record_episode, rewrite, tiny_config
 
 REPO = Path(__file__).resolve().parents[2]

@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from pipeline import cli
-from recorder.mcap_io import count_frames
+from recorder.mcap.reader import count_frames
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = ["--scenes", "hallway", "--densities", "0.05", "--episodes", "2", "--sim.max-episode-s", "2.0",
@@ -154,7 +154,7 @@ def test_export_after_the_recording_changed_refuses_unless_overwrite(tmp_path, c
 
 def test_salvaged_then_resumed_recording_exports_only_its_episodes(tmp_path, capsys):
     from recorder.drive import drive_episode
-    from recorder.mcap_io import EpisodeWriter
+    from recorder.mcap.writer import EpisodeWriter
     from sim.env import CameraConfig, SimConfig
 
     data = tmp_path / "data"

@@ -23,7 +23,7 @@ import pytest
 import yaml
 
 from pipeline import cli
-from recorder.mcap_io import count_frames, episode_summary, read_episode
+from recorder.mcap.reader import count_frames, episode_summary, read_episode
 
 REPO = Path(__file__).resolve().parents[2]
 SCENE_ARGS = ["--scenes", "hallway", "--densities", "0.05", "--sim.camera.width-px", "64",
@@ -423,7 +423,8 @@ def test_signal_while_an_episode_file_is_opened_leaves_a_valid_partial(tmp_path,
     import threading
 
     from recorder.drive import drive_episode
-    from recorder.mcap_io import EpisodeWriter, Interrupted, graceful_signals
+    from recorder.mcap.signals import Interrupted, graceful_signals
+    from recorder.mcap.writer import EpisodeWriter
     from sim.env import CameraConfig, SimConfig
 
     if threading.current_thread() is not threading.main_thread():

@@ -6,12 +6,24 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from safetensors.torch import load_file, save_file
 
-from rl.networks import N_LINEAR, LookaheadTeacherExtractor, unicycle_arcs
-from rl.policy import ScoredPolicy, build_policy, describe, load_policy, save_policy
+from pipeline.core.errors import CorruptArtifactError
+from rl.lookahead import N_LINEAR, unicycle_arcs
+from rl.networks import LookaheadTeacherExtractor
+from rl.policy import (
+    POLICY_WEIGHTS,
+    ScoredPolicy,
+    build_policy,
+    describe,
+    load_policy,
+    save_policy,
+    upgrade_state_dict,
+)
 from rl.teacher import behaviour_clone, collect_expert, fit_lookahead_linear, mirror_batch, teacher_net
 from sim.env import CrowdNavEnv, SimConfig
 from sim.robot import action_grid, unicycle_step
+from tests.rl.helpers_lookahead import HEAD_KEYS, pre_head_layout
 
 SIM = SimConfig(max_episode_s=6.0)
 N_ROT = 21
@@ -55,7 +67,7 @@ def test_arcs_match_the_robot_kinematics():
 def test_features_see_a_pedestrian_ahead_and_reward_the_route(space):
     ext = _policy(space).features_extractor
     assert isinstance(ext, LookaheadTeacherExtractor)
-    s = len(ext.times)
+    s = len(ext.lookahead.times)
     straight_fast, stop, straight_slow = 4 * N_ROT + N_ROT // 2, N_ROT // 2, 1 * N_ROT + N_ROT // 2
     f = ext.action_features(_obs(peds=[(1.5, 0.0, 0.0, 0.0)]))[0]
     # driving straight at 1 m/s into a standing person 1.5 m ahead: negative clearance, a predicted contact
@@ -81,7 +93,7 @@ def test_features_are_mirror_symmetric(space):
     mobs, _, _ = mirror_batch(obs, torch.zeros(1, dtype=torch.long), None, flip, N_ROT)
     f = ext.action_features(obs)[0].view(5, N_ROT, -1)
     m = ext.action_features(mobs)[0].view(5, N_ROT, -1).flip(1)
-    s = len(ext.times)
+    s = len(ext.lookahead.times)
     sym = list(range(2 * s + 4)) + [f.shape[-1] - N_LINEAR + k for k in range(N_LINEAR)]
     np.testing.assert_allclose(f[..., sym].numpy(), m[..., sym].numpy(), atol=1e-4)
 
@@ -97,6 +109,34 @@ def test_scored_policy_round_trips_through_a_checkpoint(tmp_path, space):
         b = again.get_distribution(obs).distribution.logits
     assert isinstance(again, ScoredPolicy) and desc["net"]["encoder"] == "lookahead"
     assert torch.allclose(a, b)
+    # saved in the head-module layout: its learned layers under the extractor's "lookahead." prefix, nothing else
+    saved = set(load_file(str(tmp_path / "t" / POLICY_WEIGHTS)))
+    assert saved == set(policy.state_dict()) and "features_extractor.lookahead.linear.weight" in saved
+    assert upgrade_state_dict(dict.fromkeys(saved)).keys() == saved  # the current layout passes unchanged
+
+
+def test_checkpoint_from_before_the_head_module_loads_into_the_same_policy(tmp_path, space):
+    """A policy.safetensors written with the pre-module key names loads through load_policy (strict, as always) into
+    the same logits and values; a checkpoint missing one of the head's weights is still refused."""
+    policy = _policy(space, seed=3)
+    assert set(policy.features_extractor.lookahead.state_dict()) == HEAD_KEYS
+    ckpt = tmp_path / "old"
+    save_policy(ckpt, policy, describe("teacher", None, space, teacher_net({"encoder": "lookahead"}, SIM)))
+    old = pre_head_layout(policy.state_dict())
+    assert upgrade_state_dict(old).keys() == policy.state_dict().keys()
+    save_file(old, str(ckpt / POLICY_WEIGHTS))
+    again, _ = load_policy(ckpt)
+    obs = _obs(peds=[(1.5, 0.3, -0.2, 0.0), (2.5, -1.0, 0.0, 0.4)], scan_m=2.0)
+    with torch.no_grad():
+        for p in (policy, again):
+            p.set_training_mode(False)
+        assert torch.equal(again.get_distribution(obs).distribution.logits,
+                           policy.get_distribution(obs).distribution.logits)
+        assert torch.equal(again.predict_values(obs), policy.predict_values(obs))
+    del old["features_extractor.linear.bias"]
+    save_file(old, str(ckpt / POLICY_WEIGHTS))
+    with pytest.raises(CorruptArtifactError, match="lookahead.linear.bias"):
+        load_policy(ckpt)
 
 
 def test_linear_fit_and_cloning_lower_the_cross_entropy(space):
@@ -104,10 +144,10 @@ def test_linear_fit_and_cloning_lower_the_cross_entropy(space):
     policy = _policy(space)
     fit = fit_lookahead_linear(policy, data, 0.1)
     assert fit["frames"] == 2 * len(data["action"]) and fit["ce_after"] < 0.75 * fit["ce_before"]
-    frozen = policy.features_extractor.linear.weight.detach().clone()
+    frozen = policy.features_extractor.lookahead.linear.weight.detach().clone()
     rows = behaviour_clone(policy, data, 2, 64, 1e-3, 0, progress=False, soft_tau=0.1, mirror=True,
-                           frozen=("features_extractor.linear.",))
-    assert torch.equal(policy.features_extractor.linear.weight, frozen)  # the fitted cost stays
+                           frozen=("features_extractor.lookahead.linear.",))
+    assert torch.equal(policy.features_extractor.lookahead.linear.weight, frozen)  # the fitted cost stays
     assert rows[-1]["bc_loss"] <= fit["ce_after"] + 0.3
 
 

@@ -5,8 +5,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from safetensors.torch import save_file
 
-from rl.networks import N_LINEAR, StudentLookaheadExtractor, variant_keys
+from rl.lookahead import N_LINEAR
+from rl.networks import StudentLookaheadExtractor, variant_keys
 from rl.observe import observer_for_env
 from rl.perceive import (
     PED_RADIUS_M,
@@ -16,10 +18,11 @@ from rl.perceive import (
     person_centres,
     scan_from_points,
 )
-from rl.policy import ScoredPolicy, build_policy, describe, load_policy, save_policy
+from rl.policy import POLICY_WEIGHTS, ScoredPolicy, build_policy, describe, load_policy, save_policy
 from rl.teacher import fit_lookahead_linear, lookahead_feature_cache, mirror_batch
 from sim.env import CrowdNavEnv, SimConfig
 from sim.expert import PrivilegedExpert
+from tests.rl.helpers_lookahead import HEAD_KEYS, pre_head_layout
 
 SIM = replace(SimConfig(max_episode_s=8.0), obs_mode="visual", info_level="basic")
 SIM.camera.width_px, SIM.camera.height_px = 80, 60
@@ -172,6 +175,26 @@ def test_student_head_scores_actions_and_round_trips(lobby, tmp_path):
     assert torch.allclose(again.get_distribution(obs).distribution.logits, logits, atol=1e-5)
 
 
+def test_student_checkpoint_from_before_the_head_module_loads(lobby, tmp_path):
+    """A student saved with the pre-module key names (``features_extractor.scorer.0.weight``, ...) loads through
+    load_policy (strict) into the same logits and values, its bounded scorer included."""
+    space = _student_space(lobby)
+    net = {**_net(lobby), "scorer_bound": 3.0}
+    torch.manual_seed(1)
+    policy = build_policy("student", "no_bev", space, net)
+    assert set(policy.features_extractor.lookahead.state_dict()) == HEAD_KEYS
+    save_policy(tmp_path, policy, describe("student", "no_bev", space, net))
+    save_file(pre_head_layout(policy.state_dict()), str(tmp_path / POLICY_WEIGHTS))
+    again, _ = load_policy(tmp_path)
+    assert again.features_extractor.lookahead.scorer_bound == 3.0
+    obs = _batch(space, 4, seed=5)
+    with torch.no_grad():
+        policy.set_training_mode(False)
+        assert torch.equal(again.get_distribution(obs).distribution.logits,
+                           policy.get_distribution(obs).distribution.logits)
+        assert torch.equal(again.predict_values(obs), policy.predict_values(obs))
+
+
 def test_student_head_mirror_symmetry_and_no_i2_without_people(lobby):
     space = _student_space(lobby)
     ext = build_policy("student", "no_bev", space, _net(lobby)).features_extractor
@@ -213,11 +236,11 @@ def test_bounded_scorer_cannot_override_the_cost(lobby):
     policy = build_policy("student", "no_bev", space, {**_net(lobby), "scorer_bound": 2.0})
     ext = policy.features_extractor
     with torch.no_grad():
-        ext.scorer[-1].weight.mul_(1e3)
-        ext.scorer[-1].bias.fill_(50.0)
+        ext.lookahead.scorer[-1].weight.mul_(1e3)
+        ext.lookahead.scorer[-1].bias.fill_(50.0)
     obs = _batch(space, 8, seed=3)
     feats = ext.action_features(obs)
-    logits = ext(obs)[:, :ext.n_actions]
-    linear = 10.0 * ext.linear(feats[..., -N_LINEAR:]).squeeze(-1)
+    logits = ext(obs)[:, :ext.lookahead.n_actions]
+    linear = 10.0 * ext.lookahead.linear(feats[..., -N_LINEAR:]).squeeze(-1)
     gap = (logits - linear).abs()
     assert gap.max() <= 2.0 + 1e-4 and gap.max() > 1.5

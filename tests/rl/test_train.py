@@ -39,7 +39,7 @@ def teacher_dir(tmp_path_factory):
     policy = build_policy("teacher", None, space, net)
     fit_lookahead_linear(policy, data, 0.1)
     behaviour_clone(policy, data, 2, 256, 1e-3, 0, progress=False, soft_tau=0.1,
-                    frozen=("features_extractor.linear.",))
+                    frozen=("features_extractor.lookahead.linear.",))
     save_policy(out, policy, describe("teacher", None, space, net))
     (out / "manifest.json").write_text("{}")
     return out
@@ -243,7 +243,8 @@ def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
     policy, desc = load_policy(out)
     teacher, _ = load_policy(teacher_dir)
     assert isinstance(policy, ScoredPolicy) and desc["net"]["head"] == "lookahead"
-    assert torch.equal(policy.features_extractor.linear.weight, teacher.features_extractor.linear.weight)
+    assert torch.equal(policy.features_extractor.lookahead.linear.weight,
+                       teacher.features_extractor.lookahead.linear.weight)
     # the alternative: the linear cost fitted by convex regression to the teacher's distribution
     run(_train_cfg(tmp_path, "no_bev", overwrite="true", **{**sizes, "dagger.linear_cost": "fit"}))
     it = json.loads((out / "metrics.json").read_text())["dagger"][0]

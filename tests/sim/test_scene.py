@@ -273,7 +273,7 @@ def _mutate(path: str, value):
 _DELETE = object()
 
 BAD = [
-    ("colour", [0.1, 0.2, 0.3], "<top>.colour"),
+    ("colour", [0.1, 0.2, 0.3], "'colour'"),
     ("bounds", "wide", "'bounds'"),
     ("bounds", [0.0, 8.0, 6.0], "'bounds'"),
     ("bounds", [0.0, 8.0, 3.0, 3.0], "'bounds'"),
@@ -282,7 +282,8 @@ BAD = [
     ("split", "validation", "'split'"),
     ("name", 7, "'name'"),
     ("obstacles/0", {"sphere": {"center": [1.0, 1.0]}}, "'obstacles[0]'"),
-    ("obstacles/0", {"box": {"center": [1, 1], "size": [1, 1]}, "cylinder": {"center": [1, 1]}}, "'obstacles[0]'"),
+    ("obstacles/0", {"box": {"center": [1, 1], "size": [1, 1]}, "cylinder": {"center": [1, 1], "radius_m": 0.3}},
+     "'obstacles[0]'"),
     ("obstacles/0/box/color", [0.1, 0.2], "'obstacles[0].box.color'"),
     ("obstacles/0/box/color", [0.1, 0.2, 1.5], "'obstacles[0].box.color'"),
     ("obstacles/0/box/size", [1.0, -0.5], "'obstacles[0].box.size'"),

@@ -10,8 +10,6 @@ import torch
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from rl.baselines import BASELINES
 from rl.baselines.common import (
-    GlobalPath,
-    _distance_to_polyline,
     lidar_scan,
     load_baseline,
     save_baseline,
@@ -19,6 +17,7 @@ from rl.baselines.common import (
     tracked_pedestrians,
 )
 from sim.env import CrowdNavEnv
+from sim.planners.global_path import GlobalPath, distance_to_polyline
 
 
 @pytest.fixture()
@@ -82,7 +81,7 @@ def test_tracks_are_in_the_robot_frame_within_range(env):
 
 def test_global_path_subgoal_walks_the_lookahead_along_the_path():
     path = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 3.0]])
-    d, k, q = _distance_to_polyline(np.array([0.5, 0.2]), path)
+    d, k, q = distance_to_polyline(np.array([0.5, 0.2]), path)
     assert d == pytest.approx(0.2) and k == 0 and np.allclose(q, [0.5, 0.0])
     e = CrowdNavEnv(scene="corner", density=0.0, obs_mode="state")
     e.reset(seed=3)

@@ -1,0 +1,49 @@
+"""Stable-Baselines3 callbacks shared by the PPO runs (the teacher's, the students' fine-tuning, DRL-VO's): the
+resume checkpoint and the progress bar."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from stable_baselines3.common.callbacks import BaseCallback
+from tqdm import tqdm
+
+
+def checkpoint_callback(path: Path, model, every: int) -> BaseCallback:
+    """Saves the model to ``path / "last.zip"`` (written beside it, then renamed over it) every ``every`` env
+    steps counted from ``model``'s current step (what ``--resume`` continues from)."""
+
+    class Save(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.next = model.num_timesteps + every
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps >= self.next:
+                path.mkdir(parents=True, exist_ok=True)
+                tmp = path / "last.tmp.zip"
+                self.model.save(tmp)
+                tmp.replace(path / "last.zip")
+                self.next += every
+            return True
+
+    return Save()
+
+
+def progress_callback(total: int, desc: str, enabled: bool) -> BaseCallback:
+    """A tqdm bar of ``total`` env steps labelled ``desc`` (starting at the model's step count; off unless
+    ``enabled``)."""
+
+    class Bar(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.bar = tqdm(total=total, initial=min(self.num_timesteps, total), desc=desc, unit="step",
+                            disable=not enabled, dynamic_ncols=True)
+
+        def _on_step(self) -> bool:
+            self.bar.update(self.training_env.num_envs)
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return Bar()

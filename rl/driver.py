@@ -1,0 +1,77 @@
+"""Saved policies as :class:`sim.episode.Driver` s, and the per-process cache of loaded weights.
+
+A teacher acts on the privileged observation (its env is in ``obs_mode="privileged"`` or wrapped in
+:class:`sim.wrappers.PrivilegedObservation`); a student on the rendered observation through its frozen encoder
+(:class:`rl.observe.StudentObserver`, built from the cameras and config the env reports at reset). A long-horizon
+waypoint reaches both through the observation (:class:`sim.wrappers.FollowWaypoints` re-targets the state s).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from rl.observe import StudentObserver, load_student_encoder, observer_for
+from rl.policy import act, load_policy, read_policy_json
+
+_CACHE: dict[str, Any] = {}
+
+
+def process_cached(key: str, make: Callable[[], Any]) -> Any:
+    """``make()`` once per process and ``key`` (weights loaded once per worker of a process pool)."""
+    if key not in _CACHE:
+        _CACHE[key] = make()
+    return _CACHE[key]
+
+
+def cached_policy(path: Path | None):
+    """The policy saved in ``path`` (None for None), loaded once per process and file version."""
+    if path is None:
+        return None
+    return process_cached(f"policy:{path}:{os.path.getmtime(Path(path) / 'policy.safetensors')}",
+                          lambda: load_policy(path)[0])
+
+
+def cached_student_encoder(variant: str, encoder_ckpt: Path | str | None):
+    """The frozen encoder of a student variant (:func:`rl.observe.load_student_encoder`), once per process."""
+    return process_cached(f"enc:{variant}:{encoder_ckpt}", lambda: load_student_encoder(variant, encoder_ckpt))
+
+
+class PolicyDriver:
+    """A saved teacher or student policy (``policy.json`` kind ``teacher`` | ``student``) as a driver."""
+
+    def __init__(self, ckpt: Path) -> None:
+        torch.set_num_threads(1)
+        self.policy = cached_policy(ckpt)
+        self.desc = read_policy_json(ckpt)
+        self.student = self.desc["kind"] == "student"
+        self.encoder = cached_student_encoder(self.desc["variant"], self.desc.get("encoder")) if self.student else None
+        self.observer: StudentObserver | None = None
+        self.last_obs: dict[str, np.ndarray] | None = None
+
+    def reset(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> None:
+        if self.student:
+            if self.observer is None:
+                self.observer = observer_for(info["cameras"], info["config"], self.desc["variant"], self.encoder,
+                                             self.desc["net"].get("head", "mlp"))
+            self.observer.reset()
+
+    def act(self, obs: dict[str, np.ndarray], info: dict[str, Any]):
+        o = self.observer(obs) if self.student else dict(obs)
+        o["state"] = obs["state"]
+        self.last_obs = o
+        return act(self.policy, o)
+
+    def bev_panel(self) -> np.ndarray | None:
+        """An ``H x W`` map of what the policy's BEV input held at the last step (videos), or None."""
+        o = self.last_obs or {}
+        if "bev" in o:
+            return np.linalg.norm(o["bev"], axis=0)
+        if "occ" in o:
+            return o["occ"][0]
+        return None

@@ -1,0 +1,224 @@
+"""The lookahead head: a learned cost over the kinematic rollouts of every action of the grid.
+
+:class:`LookaheadHead` is the actor of the lookahead teacher (:class:`rl.networks.LookaheadTeacherExtractor`) and of
+the student's lookahead head (:class:`rl.networks.StudentLookaheadExtractor`); the extractor owns it as its
+``lookahead`` submodule and hands it its embedding. For each of the A = 5 x 21 (v, ω) commands
+(:func:`sim.robot.action_grid`) the head rolls the robot forward along its unicycle arc (fixed buffers) for
+:data:`LOOKAHEAD_HORIZON_S`, predicts every observed pedestrian with constant velocity, and measures per action
+``F`` parameter-free features (:meth:`LookaheadHead.action_features`; all positions in the robot frame at the
+current step, x forward, y left, metres; times in seconds; angles in radians). A linear cost over the last
+:data:`N_LINEAR` of them plus an MLP over all of them and a context vector from the embedding give each action's
+logit (:meth:`LookaheadHead.forward`).
+
+State-dict keys: the learned layers sit under the head's prefix (``<extractor>.lookahead.context.*``,
+``.scorer.*``, ``.linear.*``); the rollout geometry is non-persistent (rebuilt from the policy's JSON), so it is in
+no checkpoint. Checkpoints from before the head was a module are mapped by :func:`rl.policy.upgrade_state_dict`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import torch
+from torch import nn
+
+from pipeline.core.errors import ConfigError
+from rl.i2former import mlp
+from sim.robot import RobotConfig, action_grid
+
+LOOKAHEAD_HORIZON_S = 2.0  # rollout horizon of the lookahead layer
+LOOKAHEAD_STEP_S = 0.2  # its resolution (plus the next control step itself)
+LOOKAHEAD_DISCOUNT_S = 1.5  # time constant of the discount on predicted intrusions
+CLEAR_CAP_M = 3.0  # clearances are clipped to [-0.5, this]
+SCORE_SCALE = 10.0  # logits = this x the linear path's output + the MLP's: the expert's costs differ by tens of
+# nats at τ = 0.1, which the linear path reaches with weights of order one
+HEADING_MODES = ("end", "best", "spin")  # the lookahead heading error (LookaheadHead)
+SCAN_POINTS = 24  # nearest scan hits the lookahead measures obstacle clearance against
+N_LINEAR = 10  # rollout features of the linear cost (the last ones of action_features)
+NEAR_GOAL_M = 0.5  # closer than this to the goal, the cost rewards reaching it instead of the route's heading
+
+
+def unicycle_arcs(grid: torch.Tensor, times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Robot-frame positions ``A x S x 2`` and headings ``A x S`` of constant (v, ω) commands ``A x 2`` after
+    ``times`` (``S``) from the origin facing +x (exact arcs; straight lines where ω = 0)."""
+    v, w = grid[:, :1], grid[:, 1:]
+    t = times[None, :]
+    straight = w.abs() < 1e-6
+    ws = torch.where(straight, torch.ones_like(w), w)
+    th = w * t
+    x = torch.where(straight, v * t, v / ws * torch.sin(th))
+    y = torch.where(straight, torch.zeros_like(th), v / ws * (1.0 - torch.cos(th)))
+    return torch.stack([x, y], -1), th
+
+
+class LookaheadHead(nn.Module):
+    """Scores every action of the grid by a learned cost over its kinematic rollout (module docstring).
+
+    Fixed geometry (non-persistent buffers, rebuilt from the arguments): ``grid_norm`` ``A x 2`` (v, ω) over the
+    robot's limits; ``times`` ``S`` lookahead times (s: the control period ``dt_s``, then every
+    :data:`LOOKAHEAD_STEP_S` up to :data:`LOOKAHEAD_HORIZON_S`); ``arcs`` ``A x S x 2`` robot-frame positions (m)
+    along each command's arc; ``end_heading`` ``A`` heading at the end of the arc (rad); ``spin`` ``A`` the turns on
+    the spot (v = 0); ``disc`` ``S`` the discount on intrusions; ``ray_dir`` ``R x 2`` the scan's unit ray
+    directions (robot frame, ray k at k·2π/R); with a ``path`` observation, ``path_s`` ``P`` the arc length (m) of
+    each path point. Sizes: ``n_actions`` = A, ``n_feat`` = F = 2·S + 20.
+
+    Learned: ``context`` (``base_dim`` embedding → ``context_dim``), ``scorer`` (MLP of ``F + context_dim`` →
+    ``score_dim`` → ``score_dim`` → 1) and ``linear`` (the linear cost over the last :data:`N_LINEAR` features).
+
+    Args:
+        observation_space: the policy's observations; reads the shapes of ``scan`` (``R``) and ``path`` (``P x 2``,
+            optional).
+        robot: :class:`sim.robot.RobotConfig` fields (limits, radius, grid); ``None`` = defaults.
+        dt_s: the control period (s), the first lookahead time.
+        path_spacing_m: the env's spacing of the ``path`` points (m).
+        base_dim: the width of the extractor's embedding the context is computed from.
+        score_dim, context_dim: widths of the scorer MLP and of the context vector.
+        subgoal: read ``obs["subgoal"]`` (robot frame, m) as the progress target when there is no path, else the goal.
+        scan_range_m: the scan's maximum range (m); rays at it hit nothing.
+        heading: the heading error of the linear cost. ``"end"`` at the end of the 2 s arc (the first checkpoints; a
+            turn on the spot at 2 rad/s ends 4 rad away, past the target, so a robot facing a wall may prefer the
+            turn away from its route and dither between the two), ``"best"`` the smallest error reached along the
+            arc (a turn that passes through the target heading could stop there), ``"spin"`` the smallest error for
+            the turns on the spot only (v = 0), the end error for every moving arc. Measured: both remove most
+            warehouse stops and triple the shelf collisions, so ``"end"`` stays the default
+            (docs/notes/2026-11-lookahead-heading-modes.md).
+        scorer_bound: with c, the MLP scorer's output is squashed to ``c · tanh(x / c)`` nats (a student's learned
+            correction may re-rank actions, not override a predicted contact); ``None`` = unbounded.
+    """
+
+    def __init__(self, observation_space: gym.spaces.Dict, robot: dict[str, Any] | None, dt_s: float,
+                 path_spacing_m: float, base_dim: int, score_dim: int, context_dim: int, *, subgoal: bool,
+                 scan_range_m: float, heading: str = "end", scorer_bound: float | None = None) -> None:
+        super().__init__()
+        if heading not in HEADING_MODES:
+            raise ConfigError(f"lookahead heading: expected one of {list(HEADING_MODES)}, got {heading!r}")
+        self.heading = heading
+        self.subgoal = bool(subgoal)
+        self.scan_range_m = float(scan_range_m)
+
+        rc = RobotConfig(**(robot or {}))
+        self.radius_m = float(rc.radius_m)
+        grid = torch.as_tensor(action_grid(rc), dtype=torch.float32)
+        self.n_actions = len(grid)
+        times = torch.cat([torch.tensor([float(dt_s)]),
+                           torch.arange(1, int(round(LOOKAHEAD_HORIZON_S / LOOKAHEAD_STEP_S)) + 1) * LOOKAHEAD_STEP_S])
+        arcs, end = unicycle_arcs(grid, times)
+        self.register_buffer("grid_norm", grid / grid.new_tensor([rc.v_max_mps, rc.omega_max_radps]), persistent=False)
+        self.register_buffer("times", times, persistent=False)
+        self.register_buffer("arcs", arcs, persistent=False)  # A x S x 2
+        self.register_buffer("end_heading", end[:, -1], persistent=False)  # A
+        self.register_buffer("spin", grid[:, 0].abs() < 1e-6, persistent=False)  # A: the turns on the spot
+        self.register_buffer("disc", torch.exp(-times / LOOKAHEAD_DISCOUNT_S), persistent=False)
+        self.path = "path" in observation_space.spaces
+        if self.path:  # arc length of each path point (the env's path_spacing_m, stored in the policy's net)
+            spacing = float(path_spacing_m)
+            n_path = observation_space["path"].shape[0]
+            self.register_buffer("path_s", spacing * torch.arange(1, n_path + 1, dtype=torch.float32),
+                                 persistent=False)
+            self.path_lead = max(1, int(round(1.0 / spacing)))  # heading target: 1 m further along the path
+        rays = observation_space["scan"].shape[0]
+        ang = torch.arange(rays) * (2 * torch.pi / rays)
+        self.register_buffer("ray_dir", torch.stack([torch.cos(ang), torch.sin(ang)], -1), persistent=False)
+        self.n_feat = 2 * len(times) + 4 + 4 + 2 + N_LINEAR
+
+        # the learned part: a context vector from the embedding, the MLP scorer, the linear cost
+        self.context = nn.Sequential(nn.Linear(base_dim, context_dim), nn.ReLU())
+        self.scorer = mlp([self.n_feat + context_dim, score_dim, score_dim, 1], last_act=False)
+        self.linear = nn.Linear(N_LINEAR, 1)  # the linear cost over the last N_LINEAR rollout features
+        self.scorer_bound = float(scorer_bound) if scorer_bound else None
+
+    def forward(self, base: torch.Tensor, obs: dict[str, torch.Tensor],
+                action_features: torch.Tensor | None = None) -> torch.Tensor:
+        """``B x A`` logits (nats): :data:`SCORE_SCALE` x the linear cost + the (bounded) MLP scorer over each
+        action's rollout features and the context of ``base`` (``B x base_dim``). ``action_features``: the
+        precomputed ``B x A x F`` :meth:`action_features` of ``obs`` (as cloning and PPO cache them)."""
+        feats = self.action_features(obs) if action_features is None else action_features
+        ctx = self.context(base)[:, None].expand(-1, feats.shape[1], -1)
+        learned = self.scorer(torch.cat([feats, ctx], -1))
+        if self.scorer_bound:  # c · tanh(x / c): the learned part may re-rank actions, not override predicted contacts
+            learned = self.scorer_bound * torch.tanh(learned / self.scorer_bound)
+        scores = SCORE_SCALE * self.linear(feats[..., -N_LINEAR:]) + learned
+        return scores.squeeze(-1)
+
+    @torch.no_grad()
+    def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``B x A x F`` parameter-free rollout features of every action (see
+        :class:`rl.networks.LookaheadTeacherExtractor`). Reads ``obs["state"]`` ``B x 5`` (goal x, y, distance in m;
+        velocity), ``obs["scan"]`` ``B x R`` (m), ``obs["peds"]`` ``B x K x 6`` (x, y in m, vx, vy in m/s, radius in
+        m, present; without it nobody is predicted), ``obs["path"]`` ``B x P x 2`` or ``obs["subgoal"]`` ``B x 2``
+        (m) when the head was built with them; all in the robot frame."""
+        arcs, disc = self.arcs, self.disc  # A S 2, S
+        b = obs["state"].shape[0]
+        a, s = arcs.shape[:2]
+        # pedestrians, constant velocity: B K S 2 (a student without pose input has none)
+        peds = obs["peds"] if "peds" in obs else obs["state"].new_zeros(b, 1, 6)
+        present = peds[..., 5] > 0.5
+        pp = peds[:, :, None, :2] + self.times[None, None, :, None] * peds[:, :, None, 2:4]  # B K S 2
+        # |a - p|² = |a|² - 2 a·p + |p|² (one contraction instead of a B A K S 2 difference tensor)
+        d2 = arcs[None, :, None, :, 0] * pp[:, None, :, :, 0]
+        d2.addcmul_(arcs[None, :, None, :, 1].expand_as(d2), pp[:, None, :, :, 1].expand_as(d2)).mul_(-2.0)
+        d2 += (arcs ** 2).sum(-1)[None, :, None, :]
+        d2 += (pp ** 2).sum(-1)[:, None]
+        d = d2.clamp_min_(0.0).sqrt_()
+        d -= (peds[..., 4] + self.radius_m)[:, None, :, None]
+        d.masked_fill_(~present[:, None, :, None], CLEAR_CAP_M + 1.0)
+        # the nearest pedestrian at each lookahead time (B A S): clearance and its discounted intrusions
+        d = d.amin(2)
+        ped_min = d.clamp(-0.5, CLEAR_CAP_M)
+        ped_contact = ((0.15 - d).clamp_min(0.0) * disc).sum(-1)
+        ped_comfort = ((0.8 - d).clamp_min(0.0) ** 2 * disc).sum(-1) * LOOKAHEAD_STEP_S
+        # static obstacles: the end points of the nearest scan hits (farther ones cannot be the nearest obstacle of
+        # an arc that stays within the horizon), B R 2
+        rng, idx = obs["scan"].topk(min(SCAN_POINTS, obs["scan"].shape[-1]), dim=-1, largest=False)
+        hit = rng < self.scan_range_m - 1e-3
+        pts = rng[..., None] * self.ray_dir[idx]
+        dq = torch.cdist(arcs.reshape(1, a * s, 2).expand(b, -1, -1), pts)  # B AS R
+        dq = dq.masked_fill(~hit[:, None, :], CLEAR_CAP_M + 1.0).amin(-1).view(b, a, s) - self.radius_m
+        obs_min = dq.clamp(-0.5, CLEAR_CAP_M)
+        obs_contact = ((0.05 - dq).clamp_min(0.0) * disc).sum(-1)
+        obs_near = ((0.25 - dq).clamp_min(0.0) ** 2 * disc).sum(-1)
+        # progress: along the global path when the observation has it (the cost-to-go through the best path point,
+        # ctg(p) ≈ min_k |p - P_k| + (L - s_k)), else towards the sub-goal (or the goal); and towards the goal
+        goal = obs["state"][:, :2]
+        sub = obs["subgoal"] if self.subgoal else goal
+        end = arcs[None, :, -1]  # 1 A 2
+        if self.path:
+            pts = obs["path"]  # B P 2
+            s_k = self.path_s[: pts.shape[1]]
+            reach_end = s_k - torch.linalg.vector_norm(end[:, :, None] - pts[:, None], dim=-1)  # B A P
+            reach_now = (s_k - torch.linalg.vector_norm(pts, dim=-1)).amax(-1, keepdim=True)  # B 1
+            best = reach_end.argmax(-1)  # B A
+            sub_gain = reach_end.amax(-1) - reach_now
+            ahead = torch.gather(pts, 1,
+                                 (best + self.path_lead).clamp_max(pts.shape[1] - 1)[..., None].expand(-1, -1, 2))
+            to_sub = ahead - end
+        else:
+            sub_gain = (torch.linalg.vector_norm(sub, dim=-1, keepdim=True)
+                        - torch.linalg.vector_norm(sub[:, None] - end, dim=-1))
+            to_sub = sub[:, None] - end
+        goal_gain = obs["state"][:, 2:3] - torch.linalg.vector_norm(goal[:, None] - end, dim=-1)
+        err = torch.atan2(to_sub[..., 1], to_sub[..., 0]) - self.end_heading
+        goal_near = torch.linalg.vector_norm(goal[:, None, None] - arcs[None], dim=-1).amin(-1)  # B A
+        near = (obs["state"][:, 2:3] < NEAR_GOAL_M).float().expand(-1, a)
+        abs_err = torch.atan2(torch.sin(err), torch.cos(err)).abs()
+        if self.heading != "end":  # the smallest error along the arc (class docstring, ``heading``)
+            # the heading sweeps 0 → rot = ω·T; it passes the target direction phi (from the arc's end point) if
+            # phi, measured in the direction of the turn, is within the sweep; else the nearer of the start and end
+            phi = torch.atan2(to_sub[..., 1], to_sub[..., 0])
+            rot = self.end_heading.expand_as(phi)
+            ahead = torch.where(rot >= 0, torch.remainder(phi, 2 * torch.pi), torch.remainder(-phi, 2 * torch.pi))
+            start_err = phi.abs()
+            best = torch.where(ahead <= rot.abs(), torch.zeros_like(phi), torch.minimum(start_err, abs_err))
+            abs_err = best if self.heading == "best" else torch.where(self.spin, best, abs_err)
+        grid = self.grid_norm[None].expand(b, -1, -1)
+        feats = [ped_min, obs_min,
+                 torch.log1p(torch.stack([ped_contact, ped_comfort, obs_contact, obs_near], -1)),
+                 torch.stack([torch.cos(err), torch.sin(err), goal_near.clamp_max(CLEAR_CAP_M), near], -1),
+                 grid,
+                 # the terms of the linear cost (the last N_LINEAR features): predicted intrusions, progress along
+                 # the route, heading error away from the goal, approach when near it, speed and turning
+                 torch.stack([ped_contact.clamp_max(10.0), ped_comfort.clamp_max(10.0), obs_contact.clamp_max(10.0),
+                              obs_near.clamp_max(10.0), sub_gain, goal_gain, (1.0 - near) * abs_err,
+                              near * (obs["state"][:, 2:3] - goal_near), grid[..., 0], grid[..., 1].abs()], -1)]
+        return torch.cat(feats, -1)

@@ -1,0 +1,57 @@
+"""DRL-VO's driver: reloading in a fresh process reproduces the actions; a corrupt checkpoint names the file."""
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.core.errors import CorruptArtifactError
+from rl.baselines import drl_vo
+from tests.rl.baselines.drl_vo.helpers import ROOT, drive
+
+_DRIVE_SCRIPT = """
+import json, sys
+import torch
+from dataclasses import replace
+from rl.baselines.drl_vo import Driver
+from sim.env import CrowdNavEnv, SimConfig
+torch.set_num_threads(1)
+driver = Driver(sys.argv[1])
+from sim.wrappers import with_privileges
+env = with_privileges(CrowdNavEnv(config=replace(SimConfig(), scene=sys.argv[2], density=0.0, obs_mode="privileged",
+                                                 action_type="continuous", info_level="basic", max_episode_s=8.0)),
+                      "privileged")
+obs, info = env.reset(seed=int(sys.argv[3]))
+driver.reset(obs, info)
+actions = []
+while True:
+    a = driver.act(obs, info)
+    actions.append([float(x) for x in a])
+    obs, _, term, trunc, info = env.step(a)
+    if term or trunc:
+        break
+print(json.dumps([info["outcome"], actions]))
+"""
+
+
+def test_reloads_in_a_fresh_process_and_reproduces_its_actions(trained):
+    torch.set_num_threads(1)
+    outcome, actions = drive(trained["ckpt"], trained["scene"], 123)
+    res = subprocess.run([sys.executable, "-c", _DRIVE_SCRIPT, str(trained["ckpt"]), trained["scene"], "123"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    outcome2, actions2 = json.loads(res.stdout.strip().splitlines()[-1])
+    assert outcome2 == outcome
+    np.testing.assert_allclose(np.array(actions2), np.array(actions), atol=1e-5)
+
+
+def test_corrupt_checkpoint_names_the_file(trained, tmp_path):
+    bad = tmp_path / "drl_vo"
+    shutil.copytree(trained["ckpt"], bad, ignore=shutil.ignore_patterns("ppo", "bc"))
+    (bad / "policy.safetensors").write_bytes(b"not a safetensors file")
+    with pytest.raises(CorruptArtifactError, match="policy.safetensors"):
+        drl_vo.Driver(bad)

@@ -1,0 +1,39 @@
+"""Training SARL*-OM: imitation learns a trivial scene; the budget and the resume state."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from rl.baselines import sarl_om as S
+from tests.rl.baselines.sarl_om.helpers import make_scene, success_rate
+
+
+def test_learns_a_trivial_scene(trained):
+    """After training the lookahead reaches a 1 m goal in an empty room on every seed, and its value alone ranks
+    the states of a straight approach by their distance to the goal (an untrained net does not).
+
+    Measured: SR 1.0 on 6 seeds; with 4-10 expert episodes and no RL it is 0.0-0.3 (the value's dependence on
+    heading and speed is then wrong), so this fails when imitation does not work. An untrained net also reaches
+    this goal (the lookahead's progress term steers it in an empty room), hence the value check."""
+    ckpt, sim_cfg, summary, log = trained
+    oc = replace(S.Config(), **{k: v for k, v in json.loads((ckpt / "policy.json").read_text())["config"].items()})
+    model = S.Driver(ckpt).model
+    after, _ = success_rate(model, oc, sim_cfg, list(range(100, 106)))
+    assert after >= 0.9, after
+
+    def approach(net) -> np.ndarray:
+        return np.array([net(*S.to_tensors(S.current_state(make_scene(goal=(d, 0.0), speed=0.5), oc))).item()
+                         for d in (0.5, 1.0, 2.0)])
+
+    with torch.no_grad():
+        v = approach(model)
+        torch.manual_seed(1)
+        v0 = approach(S.SarlOMValue(oc.om_sectors).eval())
+    assert v[0] > v[1] > v[2] and v[0] - v[2] > 0.05, v
+    assert not (v0[0] - v0[2] > 0.05), v0
+    b = summary["budget"]
+    assert b["expert_episodes"] == 40 and b["rl_episodes"] == 0
+    assert {p for p, _, _ in log.rows} == {"imitation"}
+    assert (ckpt / "rl" / "state.pt").is_file() and (ckpt / "rl" / "replay.npz").is_file()
