@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from sim.metrics import aggregate, metrics_table_markdown, paired_test
+from sim.viz import save_figure
 
 TABLE_METRICS = ("success", "collision", "timeout", "nav_time_s", "path_length_m", "tpz_s")
 
@@ -253,7 +254,6 @@ def plot_sr(res: dict[str, dict[str, Any]], labels: dict[str, str], path: Path) 
     ax.set_ylabel("success rate (95 % CI)")
     ax.legend(fontsize=7, ncol=min(len(methods), 4), loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)
     fig.tight_layout()
-    from sim.viz import save_figure
 
     save_figure(fig, path, 120)
     plt.close(fig)

@@ -36,13 +36,17 @@ from typing import Any
 
 import numpy as np
 
+from evaluation.harness import Job, run_jobs_cached
 from evaluation.methods import MethodSpec, resolve_methods
+from evaluation.report import paired, plot_sr, report_markdown, results, results_csv, training_budget
 from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
-from sim.env import SimConfig
+from sim.env import CrowdNavEnv, SimConfig
+from sim.planners.topomap import build_gvg, plot_topomap
 from sim.scene import check_episode_grid
+from sim.trace import EpisodeTrace
 
 log = logging.getLogger("icrowdnav")
 
@@ -109,8 +113,6 @@ def seeds_of(cfg: EvalConfig) -> list[int]:
 
 
 def benchmark_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path) -> list:
-    from evaluation.harness import Job
-
     jobs = []
     for s in cfg.scenes:
         for d in cfg.densities:
@@ -123,8 +125,6 @@ def benchmark_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path) -> list:
 
 def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:
     """Per map and run: the seed, a start node, a goal among the candidate goals, the GVG waypoints."""
-    from sim.env import CrowdNavEnv
-    from sim.planners.topomap import build_gvg
 
     lh = cfg.long_horizon
     plans = []
@@ -150,9 +150,6 @@ def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:
 
 
 def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
-    from evaluation.harness import Job, run_jobs_cached
-    from evaluation.report import paired, plot_sr, report_markdown, results, results_csv, training_budget
-
     specs = resolve_methods(cfg.methods, Path(cfg.data_dir))
     labels = {m.name: m.label for m in specs}
     seeds = seeds_of(cfg)
@@ -198,8 +195,6 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
 
 def _plot_long_horizon(plans: list[dict[str, Any]], rows: list[dict[str, Any]], out: Path,
                        labels: dict[str, str]) -> None:
-    from sim.planners.topomap import plot_topomap
-    from sim.trace import EpisodeTrace
 
     by_map: dict[str, list[dict[str, Any]]] = {}
     for p in plans:

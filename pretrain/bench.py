@@ -21,10 +21,14 @@ from typing import Any
 import numpy as np
 import torch
 
+import sim  # noqa: F401
+from pipeline.core.timing import time_call
+from pretrain.geometry import Camera, lift_splat, lift_splat_reference
+from pretrain.model import BEVEncoder, BEVStream
+
 
 def _ms(fn, seconds: float) -> float:
     """Mean milliseconds per call (the bench's own timer, :func:`pipeline.core.timing.time_call`)."""
-    from pipeline.core.timing import time_call
 
     return 1000.0 * time_call(fn, seconds)
 
@@ -32,10 +36,6 @@ def _ms(fn, seconds: float) -> float:
 def measure_bev(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg: Any, seconds: float) -> dict:
     """The figures of this module (see its docstring)."""
     import gymnasium as gym
-
-    import sim  # noqa: F401
-    from pretrain.geometry import Camera, lift_splat, lift_splat_reference
-    from pretrain.model import BEVEncoder, BEVStream
 
     env = gym.make("icrowdnav/CrowdNav-v0", config=replace(sim_cfg, scene=scene, density=density, obs_mode="visual",
                                                            info_level="basic"))

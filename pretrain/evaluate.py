@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.errors import ConfigError, ICrowdNavError
 from pretrain.checkpoint import load_encoder, load_heads, read_encoder_json
 from pretrain.data import check_dataset, load_frames, make_batches, make_clips
@@ -136,8 +137,6 @@ def main(argv: list[str] | None = None) -> int:
     for t, row in res["iou"].items():
         print(f"{t:<12}" + "".join(f"  {row[x]:<7.3f}" for x in ths))
     if a.out:
-        from pipeline.core.artifacts import atomic_write_json
-
         atomic_write_json(a.out, res)
     return 0
 

@@ -29,7 +29,12 @@ from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.config import BaseStageConfig, check_run_name, config_hash
 from pipeline.core.errors import ConfigError, CorruptArtifactError
-from pretrain.model import TARGETS, EncoderConfig
+from pretrain.checkpoint import METRICS_JSON, write_encoder_checkpoint
+from pretrain.data import Batch, check_dataset, check_grid_in_local_map, load_frames, split_episodes
+from pretrain.figures import plot_curves, plot_fov, plot_sample
+from pretrain.geometry import check_grid_fits_cameras
+from pretrain.model import TARGETS, BEVEncoder, EncoderConfig, PretextHeads
+from pretrain.train import FitConfig, evaluate, fit, forward_batch
 
 log = logging.getLogger("icrowdnav")
 
@@ -88,8 +93,6 @@ def checkpoint_dir(cfg: PretrainConfig) -> Path:
 
 def inputs(cfg: PretrainConfig) -> list[Path]:
     """The dataset; fails here, before any output exists, when it or the grid does not fit."""
-    from pretrain.data import check_dataset, check_grid_in_local_map
-    from pretrain.geometry import check_grid_fits_cameras
 
     root = dataset_dir(cfg)
     meta = check_dataset(root)
@@ -125,13 +128,6 @@ def load_backbone_weights(encoder, path: str) -> None:
 
 
 def body(cfg: PretrainConfig, out: Path) -> dict:
-    from pretrain.checkpoint import METRICS_JSON, write_encoder_checkpoint
-    from pretrain.data import check_dataset, load_frames, split_episodes
-    from pretrain.figures import plot_curves, plot_fov, plot_sample
-    from pretrain.geometry import check_grid_fits_cameras
-    from pretrain.model import BEVEncoder, PretextHeads
-    from pretrain.train import FitConfig, evaluate, fit, forward_batch
-
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
     root = dataset_dir(cfg)
     meta = check_dataset(root)
@@ -181,7 +177,6 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
     plot_curves(fig_dir / "curves.png", out / "train_log.csv", history)
     val_idx = np.concatenate([np.arange(a, b) for a, b in val_slices])
     picks = val_idx[np.linspace(0, len(val_idx) - 1, cfg.figures).astype(int)] if cfg.figures else []
-    from pretrain.data import Batch
 
     with torch.no_grad():
         for k, t in enumerate(picks):

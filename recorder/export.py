@@ -58,6 +58,7 @@ from tqdm import tqdm
 from pipeline.core.artifacts import OutputDir, atomic_write_json, atomic_write_text
 from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
 from pipeline.core.keys import NEXT_DONE, NEXT_REWARD
+from recorder.doctor_dataset import check_dataset
 from recorder.features import (
     DEFAULT_MAX_PEOPLE,
     N_MAX_PEDESTRIANS,
@@ -71,6 +72,7 @@ from recorder.features import (
     frame_to_features,
     meta_facts,
 )
+from recorder.mcap.reader import read_episode
 from recorder.schema import CAMERA_NAMES, EpisodeMeta, Frame
 
 log = logging.getLogger("icrowdnav")
@@ -120,9 +122,6 @@ def _unpack(obj: Any, name: str) -> tuple[EpisodeMeta, np.ndarray, Iterator[Fram
 
 def _read_mcap(path: Path) -> tuple[EpisodeMeta, np.ndarray, Iterator[Frame]]:
     """Opens one complete MCAP episode with :func:`recorder.mcap.reader.read_episode`."""
-    from recorder.mcap.reader import (
-        read_episode,  # imported late: the reader is optional for in-memory exports
-    )
 
     try:
         result = read_episode(path)
@@ -417,7 +416,6 @@ def export_dataset(inputs: Iterable[Any], out_dir: Path, repo_id: str, fps: int 
         InputMissingError / CorruptArtifactError / FeatureError: see :func:`write_dataset`; also when the
             doctor finds a problem in the written dataset. Nothing is published then.
     """
-    from recorder.doctor_dataset import check_dataset
 
     if isinstance(inputs, list | tuple):
         check_inputs([p for p in inputs if isinstance(p, str | os.PathLike)])

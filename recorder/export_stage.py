@@ -25,6 +25,8 @@ from pipeline.core import layout
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pipeline.core.manifest import MANIFEST_NAME
+from recorder.doctor_dataset import check_dataset
+from recorder.export import write_dataset
 
 _REPO_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[A-Za-z0-9][\w.-]*$")
 
@@ -61,9 +63,6 @@ def inputs(cfg: ExportConfig) -> list[Path]:
 
 
 def body(cfg: ExportConfig, out: Path) -> dict:
-    from recorder.doctor_dataset import check_dataset
-    from recorder.export import write_dataset
-
     # exactly the episodes the recording lists (not, e.g., *.recovered.mcap salvage copies lying beside them)
     listing = raw_dir(cfg) / "episodes.jsonl"
     if not listing.is_file():

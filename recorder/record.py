@@ -38,7 +38,11 @@ from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError, ICrowdNavError
-from recorder.drive import DRIVERS
+from pipeline.core.manifest import hash_file
+from recorder.drive import DRIVERS, drive_episode
+from recorder.mcap.reader import episode_summary
+from recorder.mcap.signals import graceful_signals
+from recorder.mcap.writer import EpisodeWriter
 from sim.env import SimConfig
 from sim.scene import check_episode_grid, scenes_of_split
 
@@ -89,9 +93,6 @@ def jobs_of(cfg: RecordConfig) -> list[Job]:
 
 def record_one(sim_cfg: SimConfig, job: Job, out: Path, driver: str) -> dict:
     """Record one episode to ``out/<job.name>.mcap``; returns its row for ``episodes.jsonl``."""
-    from pipeline.core.manifest import hash_file
-    from recorder.drive import drive_episode
-    from recorder.mcap.writer import EpisodeWriter
 
     t0 = time.perf_counter()
     ep = drive_episode(replace(sim_cfg, scene=job.scene, density=job.density), job.seed, driver)
@@ -110,8 +111,6 @@ def record_one(sim_cfg: SimConfig, job: Job, out: Path, driver: str) -> dict:
 
 
 def _worker(args: tuple) -> dict:
-    from recorder.mcap.signals import graceful_signals
-
     with graceful_signals():
         return record_one(*args)
 
@@ -170,8 +169,6 @@ def _stop_pool(pool: ProcessPoolExecutor, grace_s: float = 3.0) -> None:
 
 
 def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: list[Job]) -> None:
-    from recorder.mcap.signals import graceful_signals
-
     bar = tqdm(total=len(todo), desc=f"record {cfg.driver}", unit="ep")
     try:
         with graceful_signals():
@@ -212,8 +209,6 @@ def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: l
 def _finished_rows(out: Path, jobs: list[Job]) -> dict[str, dict]:
     """Rows of the episodes already finished in ``out``: every ``<name>.mcap`` of a job (a final name only exists
     once its writer finished). Rows come from ``episodes.jsonl`` when it has them, else from the file itself."""
-    from pipeline.core.manifest import hash_file
-    from recorder.mcap.reader import episode_summary
 
     known: dict[str, dict] = {}
     p = out / "episodes.jsonl"

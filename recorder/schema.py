@@ -47,6 +47,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.core.config import to_dict
+
 CAMERA_NAMES = ("left", "right")
 FRAME_WORLD = "world"
 FRAME_BASE = "base_link"
@@ -146,7 +148,6 @@ class Frame:
 
 def sim_config_hash(cfg) -> str:
     """sha256 of a sim config's canonical JSON."""
-    from pipeline.core.config import to_dict
 
     return hashlib.sha256(json.dumps(to_dict(cfg), sort_keys=True).encode()).hexdigest()
 

@@ -28,12 +28,16 @@ from typing import Any
 import numpy as np
 import torch
 
+from pipeline.core.timing import time_call
+from pretrain.model import BEVEncoder
+from rl.observe import BEV_POOL, StudentObserver, env_cameras, observer_for_env
+from rl.policy import act, build_policy, policy_class, policy_kwargs
+from rl.teacher import attach_lookahead_cache, make_vec_env, ppo_kwargs, teacher_net
+from sim.env import CrowdNavEnv
+
 
 def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_cfg: Any, seconds: float) -> dict:
     from stable_baselines3 import PPO
-
-    from rl.policy import policy_class, policy_kwargs
-    from rl.teacher import attach_lookahead_cache, make_vec_env, ppo_kwargs, teacher_net
 
     t = train_cfg.teacher
     out = {}
@@ -99,7 +103,6 @@ def _policy_ms_per_step(model, venv, n_envs: int, calls: int = 50) -> float:
 
 def _env_step_ms(sim_cfg: Any, scene: str, density: float, seed: int, seconds: float) -> float:
     """One privileged env in process, random discrete actions (resets included, as in PPO's rollouts)."""
-    from rl.teacher import make_vec_env
 
     venv = make_vec_env(sim_cfg, [(scene, density)], 1, seed, False)
     rng = np.random.default_rng(seed)
@@ -117,12 +120,6 @@ def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encod
     from dataclasses import asdict
 
     import torch.nn.functional as F
-
-    from pipeline.core.timing import time_call
-    from pretrain.model import BEVEncoder
-    from rl.observe import BEV_POOL, StudentObserver, env_cameras, observer_for_env
-    from rl.policy import act, build_policy
-    from sim.env import CrowdNavEnv
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)

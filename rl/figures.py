@@ -6,6 +6,8 @@ import csv
 from collections import defaultdict
 from pathlib import Path
 
+from sim.viz import save_figure
+
 
 def plot_training(log_csv: Path, out: Path, title: str) -> None:
     """One panel per (phase, key) logged in ``log_csv`` (rows: phase, step, key, value); nothing if it is empty."""
@@ -36,7 +38,6 @@ def plot_training(log_csv: Path, out: Path, title: str) -> None:
         ax.axis("off")
     fig.suptitle(f"train {title}")
     fig.tight_layout()
-    from sim.viz import save_figure
 
     save_figure(fig, out, 110)
     plt.close(fig)

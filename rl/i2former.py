@@ -31,6 +31,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from pipeline.core.errors import ConfigError
+
 N_JOINTS = 17
 STATE_DIM = 5
 POSE_SCALE_M = 5.0  # joint coordinates are divided by this (robot-frame metres → about unit range)
@@ -46,8 +48,6 @@ class I2FormerConfig:
     ffn_mult: int = 2  # FFN hidden width = ffn_mult * dim
 
     def validate(self) -> None:
-        from pipeline.core.errors import ConfigError
-
         if self.dim < 4 or self.heads < 1 or self.dim % self.heads:
             raise ConfigError(f"i2former: dim must be >= 4 and divisible by heads, got dim={self.dim}, "
                               f"heads={self.heads}")

@@ -33,6 +33,7 @@ import torch
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
+from pipeline.core.errors import ConfigError
 from rl.i2former import AttnPool, I2Former, I2FormerConfig, mlp, normalise_state
 from rl.lookahead import LookaheadHead
 
@@ -48,8 +49,6 @@ SUBGOAL_SCALE_M = 2.0  # the privileged sub-goal's scale (its lookahead along th
 def teacher_extractor_class(encoder: str) -> type[BaseFeaturesExtractor]:
     """The teacher's features extractor for ``net["encoder"]`` (checkpoints without the key are "flat")."""
     if encoder not in TEACHER_ENCODERS:
-        from pipeline.core.errors import ConfigError
-
         raise ConfigError(f"teacher.net.encoder: expected one of {list(TEACHER_ENCODERS)}, got {encoder!r}")
     return {"set": SetTeacherExtractor, "flat": TeacherExtractor, "lookahead": LookaheadTeacherExtractor}[encoder]
 
@@ -57,7 +56,6 @@ def teacher_extractor_class(encoder: str) -> type[BaseFeaturesExtractor]:
 def variant_keys(variant: str, head: str = "mlp") -> tuple[str, ...]:
     """The observation keys a student variant consumes (with the ``lookahead`` head also its perceived ``scan`` and,
     for variants with poses, the pedestrian tracks ``peds``: :mod:`rl.perceive`)."""
-    from pipeline.core.errors import ConfigError
 
     if variant not in VARIANTS:
         raise ConfigError(f"variant: expected one of {list(VARIANTS)}, got {variant!r}")
@@ -109,8 +107,6 @@ class StudentExtractor(BaseFeaturesExtractor):
         keys = variant_keys(variant)
         missing = [k for k in keys if k not in observation_space.spaces]
         if missing:
-            from pipeline.core.errors import ConfigError
-
             raise ConfigError(f"variant {variant!r} needs observation keys {missing}, the env gives "
                               f"{sorted(observation_space.spaces)}")
         super().__init__(observation_space, fused_dim)
@@ -168,8 +164,6 @@ class StudentLookaheadExtractor(StudentExtractor):
         super().__init__(observation_space, variant, **kwargs)
         missing = [k for k in variant_keys(variant, "lookahead") if k not in observation_space.spaces]
         if missing:
-            from pipeline.core.errors import ConfigError
-
             raise ConfigError(f"the lookahead head of variant {variant!r} needs observation keys {missing}")
         base_dim = self._features_dim
         self.lookahead = LookaheadHead(observation_space, robot, dt_s, 0.25, base_dim, score_dim, context_dim,

@@ -45,6 +45,7 @@ from pipeline.core.errors import ConfigError
 from pretrain.geometry import Camera, LiftGeometry, lift_splat, sample_depth
 from pretrain.model import BEVEncoder, BEVStream, EncoderConfig
 from rl.networks import variant_keys
+from rl.perceive import CameraView, Perception
 
 BEV_POOL = 2  # s_bev is average-pooled by this before caching / φ_bev
 OCC_STRIDE_PX = 2  # depth pixels lifted for the occupancy map (every 2nd row and column)
@@ -99,8 +100,6 @@ class StudentObserver:
         self.cameras = cameras
         self.perception = None
         if head == "lookahead":
-            from rl.perceive import CameraView, Perception
-
             if perception is None:
                 raise ConfigError("the lookahead head's observer needs the perception parameters of the env")
             self.perception = Perception([CameraView.of(c) for c in cameras], perception["dt_s"], perception["k"],
@@ -263,7 +262,7 @@ def load_student_encoder(variant: str, encoder_ckpt: Path | None) -> BEVEncoder 
         return None
     if encoder_ckpt is None:
         raise ConfigError(f"variant {variant!r} needs a pretrained encoder checkpoint (encoder_ckpt)")
-    from pretrain.checkpoint import load_encoder
+    from pretrain.checkpoint import load_encoder  # lazy: torchvision (~3 s) only when an encoder is loaded
 
     return load_encoder(Path(encoder_ckpt), frozen=True)
 

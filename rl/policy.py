@@ -111,7 +111,7 @@ def describe(kind: str, variant: str | None, obs_space: gym.spaces.Dict, net: di
 
 def save_policy(out: Path, policy: ActorCriticPolicy, desc: dict[str, Any]) -> None:
     """Writes ``policy.safetensors`` and ``policy.json`` into ``out`` (each atomically)."""
-    from pretrain.checkpoint import save_safetensors
+    from pretrain.checkpoint import save_safetensors  # lazy: torchvision (~3 s) only when weights are read
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -159,7 +159,7 @@ def load_policy(ckpt: Path) -> tuple[ActorCriticPolicy, dict[str, Any]]:
     Raises:
         InputMissingError: the directory or a file is missing. CorruptArtifactError: unreadable or mismatching.
     """
-    from pretrain.checkpoint import load_safetensors
+    from pretrain.checkpoint import load_safetensors  # lazy: torchvision (~3 s) only when weights are read
 
     ckpt = Path(ckpt)
     desc = read_policy_json(ckpt)

@@ -46,16 +46,49 @@ import torch
 
 from pipeline.core import layout
 from pipeline.core.artifacts import atomic_save_npz, atomic_write_json
-from pipeline.core.config import BaseStageConfig
-from pipeline.core.errors import ConfigError
+from pipeline.core.config import BaseStageConfig, dump_yaml
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pretrain.checkpoint import read_encoder_json
 from rl.baselines import BASELINES, baseline_module
 from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
 from rl.baselines.sarl_om.configuration import Config as SARLOMConfig
 from rl.baselines.vint.configuration import Config as ViNTConfig
 from rl.callbacks import checkpoint_callback, progress_callback
-from rl.networks import VARIANTS
-from rl.teacher import CurriculumStage, check_curriculum
-from sim.env import SimConfig
+from rl.dagger import bev_stats, export_iteration, load_features, run_iteration, write_done
+from rl.evaluate import evaluate, success_table
+from rl.figures import plot_training
+from rl.networks import STUDENT_HEADS, VARIANTS
+from rl.observe import StudentEnv, check_encoder_matches, env_cameras, load_student_encoder, observer_for_env
+from rl.policy import (
+    build_policy,
+    describe,
+    freeze_actor,
+    load_policy,
+    policy_class,
+    policy_kwargs,
+    read_policy_json,
+    save_policy,
+)
+from rl.teacher import (
+    CurriculumStage,
+    SceneMixEnv,
+    attach_lookahead_cache,
+    bc_loss,
+    behaviour_clone,
+    check_curriculum,
+    collect_dagger,
+    collect_expert,
+    curriculum_callback,
+    fit_lookahead_linear,
+    has_lookahead,
+    lookahead_feature_cache,
+    make_vec_env,
+    ppo_kwargs,
+    stage_pairs_all,
+    teacher_net,
+)
+from sim.env import CrowdNavEnv, SimConfig
+from sim.scene import load_scene
 
 log = logging.getLogger("icrowdnav")
 TRAIN_VARIANTS = ("teacher", *VARIANTS, *BASELINES)
@@ -173,7 +206,6 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError("train: ppo_steps and teacher.critic_warmup_steps must be >= 0")
         if d.soft_tau < 0:
             raise ConfigError(f"train.dagger.soft_tau: expected >= 0, got {d.soft_tau}")
-        from rl.networks import STUDENT_HEADS
 
         if self.head not in STUDENT_HEADS:
             raise ConfigError(f"train.head: expected one of {list(STUDENT_HEADS)}, got {self.head!r}")
@@ -185,7 +217,6 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError(f"train.dagger: beta0 and beta_decay must be in [0, 1], got {d.beta0}, {d.beta_decay}")
         if not d.scenes or not d.densities or not self.acceptance.scenes or not self.acceptance.densities:
             raise ConfigError("train: dagger and acceptance need at least one scene and one density")
-        from sim.scene import load_scene
 
         for s in {*d.scenes, *self.acceptance.scenes, *(x for st in t.curriculum for x in st.scenes)}:
             load_scene(s)  # unknown scene -> ConfigError naming it
@@ -209,14 +240,10 @@ def inputs(cfg: TrainConfig) -> list[Path]:
         return []
     if cfg.variant in BASELINES:
         return list(baseline_module(cfg.variant).inputs(cfg))
-    from pretrain.checkpoint import read_encoder_json
-    from rl.policy import read_policy_json
 
     teacher = policy_root(cfg) / "teacher"
     read_policy_json(teacher)
     if not (teacher / "manifest.json").is_file():
-        from pipeline.core.errors import InputMissingError
-
         raise InputMissingError(f"teacher checkpoint {teacher} is unfinished (no manifest.json); run "
                                 "`icrowdnav train --variant teacher` first")
     paths = [teacher / "policy.json", teacher / "policy.safetensors"]
@@ -227,8 +254,6 @@ def inputs(cfg: TrainConfig) -> list[Path]:
                           "--dagger.linear_cost fit")
     if cfg.variant != "no_bev":
         read_encoder_json(encoder_dir(cfg))  # missing / unfinished / corrupt -> one clear error
-        from rl.observe import check_encoder_matches, env_cameras, load_student_encoder
-        from sim.env import CrowdNavEnv
 
         enc = load_student_encoder(cfg.variant, encoder_dir(cfg))
         env = CrowdNavEnv(config=replace(cfg.sim, scene=cfg.dagger.scenes[0], obs_mode="state"))
@@ -260,8 +285,6 @@ class _Log:
 
 
 def _acceptance(cfg: TrainConfig, policy_dir: Path, method: str) -> dict[str, Any]:
-    from rl.evaluate import evaluate, success_table
-
     a = cfg.acceptance
     seeds = [10_000 + k for k in range(a.episodes)]
     rows = evaluate(policy_dir, cfg.sim, [(s, d) for s in a.scenes for d in a.densities], seeds,
@@ -272,23 +295,6 @@ def _acceptance(cfg: TrainConfig, policy_dir: Path, method: str) -> dict[str, An
 # --------------------------------------------------------------------------------------------------------- teacher
 def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     from stable_baselines3 import PPO
-
-    from rl.policy import build_policy, describe, freeze_actor, policy_class, policy_kwargs, save_policy
-    from rl.teacher import (
-        SceneMixEnv,
-        attach_lookahead_cache,
-        behaviour_clone,
-        collect_dagger,
-        collect_expert,
-        curriculum_callback,
-        fit_lookahead_linear,
-        has_lookahead,
-        lookahead_feature_cache,
-        make_vec_env,
-        ppo_kwargs,
-        stage_pairs_all,
-        teacher_net,
-    )
 
     t = cfg.teacher
     logger = _Log(out)
@@ -306,8 +312,6 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         if (sdir / "policy.json").exists() and (sdir / "data.npz").exists():
             continue
         if k > 0 and policy is None:  # resuming: the previous stage's policy and aggregate
-            from rl.policy import load_policy
-
             policy, _ = load_policy(out / "imitation" / f"{k - 1:02d}")
         if data is None and k > 0:
             data = _load_aggregate(out, k)
@@ -347,7 +351,6 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         atomic_save_npz(sdir / "data.npz", new)
         save_policy(sdir, policy, describe("teacher", None, probe.observation_space, net, imitation=stat,
                                            produced_by={"expert_frames": stat["frames"], "dagger_iterations": k}))
-    from rl.policy import load_policy, read_policy_json
 
     last = out / "imitation" / f"{t.dagger_iterations:02d}"
     if policy is None:
@@ -397,7 +400,6 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
 
 def _load_aggregate(out: Path, k: int) -> dict[str, np.ndarray]:
     """The imitation data of stages 0 .. k-1 (each ``imitation/<j>/data.npz`` holds that stage's new frames)."""
-    from pipeline.core.errors import CorruptArtifactError
 
     parts = []
     for j in range(k):
@@ -413,18 +415,6 @@ def _load_aggregate(out: Path, k: int) -> dict[str, np.ndarray]:
 
 # --------------------------------------------------------------------------------------------------------- student
 def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
-    from rl.dagger import bev_stats, export_iteration, load_features, run_iteration, write_done
-    from rl.observe import load_student_encoder, observer_for_env
-    from rl.policy import build_policy, describe, load_policy, save_policy
-    from rl.teacher import (
-        bc_loss,
-        behaviour_clone,
-        fit_lookahead_linear,
-        has_lookahead,
-        lookahead_feature_cache,
-    )
-    from sim.env import CrowdNavEnv
-
     d = cfg.dagger
     logger = _Log(out)
     teacher_dir = policy_root(cfg) / "teacher"
@@ -523,7 +513,6 @@ def inherit_linear_cost(policy, teacher_dir: Path) -> None:
     """Copies the lookahead teacher's linear cost into a student's lookahead head (the same rollout features, here of
     the perceived tracks and scan) and zeroes the MLP scorer's output layer, so the student starts as the teacher's
     cost over what it perceives and cloning learns corrections on top."""
-    from rl.policy import load_policy
 
     teacher, _ = load_policy(teacher_dir)
     src, dst = getattr(teacher.features_extractor, "lookahead", None), policy.features_extractor.lookahead
@@ -552,7 +541,6 @@ def teacher_heading(teacher_dir: Path) -> str:
     """The heading error mode of a lookahead teacher's rollout features (``rl.lookahead.LookaheadHead``; checkpoints
     from before the option have ``"end"``): a student's lookahead head computes its features the same way, so the
     teacher's linear cost it inherits means the same thing."""
-    from rl.policy import read_policy_json
 
     if not (teacher_dir / "policy.json").exists():
         return "end"
@@ -563,10 +551,6 @@ def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir):
     """PPO on the student (rendered envs, the paper's reward), starting from the distilled policy."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
-
-    from rl.observe import StudentEnv
-    from rl.policy import policy_class, policy_kwargs
-    from rl.teacher import SceneMixEnv, ppo_kwargs
 
     f = cfg.finetune
 
@@ -598,9 +582,6 @@ def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir):
 
 # -------------------------------------------------------------------------------------------------------- the stage
 def body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
-    from pipeline.core.config import dump_yaml
-    from rl.figures import plot_training
-
     dump_yaml(cfg, out / "config.yaml")
     t0 = time.perf_counter()
     if cfg.variant == "teacher":

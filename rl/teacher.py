@@ -29,9 +29,9 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from pipeline.core.errors import ConfigError
+from pipeline.core.errors import ConfigError, InputMissingError
 from rl.lookahead import N_LINEAR, SCORE_SCALE
-from rl.policy import act
+from rl.policy import LOOKAHEAD_KEY, act, build_policy
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
 from sim.expert import PrivilegedExpert
@@ -169,8 +169,6 @@ _WORKER_POLICY: dict[str, Any] = {}
 
 
 def _init_dagger_worker(kind: str, obs_space, net: dict[str, Any], state: dict[str, torch.Tensor]) -> None:
-    from rl.policy import build_policy
-
     torch.set_num_threads(1)
     policy = build_policy(kind, None, obs_space, net)
     policy.load_state_dict(state)
@@ -276,8 +274,6 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
 
     if mirror and "bev" in keys:
         if "bev_mirror" not in data:
-            from pipeline.core.errors import InputMissingError
-
             raise InputMissingError("mirror augmentation of s_bev needs the mirrored world's s_bev ('bev_mirror') in "
                                     "the cached features (recorded with dagger.mirror true); clone without mirror")
         keys = (*keys, "bev_mirror")
@@ -491,8 +487,6 @@ def make_vec_env(sim_cfg: SimConfig, pairs: list[tuple[str, float]], n_envs: int
 
 def _lookahead_buffer_class():
     from stable_baselines3.common.buffers import DictRolloutBuffer
-
-    from rl.policy import LOOKAHEAD_KEY
 
     class _Buffer(DictRolloutBuffer):
         """A rollout buffer that computes the lookahead teacher's rollout features of every stored observation once

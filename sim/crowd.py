@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.core.errors import ConfigError
 from sim.geometry import wrap_angle
 from sim.scene import SceneLayout
 
@@ -68,8 +69,6 @@ class CrowdConfig:
     stuck_s: float = 3.0  # walking slower than 0.15 m/s for this long draws a new goal
 
     def validate(self) -> None:
-        from pipeline.core.errors import ConfigError
-
         positive = ("speed_mean_mps", "tau_s", "ped_b_m", "wall_b_m", "robot_b_m", "interaction_range_m",
                     "goal_reached_m", "stuck_s")
         for k in positive:

@@ -19,6 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
+from pipeline.core.errors import ConfigError
 from sim.cameras import CameraSpec, backproject, project, world_to_camera
 from sim.humans import N_KEYPOINTS
 
@@ -35,8 +36,6 @@ class DetectorConfig:
     miss_prob: float = 0.03  # probability that a visible joint is missed anyway
 
     def validate(self) -> None:
-        from pipeline.core.errors import ConfigError
-
         if not 1 <= self.max_people <= 32:
             raise ConfigError(f"detector.max_people: expected 1..32, got {self.max_people}")
         if not 1 <= self.min_joints <= N_KEYPOINTS:

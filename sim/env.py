@@ -54,6 +54,7 @@ from sim.crowd import Crowd, CrowdConfig, norm2d
 from sim.detector import CameraFrame, DetectorConfig, OracleDetector, PoseDetector
 from sim.geometry import world_to_robot
 from sim.humans import Bodies, BodyConfig
+from sim.planners.global_path import GlobalPath
 from sim.reward import RewardConfig, reward_terms
 from sim.robot import ActionCodec, RobotConfig, unicycle_step
 from sim.scene import SceneLayout, SceneSpec, load_scene
@@ -272,7 +273,7 @@ class CrowdNavEnv(gym.Env):
         return self._shortest
 
     def _build_renderer(self) -> None:
-        from sim.renderer import WorldRenderer
+        from sim.renderer import WorldRenderer  # lazy: pybullet (and its stderr banner) only when rendering
 
         if self._renderer is None:
             self._renderer = WorldRenderer()
@@ -413,8 +414,6 @@ class CrowdNavEnv(gym.Env):
         """The point ``subgoal_lookahead_m`` ahead on the global shortest path to ``target`` (default: the goal) on
         the static map, in the robot frame (m)."""
         if self._global_path is None:
-            from sim.planners.global_path import GlobalPath
-
             self._global_path = GlobalPath(self.cfg.subgoal_lookahead_m)
             self._global_path.reset(self)
         p = self._global_path.subgoal(self, target)
@@ -492,7 +491,7 @@ class CrowdNavEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array" or self.layout is None:
             return None
-        from sim.viz import TopDownRenderer
+        from sim.viz import TopDownRenderer  # lazy: matplotlib (~1 s) only for render()'s top-down image
 
         if self._topdown is None or self._topdown_layout is not self.layout:
             self._topdown = TopDownRenderer(self.layout.obstacles, self.spec_scene.bounds, px_per_m=40)

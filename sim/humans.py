@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.core.errors import ConfigError
 from sim.geometry import wrap_angle
 
 COCO_KEYPOINTS = (
@@ -48,8 +49,6 @@ class BodyConfig:
     torso_limit_deg: float = 40.0  # torso yaw relative to the pelvis
 
     def validate(self) -> None:
-        from pipeline.core.errors import ConfigError
-
         for k in ("height_m", "width_scale"):
             lo, hi = getattr(self, k)
             if not 0 < lo <= hi:

@@ -91,7 +91,7 @@ def plot_example(sim: dict[str, np.ndarray], path: Path, ped: int = 0, seconds: 
     ax.set_title("head turns before the walk turns (dotted: decisions)")
     ax.legend(loc="best")
     fig.tight_layout()
-    from sim.viz import save_figure
+    from sim.viz import save_figure  # lazy: matplotlib only for the figure
 
     save_figure(fig, path, 110)
     plt.close(fig)

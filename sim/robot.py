@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.core.errors import ConfigError
+
 
 @dataclass
 class RobotConfig:
@@ -20,8 +22,6 @@ class RobotConfig:
     n_rotations: int = 21  # ... × yaw rates (5 × 21 as in the authors' code)
 
     def validate(self) -> None:
-        from pipeline.core.errors import ConfigError
-
         for k in ("radius_m", "v_max_mps", "omega_max_radps"):
             if getattr(self, k) <= 0:
                 raise ConfigError(f"robot.{k}: expected > 0, got {getattr(self, k)}")

@@ -32,11 +32,15 @@ from typing import Literal
 
 from tqdm import tqdm
 
+import sim  # noqa: F401  (registers the env)
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
 from sim.env import SimConfig
+from sim.expert import run_expert_episode
+from sim.metrics import aggregate, episode_metrics, metrics_table_markdown
 from sim.scene import check_episode_grid
+from sim.viz import compose_frame, plot_episode_topdown, write_video
 
 log = logging.getLogger("icrowdnav")
 
@@ -73,11 +77,6 @@ def _episode_job(args: tuple) -> dict:
     sim_cfg, scene, density, seed, out, want_fig, want_video = args
     import gymnasium as gym
 
-    import sim  # noqa: F401  (registers the env)
-    from sim.expert import run_expert_episode
-    from sim.metrics import episode_metrics
-    from sim.viz import plot_episode_topdown
-
     cfg = replace(sim_cfg, scene=scene, density=density, obs_mode="state", info_level="basic")
     env = gym.make("icrowdnav/CrowdNav-v0", config=cfg)
     trace = run_expert_episode(env, seed)
@@ -104,9 +103,6 @@ def _video(sim_cfg: SimConfig, scene: str, density: float, seed: int, path: Path
     import gymnasium as gym
     import numpy as np
 
-    from sim.expert import run_expert_episode
-    from sim.viz import compose_frame, write_video
-
     cfg = replace(sim_cfg, scene=scene, density=density, obs_mode="visual")
     env = gym.make("icrowdnav/CrowdNav-v0", config=cfg, render_mode="rgb_array")
     frames: list[np.ndarray] = []
@@ -127,8 +123,6 @@ def _video(sim_cfg: SimConfig, scene: str, density: float, seed: int, path: Path
 
 
 def body(cfg: RolloutConfig, out: Path) -> dict:
-    from sim.metrics import aggregate, metrics_table_markdown
-
     for sub in ("traces", "figures", "videos"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     seeds = [cfg.seed + k for k in range(cfg.episodes)]

@@ -39,12 +39,25 @@ from pathlib import Path
 
 import numpy as np
 
+import sim  # noqa: F401
 from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.config import BaseStageConfig, load_config
 from pipeline.core.errors import ConfigError
 from pipeline.core.timing import throughput, time_call
+from pretrain.bench import measure_bev
+from pretrain.stage import PretrainConfig
+from recorder.export import write_dataset
+from recorder.record import RecordConfig
+from recorder.record import body as record_body
+from rl.bench import measure_inference, measure_teacher
+from rl.stage import TrainConfig
+from sim.crowd import Crowd, social_force_reference
 from sim.env import SimConfig
+from sim.expert import PrivilegedExpert
+from sim.geometry import signed_distance_reference
+from sim.humans import Bodies
+from sim.intention import head_leads, simulate
 
 
 @dataclass
@@ -68,8 +81,6 @@ class BenchConfig(BaseStageConfig):
 def _env_rate(cfg: BenchConfig, seconds: float, **overrides) -> tuple[float, object]:
     import gymnasium as gym
 
-    import sim  # noqa: F401
-
     env = gym.make("icrowdnav/CrowdNav-v0", config=replace(cfg.sim, scene=cfg.scene, density=cfg.density,
                                                            **overrides))
     env.reset(seed=cfg.seed)
@@ -85,9 +96,6 @@ def _env_rate(cfg: BenchConfig, seconds: float, **overrides) -> tuple[float, obj
 
 def measure(cfg: BenchConfig) -> dict[str, float]:
     """All figures of this module (see the module docstring)."""
-    from sim.crowd import Crowd, social_force_reference
-    from sim.expert import PrivilegedExpert
-    from sim.geometry import signed_distance_reference
 
     s = cfg.seconds_per_figure
     out: dict[str, float] = {}
@@ -115,7 +123,6 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
         out[f"{prefix}_speedup"] = t_ref / t_fast
 
     sfm_pair(u.crowd, "sfm_vectorized")
-    from sim.humans import Bodies
 
     rng = np.random.default_rng(cfg.seed)
     big = Crowd(u.layout, u.crowd.cfg, rng, 40, Bodies(u.cfg.body, rng, 40, np.zeros(40)).radius) \
@@ -139,7 +146,6 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
     out["expert_ms_per_step"] = 1000 * time_call(lambda: expert.command(env.unwrapped), s / 2)
     env.close()
     # the premise: heads turn before the walking direction does (free crowd, 120 s simulated)
-    from sim.intention import head_leads, simulate
 
     leads = head_leads(simulate(cfg.scene, cfg.density, 120.0, cfg.seed))
     out["intention_decisions"] = len(leads)
@@ -148,16 +154,9 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
     out["intention_head_lead_p90_s"] = float(np.percentile(leads, 90))
     out["intention_head_first_share"] = float(np.mean(leads > 0))
     if cfg.bev:
-        from pretrain.bench import measure_bev
-        from pretrain.stage import PretrainConfig
-
         enc_cfg = load_config(PretrainConfig, "pretrain", cfg.profile).encoder
         out.update(measure_bev(cfg.sim, cfg.scene, cfg.density, cfg.seed, enc_cfg, s))
     if cfg.rl:
-        from pretrain.stage import PretrainConfig
-        from rl.bench import measure_inference, measure_teacher
-        from rl.stage import TrainConfig
-
         train_cfg = load_config(TrainConfig, "train", cfg.profile)
         out.update(measure_teacher(cfg.sim, cfg.scene, cfg.density, cfg.seed, train_cfg, 2 * s))
         enc_cfg = load_config(PretrainConfig, "pretrain", cfg.profile).encoder
@@ -173,9 +172,6 @@ def measure_recorder(cfg: BenchConfig) -> dict[str, float]:
     import tempfile
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    from recorder.export import write_dataset
-    from recorder.record import RecordConfig
-    from recorder.record import body as record_body
 
     out: dict[str, float] = {}
     with tempfile.TemporaryDirectory(prefix="icrowdnav-bench-") as tmp:

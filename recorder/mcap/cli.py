@@ -44,8 +44,8 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(episode_summary(args.file), indent=2))
         else:
             # imported late: the simulator (pybullet) is only needed to measure, not to recover or summarise
-            from recorder.drive import drive_episode
-            from sim.env import SimConfig
+            from recorder.drive import drive_episode  # lazy: the simulator, only for the bench subcommand
+            from sim.env import SimConfig  # lazy: the simulator, only for the bench subcommand
 
             t0 = time.perf_counter()
             ep = drive_episode(SimConfig(scene=args.scene, density=args.density, max_episode_s=args.seconds), 0)

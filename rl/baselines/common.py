@@ -61,7 +61,7 @@ def save_baseline(out: Path, name: str, model: torch.nn.Module, net: dict[str, A
                   produced_by: dict[str, Any], **extra: Any) -> None:
     """Writes ``policy.safetensors`` and ``policy.json`` (each atomically) for baseline ``name``."""
     # lazily: pretrain.checkpoint takes ~3 s to import (torchvision, via pretrain.model)
-    from pretrain.checkpoint import save_safetensors
+    from pretrain.checkpoint import save_safetensors  # lazy: torchvision (~3 s) only when weights are read
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -86,7 +86,7 @@ def load_baseline(ckpt: Path, name: str, build: Callable[[dict[str, Any]], torch
     """The model of baseline ``name`` saved in ``ckpt`` (eval mode) and its description; ``build(net)`` makes the
     network from ``policy.json``'s ``net``."""
     # lazily: pretrain.checkpoint takes ~3 s to import (torchvision, via pretrain.model)
-    from pretrain.checkpoint import load_safetensors
+    from pretrain.checkpoint import load_safetensors  # lazy: torchvision (~3 s) only when weights are read
 
     ckpt = Path(ckpt)
     desc = read_policy_json(ckpt)

@@ -58,6 +58,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from pipeline.core.errors import ConfigError
+from sim.geometry import Box
 from sim.scene import GRID_RES_M, SceneLayout
 
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -732,8 +733,7 @@ def plot_topomap(layout: SceneLayout, topomap: TopoMap, out_png: str | os.PathLi
     from matplotlib.figure import Figure
     from matplotlib.patches import Circle, Polygon
 
-    from sim.geometry import Box
-    from sim.viz import box_corners, save_figure
+    from sim.viz import box_corners, save_figure  # lazy: matplotlib only for plot_topomap
 
     path = Path(out_png)
     x0, x1, y0, y1 = layout.spec.bounds
