@@ -156,7 +156,7 @@ def _video_frame(env: CrowdNavEnv, obs: dict[str, np.ndarray], info: dict, drive
     panels = [obs["rgb_left"], obs["rgb_right"], colorize_depth(obs["depth_left"]),
               colorize_depth(obs["depth_right"])]
     labels = ["left RGB", "right RGB", "left depth", "right depth"]
-    bev = driver.bev_panel()
+    bev = driver.bev_panel() if hasattr(driver, "bev_panel") else None  # optional in the Driver protocol
     if bev is not None:
         panels.append(_heat(bev))
         labels.append("BEV input")

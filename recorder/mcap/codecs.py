@@ -24,22 +24,8 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
-from recorder.schema import (
-    CAMERA_NAMES,
-    TOPIC_CALIB,
-    TOPIC_DEPTH,
-    TOPIC_DETECTIONS,
-    TOPIC_GOAL,
-    TOPIC_KEYPOINTS_2D,
-    TOPIC_OCCUPANCY,
-    TOPIC_PEDS,
-    TOPIC_PEDS_SCENE,
-    TOPIC_REWARD,
-    TOPIC_RGB,
-    TOPIC_ROBOT,
-    TOPIC_ROBOT_POSE,
-    TOPIC_TF,
-)
+from recorder import schema
+from recorder.schema import CAMERA_NAMES
 
 DEPTH_SCALE_M = 0.001  # metres per depth count (16UC1)
 _ARRAY_DTYPES = ("float32", "float64", "int64", "int32", "uint8", "bool")
@@ -144,7 +130,7 @@ def _array_prop(dtype: str, shape: str, unit: str) -> dict:
 
 _NUM = {"type": ["number", "string"], "description": "float; non-finite values as \"inf\", \"-inf\", \"nan\""}
 JSON_SCHEMAS: dict[str, tuple[str, bytes]] = {
-    TOPIC_ROBOT: ("icrowdnav.RobotState", _json_schema("icrowdnav.RobotState", {
+    schema.TOPIC_ROBOT: ("icrowdnav.RobotState", _json_schema("icrowdnav.RobotState", {
         "step": {"type": "integer", "minimum": 0, "description": "0 = after reset, k = after the k-th action"},
         "state": _array_prop("float32", "5", "[g_x, g_y, d_g, v_x, v_y], robot frame, m and m/s"),
         "odom": _array_prop("float32", "3", "[x m, y m, yaw rad], world frame"),
@@ -153,7 +139,7 @@ JSON_SCHEMAS: dict[str, tuple[str, bytes]] = {
         "label": _array_prop("float32", "2", "optional: the labeller's (DAgger teacher's) [v m/s, omega rad/s] "
                              "for this frame's observation"),
     }, optional=("label",))),
-    TOPIC_PEDS: ("icrowdnav.PedestrianState", _json_schema("icrowdnav.PedestrianState", {
+    schema.TOPIC_PEDS: ("icrowdnav.PedestrianState", _json_schema("icrowdnav.PedestrianState", {
         "pos": _array_prop("float32", "N x 2", "positions, world frame, m"),
         "vel": _array_prop("float32", "N x 2", "velocities, world frame, m/s"),
         "radius": _array_prop("float32", "N", "body disc radii, m"),
@@ -161,13 +147,13 @@ JSON_SCHEMAS: dict[str, tuple[str, bytes]] = {
         "intent_xy": _array_prop("float32", "N x 2", "pending goals, world frame, m"),
         "keypoints": _array_prop("float32", "N x 17 x 3", "true COCO-17 keypoints, world frame, m"),
     })),
-    TOPIC_DETECTIONS: ("icrowdnav.PoseDetections", _json_schema("icrowdnav.PoseDetections", {
+    schema.TOPIC_DETECTIONS: ("icrowdnav.PoseDetections", _json_schema("icrowdnav.PoseDetections", {
         "poses": _array_prop("float32", "K x 17 x 3", "detected COCO-17 joints, robot frame, m"),
         "mask": _array_prop("bool", "K x 17", "joint detected"),
         "confidence": _array_prop("float32", "K x 17", "detector confidence in [0, 1]"),
         "track": _array_prop("int64", "K", "true pedestrian index, -1 = padding"),
     })),
-    TOPIC_REWARD: ("icrowdnav.Reward", _json_schema("icrowdnav.Reward", {
+    schema.TOPIC_REWARD: ("icrowdnav.Reward", _json_schema("icrowdnav.Reward", {
         "reward": _NUM,
         "terms": {"type": "object", "additionalProperties": _NUM, "description": "reward terms by name"},
         "d_o": {**_NUM, "description": "robot centre to nearest pedestrian/obstacle surface, m"},
@@ -176,11 +162,11 @@ JSON_SCHEMAS: dict[str, tuple[str, bytes]] = {
     })),
 }
 
-PROTO_TYPES: dict[str, type] = {TOPIC_TF: FrameTransforms, TOPIC_ROBOT_POSE: PoseInFrame, TOPIC_GOAL: PoseInFrame,
-                                TOPIC_PEDS_SCENE: SceneUpdate, TOPIC_OCCUPANCY: Grid}
+PROTO_TYPES: dict[str, type] = {schema.TOPIC_TF: FrameTransforms, schema.TOPIC_ROBOT_POSE: PoseInFrame, schema.TOPIC_GOAL: PoseInFrame,
+                                schema.TOPIC_PEDS_SCENE: SceneUpdate, schema.TOPIC_OCCUPANCY: Grid}
 for _c in CAMERA_NAMES:
-    PROTO_TYPES |= {TOPIC_RGB.format(cam=_c): RawImage, TOPIC_DEPTH.format(cam=_c): RawImage,
-                    TOPIC_CALIB.format(cam=_c): CameraCalibration, TOPIC_KEYPOINTS_2D.format(cam=_c): ImageAnnotations}
+    PROTO_TYPES |= {schema.TOPIC_RGB.format(cam=_c): RawImage, schema.TOPIC_DEPTH.format(cam=_c): RawImage,
+                    schema.TOPIC_CALIB.format(cam=_c): CameraCalibration, schema.TOPIC_KEYPOINTS_2D.format(cam=_c): ImageAnnotations}
 
 
 def expected_schema_name(topic: str) -> str:

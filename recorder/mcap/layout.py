@@ -39,23 +39,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from recorder.schema import (
-    CAMERA_NAMES,
-    TOPIC_CALIB,
-    TOPIC_DEPTH,
-    TOPIC_DETECTIONS,
-    TOPIC_GOAL,
-    TOPIC_KEYPOINTS_2D,
-    TOPIC_OCCUPANCY,
-    TOPIC_PEDS,
-    TOPIC_PEDS_SCENE,
-    TOPIC_REWARD,
-    TOPIC_RGB,
-    TOPIC_ROBOT,
-    TOPIC_ROBOT_POSE,
-    TOPIC_TF,
-    EpisodeMeta,
-)
+from recorder import schema
+from recorder.schema import CAMERA_NAMES, EpisodeMeta
 
 # MCAP header library string: constant, so files are reproducible. It keeps the name of the module this package
 # was split from, because changing it would change the bytes of every file (tests/test_golden.py pins them).
@@ -73,11 +58,11 @@ def frame_topics(first: bool = False) -> tuple[str, ...]:
     Args:
         first: Whether this is the frame at t = 0 (which also carries ``/map/occupancy``).
     """
-    per_cam = tuple(t.format(cam=c) for c in CAMERA_NAMES for t in (TOPIC_RGB, TOPIC_DEPTH, TOPIC_CALIB,
-                                                                    TOPIC_KEYPOINTS_2D))
-    rest = (TOPIC_TF, TOPIC_ROBOT_POSE, TOPIC_GOAL, TOPIC_PEDS_SCENE, TOPIC_ROBOT, TOPIC_PEDS, TOPIC_DETECTIONS,
-            TOPIC_REWARD)
-    return per_cam + rest + ((TOPIC_OCCUPANCY,) if first else ())
+    per_cam = tuple(t.format(cam=c) for c in CAMERA_NAMES for t in (schema.TOPIC_RGB, schema.TOPIC_DEPTH, schema.TOPIC_CALIB,
+                                                                    schema.TOPIC_KEYPOINTS_2D))
+    rest = (schema.TOPIC_TF, schema.TOPIC_ROBOT_POSE, schema.TOPIC_GOAL, schema.TOPIC_PEDS_SCENE, schema.TOPIC_ROBOT, schema.TOPIC_PEDS, schema.TOPIC_DETECTIONS,
+            schema.TOPIC_REWARD)
+    return per_cam + rest + ((schema.TOPIC_OCCUPANCY,) if first else ())
 
 
 def camera_frame_id(cam: str) -> str:

@@ -66,6 +66,17 @@ def test_one_episode_writes_trace_figure_and_a_readable_mcap(tmp_path):
     assert "/robot/state" in topics and n == row["steps"] + 1
 
 
+def test_rendered_episode_of_a_privileged_method_gives_the_same_row_and_a_video(tmp_path):
+    """The expert keeps its privileged world when the episode is rendered for a video and a log (its driver has
+    no BEV panel: the video goes without it), and drives exactly as without rendering."""
+    (expert,) = resolve_methods(["expert"], tmp_path)
+    plain = run_episode(Job(expert, TINY, "office_lobby", 0.1, 7, tmp_path / "a"))
+    shown = run_episode(Job(expert, TINY, "office_lobby", 0.1, 7, tmp_path / "b", video=True, mcap=True))
+    assert shown == plain
+    assert (tmp_path / "b" / "videos" / "office_lobby_d0.1_s7_expert.mp4").stat().st_size > 0
+    assert (tmp_path / "b" / "mcap" / "office_lobby_d0.1_s7_expert.mcap").stat().st_size > 0
+
+
 def _rows() -> list[dict]:
     """Hand-built episodes: full succeeds on seeds 0..7 of 10, no_i2 on 0..3, dwa on none (collisions)."""
     rows = []

@@ -16,25 +16,10 @@ from tests.rl.baselines.drl_vo.helpers import ROOT, drive
 _DRIVE_SCRIPT = """
 import json, sys
 import torch
-from dataclasses import replace
-from rl.baselines.drl_vo import Driver
-from sim.env import CrowdNavEnv, SimConfig
+from pathlib import Path
+from tests.rl.baselines.drl_vo.helpers import drive
 torch.set_num_threads(1)
-driver = Driver(sys.argv[1])
-from sim.wrappers import with_privileges
-env = with_privileges(CrowdNavEnv(config=replace(SimConfig(), scene=sys.argv[2], density=0.0, obs_mode="privileged",
-                                                 action_type="continuous", info_level="basic", max_episode_s=8.0)),
-                      "privileged")
-obs, info = env.reset(seed=int(sys.argv[3]))
-driver.reset(obs, info)
-actions = []
-while True:
-    a = driver.act(obs, info)
-    actions.append([float(x) for x in a])
-    obs, _, term, trunc, info = env.step(a)
-    if term or trunc:
-        break
-print(json.dumps([info["outcome"], actions]))
+print(json.dumps(drive(Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]))))
 """
 
 
