@@ -9,6 +9,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from pipeline.core.parallel import map_jobs
 from rl.baselines import BASELINES, baseline_module
 from rl.driver import PolicyDriver, process_cached
@@ -31,6 +33,7 @@ def checkpoint_env(ckpt: Path) -> dict[str, str]:
 def checkpoint_driver(ckpt: Path) -> Driver:
     """The driver of the policy or baseline saved in ``ckpt`` (built once per process)."""
     def make() -> Driver:
+        torch.set_num_threads(1)  # one thread per episode worker (a forked OpenMP pool can hang the child)
         desc = read_policy_json(Path(ckpt))
         if desc["kind"] == "baseline":
             return baseline_module(desc["variant"]).Driver(Path(ckpt))

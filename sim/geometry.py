@@ -234,6 +234,14 @@ def world_to_robot(points: np.ndarray, pose, *, vectors: bool = False) -> np.nda
     return out
 
 
+def world_to_robot_each(points: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """World points ``N x 2`` into the frames of poses ``N x 3`` (x forward, y left): point i in the frame of pose i
+    (:func:`world_to_robot` takes one pose for every point)."""
+    d = points - poses[:, :2]
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
+
+
 def robot_to_world(points: np.ndarray, pose, *, vectors: bool = False) -> np.ndarray:
     """The inverse of :func:`world_to_robot`."""
     p = np.asarray(points, dtype=np.float64)

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from scipy import stats as sps
 
+from sim.geometry import wrap_angle
 from sim.trace import EpisodeTrace
 
 TTC_HORIZON_S = 10.0
@@ -67,11 +68,6 @@ METRIC_KEYS: tuple[str, ...] = (
     "final_goal_distance_m",
 )
 """Keys returned by :func:`episode_metrics`, in order."""
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    """Wrap angles to ``[-pi, pi)``."""
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def time_to_collision(
@@ -171,7 +167,7 @@ def episode_metrics(
     if t_steps:
         to_goal = trace.goal_xy[None, :] - xy[:-1]
         bearing = np.arctan2(to_goal[:, 1], to_goal[:, 0])
-        out["path_irregularity_rad"] = float(np.mean(np.abs(_wrap(yaw[:-1] - bearing))))
+        out["path_irregularity_rad"] = float(np.mean(np.abs(wrap_angle(yaw[:-1] - bearing))))
         out["mean_speed_mps"] = path_len / (t_steps * dt)
     else:
         out["path_irregularity_rad"] = math.nan

@@ -228,3 +228,12 @@ def test_frame_transforms_known_values_and_round_trip():
     for vec in (False, True):
         back = robot_to_world(world_to_robot(pts, (0.3, -1.2, 2.5), vectors=vec), (0.3, -1.2, 2.5), vectors=vec)
         np.testing.assert_allclose(back, pts, atol=1e-12)
+
+
+def test_world_to_robot_each_equals_one_pose_at_a_time():
+    from sim.geometry import world_to_robot_each
+
+    rng = np.random.default_rng(0)
+    pts, poses = rng.normal(size=(20, 2)) * 5, np.c_[rng.normal(size=(20, 2)) * 5, rng.uniform(-4, 4, 20)]
+    one = np.stack([world_to_robot(p, q) for p, q in zip(pts, poses, strict=True)])
+    np.testing.assert_allclose(world_to_robot_each(pts, poses), one, atol=1e-12)

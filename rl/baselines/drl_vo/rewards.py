@@ -7,10 +7,7 @@ import math
 import numpy as np
 
 from rl.baselines.drl_vo.configuration import RewardConfig
-
-
-def _wrap(a: np.ndarray | float) -> np.ndarray:
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+from sim.geometry import wrap_angle
 
 
 def vo_heading(goal_rf: np.ndarray, tracks: np.ndarray, speed_mps: float, robot_radius_m: float, range_m: float,
@@ -24,17 +21,17 @@ def vo_heading(goal_rf: np.ndarray, tracks: np.ndarray, speed_mps: float, robot_
     t = np.asarray(tracks, np.float64)
     t = t[np.hypot(t[:, 0], t[:, 1]) <= range_m] if len(t) else t
     if not len(t):
-        return float(_wrap(pre))
-    theta = _wrap(pre + (np.arange(n_headings) - n_headings // 2) * (2 * np.pi / n_headings))  # N, theta[N/2]=pre
+        return float(wrap_angle(pre))
+    theta = wrap_angle(pre + (np.arange(n_headings) - n_headings // 2) * (2 * np.pi / n_headings))  # N, theta[N/2]=pre
     dist = np.hypot(t[:, 0], t[:, 1])
     half = np.arcsin(np.minimum(1.0, 3 * robot_radius_m / np.maximum(dist, 1e-9)))  # M
     rel = np.arctan2(speed_mps * np.sin(theta)[:, None] - t[None, :, 3],
                      speed_mps * np.cos(theta)[:, None] - t[None, :, 2])  # N x M: robot velocity − pedestrian's
-    blocked = (np.abs(_wrap(rel - np.arctan2(t[:, 1], t[:, 0])[None])) <= half[None]).any(1)
+    blocked = (np.abs(wrap_angle(rel - np.arctan2(t[:, 1], t[:, 0])[None])) <= half[None]).any(1)
     if blocked.all():
         return math.pi / 2
     free = theta[~blocked]
-    return float(free[np.argmin(np.abs(_wrap(free - pre)))])
+    return float(free[np.argmin(np.abs(wrap_angle(free - pre)))])
 
 
 def reward_terms(cfg: RewardConfig, outcome: str | None, d_goal: float, d_goal_prev: float, scan_min_m: float,

@@ -89,7 +89,6 @@ from rl.baselines.vint.data import (
     resize_images,
     side_by_side,
     trajectory_labels,
-    world_to_robot_frames,
 )
 from rl.baselines.vint.driver import ContextBuffer, Driver, vint_controller
 from rl.baselines.vint.model import Decoder, PositionalEncoding, ViNTStyle, build_model
@@ -101,5 +100,4 @@ __all__ = [
     "Driver", "Frames", "PositionalEncoding", "Trainer", "ViNTStyle", "build_model", "check_dataset",
     "context_indices", "dataset_root", "efficientnet_pytorch_b0_keys", "goal_features", "inputs", "load_dataset",
     "load_released_weights", "resize_images", "side_by_side", "train", "trajectory_labels", "vint_controller",
-    "world_to_robot_frames",
 ]

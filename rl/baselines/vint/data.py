@@ -17,6 +17,7 @@ from pipeline.core.errors import CorruptArtifactError, InputMissingError
 from pipeline.core.keys import OBS_GOAL, OBS_ODOM, image_key
 from pretrain.data import decode_video_file
 from rl.baselines.vint.configuration import CAMERAS
+from sim.geometry import world_to_robot_each
 
 
 def resize_images(rgb: np.ndarray, hw: list[int]) -> np.ndarray:
@@ -36,14 +37,6 @@ def goal_features(rel_xy: np.ndarray, scale_m: float) -> np.ndarray:
     rel = np.asarray(rel_xy, np.float64)
     ang, d = np.arctan2(rel[..., 1], rel[..., 0]), np.hypot(rel[..., 0], rel[..., 1])
     return np.stack([np.cos(ang), np.sin(ang), np.tanh(d / scale_m)], -1).astype(np.float32)
-
-
-def world_to_robot_frames(xy: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """World points ``N x 2`` into the frames of poses ``N x 3`` (x forward, y left): point i in the frame of pose
-    i (:func:`sim.geometry.world_to_robot` takes one pose for every point)."""
-    d = xy - pose[:, :2]
-    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
-    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
 
 
 def context_indices(targets: np.ndarray, start: np.ndarray, context: int, spacing: int) -> np.ndarray:
@@ -72,11 +65,11 @@ def trajectory_labels(pose: np.ndarray, goal: np.ndarray, targets: np.ndarray, e
     k = np.arange(1, horizon + 1) * spacing
     fut = np.minimum(targets[:, None] + k[None, :], end[:, None] - 1)  # T x H
     p0 = pose[targets]
-    rel = world_to_robot_frames(pose[fut].reshape(-1, 3)[:, :2], np.repeat(p0, horizon, 0)).reshape(-1, horizon, 2)
+    rel = world_to_robot_each(pose[fut].reshape(-1, 3)[:, :2], np.repeat(p0, horizon, 0)).reshape(-1, horizon, 2)
     dyaw = pose[fut][..., 2] - p0[:, None, 2]
     wp = np.concatenate([rel / metres_per_step, np.stack([np.cos(dyaw), np.sin(dyaw)], -1)], -1)
     dist = np.minimum((end - 1 - targets) / spacing, max_dist)
-    return wp.astype(np.float32), dist.astype(np.float32), world_to_robot_frames(goal[targets], p0).astype(np.float32)
+    return wp.astype(np.float32), dist.astype(np.float32), world_to_robot_each(goal[targets], p0).astype(np.float32)
 
 
 @dataclass

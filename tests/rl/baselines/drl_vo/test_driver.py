@@ -40,3 +40,25 @@ def test_corrupt_checkpoint_names_the_file(trained, tmp_path):
     (bad / "policy.safetensors").write_bytes(b"not a safetensors file")
     with pytest.raises(CorruptArtifactError, match="policy.safetensors"):
         drl_vo.Driver(bad)
+
+
+@pytest.mark.timeout(180)
+def test_acceptance_in_a_pool_after_torch_ran_multithreaded_gives_the_serial_rows(trained):
+    """``rl.evaluate`` forks episode workers from a process whose torch has run on several threads (as after
+    training): each worker runs torch on one thread (a forked OpenMP pool can hang), and the rows equal a serial run."""
+    from dataclasses import replace
+
+    from rl.evaluate import evaluate
+    from sim.env import SimConfig
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    torch.randn(256, 256) @ torch.randn(256, 256)  # the parent's thread pool is up
+    try:
+        sim = replace(SimConfig(), max_episode_s=4.0)
+        cells = [(trained["scene"], 0.0)]
+        pooled = evaluate(trained["ckpt"], sim, cells, [1, 2], workers=2, progress=False)
+        serial = evaluate(trained["ckpt"], sim, cells, [1, 2], workers=1, progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    assert json.dumps(pooled) == json.dumps(serial) and len(pooled) == 2  # (NaN metrics compare as text)
