@@ -1,7 +1,9 @@
-"""Seeded benchmark episodes in a process pool: one job = (method, scene, density, seed[, waypoints]).
+"""Seeded benchmark episodes in a process pool: one job = (method, scene, density, seed[, scene seed, waypoints]).
 
 Every method of a run faces the same list of seeds, so the same start, goal, obstacles and crowd
-(:func:`initial_state` of two methods' envs is equal — tested). A job returns its metrics row (every metric of
+(:func:`initial_state` of two methods' envs is equal — tested). A job's ``scene_seed`` draws the clutter, start
+and goal (the benchmark's goal) and its ``seed`` the crowd (the trial); ``route`` makes the method follow the
+global planner's waypoints to the goal (the routing cells). A job returns its metrics row (every metric of
 :mod:`sim.metrics`, plus method / scene / density / seed / outcome) and, when asked, writes the episode's trace,
 a top-down trajectory figure, an mp4 (both cameras, the method's BEV input, top-down) and an MCAP log for Foxglove.
 """
@@ -49,6 +51,8 @@ class Job:
     waypoints: np.ndarray | None = None  # long horizon: the topological plan (world frame), last = the goal
     goal: np.ndarray | None = None  # long horizon: start/goal chosen on the map (overrides the sampled pair)
     start: np.ndarray | None = None
+    scene_seed: int | None = None  # the benchmark's goal: clutter, start and goal from this seed (env reset option)
+    route: bool = False  # follow the global planner's waypoints from start to goal (the routing cells)
     tag: str = ""  # a prefix for file names (e.g. "lh")
     save_trace: bool = True  # traces/<name>.npz
     row_cache: Path | None = None  # write the finished row to <row_cache>/<name>.json (last: eval --resume skips it)
@@ -78,7 +82,7 @@ def make_env(job: Job) -> gym.Env:
         over["obs_mode"] = "visual"
     cfg = replace(job.sim, scene=job.scene, density=job.density, info_level="full" if job.mcap else "basic", **over)
     env: gym.Env = CrowdNavEnv(config=cfg, render_mode="rgb_array" if job.video else None)
-    if job.waypoints is not None:
+    if job.waypoints is not None or job.route:
         env = FollowWaypoints(env, job.waypoints)
     return job.method.wrap(env)
 
@@ -91,10 +95,14 @@ def initial_state(env: gym.Env) -> dict[str, np.ndarray]:
 
 
 def reset_options(job: Job) -> dict | None:
-    """The reset options of ``job``: a given start and goal (long-horizon runs on a map), else None."""
-    if job.start is None:
-        return None
-    return {"start": [float(v) for v in job.start], "goal": [float(v) for v in job.goal]}
+    """The reset options of ``job``: a given start and goal (long-horizon runs on a map) and / or the goal's
+    scene seed; None when it has neither."""
+    out: dict[str, Any] = {}
+    if job.start is not None:
+        out.update(start=[float(v) for v in job.start], goal=[float(v) for v in job.goal])
+    if job.scene_seed is not None:
+        out["scene_seed"] = int(job.scene_seed)
+    return out or None
 
 
 def run_episode(job: Job) -> dict[str, Any]:
@@ -129,9 +137,11 @@ def run_episode(job: Job) -> dict[str, Any]:
         raise
     trace = u.trace(method=job.method.name)
     layout = u.layout
+    time_limit_s = float(u.time_limit_s)
     env.close()
     row = {"method": job.method.name, "scene": Path(job.scene).stem, "density": job.density, "seed": job.seed,
-           "outcome": trace.outcome, "steps": trace.n_steps, **episode_metrics(trace), **job.extra}
+           "outcome": trace.outcome, "steps": trace.n_steps, **episode_metrics(trace),
+           "time_limit_s": time_limit_s, **job.extra}
     if job.save_trace:
         (job.out / "traces").mkdir(parents=True, exist_ok=True)
         trace.save_npz(job.out / "traces" / f"{job.name}.npz")

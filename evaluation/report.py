@@ -2,8 +2,9 @@
 
 * ``results.json`` / ``results.csv`` — per (scene, density, method): N and every metric's mean, std, 95 % CI;
 * ``paired.json`` — the full model against every other method on the same seeds: SR by an exact McNemar test
-  (the discordant pairs), TPZ by a Wilcoxon signed-rank test on all episodes, NT and PL by Wilcoxon on the episodes
-  both methods finished;
+  (the discordant pairs) with the smallest SR difference it detects at 80 % power given the observed discordance
+  (:mod:`evaluation.stats`), TPZ by a Wilcoxon signed-rank test on all episodes, NT and PL by Wilcoxon on the
+  episodes both methods finished; per cell and pooled over the cells;
 * ``report.md`` — the paper's tables (SR, collision, timeout with Wilson CIs; NT, PL, TPZ mean ± std over successes;
   N), the paired tests, the paper's expected ordering checked against our numbers, the long-horizon table;
 * ``figures/sr_by_cell.png`` — SR with 95 % CIs per cell and method.
@@ -19,12 +20,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from evaluation.stats import detectable_difference, max_discordance, mcnemar_exact, pooled_mcnemar
 from sim.metrics import aggregate, metrics_table_markdown, paired_test
 from sim.viz import save_figure
 
 TABLE_METRICS = ("success", "collision", "timeout", "nav_time_s", "path_length_m", "tpz_s")
+ALPHA, POWER = 0.05, 0.8  # the detectable-difference columns: two-sided McNemar at 5 %, 80 % power
 
 
 def cells_of(rows: Sequence[dict[str, Any]]) -> list[tuple[str, float]]:
@@ -67,16 +68,6 @@ def _num(v: Any) -> str:
     return "" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{float(v):.6g}"
 
 
-def mcnemar_exact(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:
-    """Exact McNemar test for paired binary outcomes: ``b01`` (a fails, b succeeds), ``b10``, two-sided p."""
-    from scipy.stats import binomtest
-
-    x, y = np.asarray(a) > 0.5, np.asarray(b) > 0.5
-    b10, b01 = int(np.sum(x & ~y)), int(np.sum(~x & y))
-    p = float(binomtest(b10, b10 + b01, 0.5).pvalue) if b10 + b01 else math.nan
-    return {"a_only": b10, "b_only": b01, "p_value": p, "n": int(len(x)), "sr_diff": float(x.mean() - y.mean())}
-
-
 def paired(rows: Sequence[dict[str, Any]], ref: str = "full") -> dict[str, dict[str, Any]]:
     """``{"<cell>": {other: {"sr": mcnemar, "tpz_s": wilcoxon, "nav_time_s": ..., "path_length_m": ...}}}``."""
     out: dict[str, dict[str, Any]] = {}
@@ -91,13 +82,41 @@ def paired(rows: Sequence[dict[str, Any]], ref: str = "full") -> dict[str, dict[
                 continue
             seeds = sorted(set(by[ref]) & set(other))
             a, b = [by[ref][s] for s in seeds], [other[s] for s in seeds]
-            entry = {"n_pairs": len(seeds), "sr": mcnemar_exact([r["success"] for r in a], [r["success"] for r in b]),
+            sr = mcnemar_exact([r["success"] for r in a], [r["success"] for r in b])
+            sr["detectable_diff"] = detectable_difference(sr["n"], sr["discordant"], ALPHA, POWER)
+            entry = {"n_pairs": len(seeds), "sr": sr,
                      "tpz_s": paired_test([r["tpz_s"] for r in a], [r["tpz_s"] for r in b])}
             both = [(x, y) for x, y in zip(a, b, strict=True) if x["success"] == 1 and y["success"] == 1]
             for k in ("nav_time_s", "path_length_m"):
                 entry[k] = paired_test([x[k] for x, _ in both], [y[k] for _, y in both])
             res[m] = entry
         out[f"{scene}@{d:g}"] = res
+    return out
+
+
+def paired_pooled(rows: Sequence[dict[str, Any]], ref: str = "full") -> dict[str, dict[str, Any]]:
+    """The full model against every other method over all cells' pairs at once: ``{other: {"sr": McNemar with
+    its detectable difference, "n_cells", "sized_for": the largest discordance at which a 10-point difference is
+    still detectable with these pairs}}``."""
+    by_cell: dict[str, list[tuple[list[float], list[float]]]] = {}
+    for scene, d in cells_of(rows):
+        cell = [r for r in rows if r["scene"] == scene and float(r["density"]) == d]
+        ref_rows = {r["seed"]: r for r in cell if r["method"] == ref}
+        if not ref_rows:
+            continue
+        for m in methods_of(cell):
+            if m == ref:
+                continue
+            other = {r["seed"]: r for r in cell if r["method"] == m}
+            seeds = sorted(set(ref_rows) & set(other))
+            by_cell.setdefault(m, []).append(([ref_rows[k]["success"] for k in seeds],
+                                              [other[k]["success"] for k in seeds]))
+    out = {}
+    for m, pairs in by_cell.items():
+        sr = pooled_mcnemar(pairs)
+        sr["detectable_diff"] = detectable_difference(sr["n"], sr["discordant"], ALPHA, POWER)
+        out[m] = {"n_cells": len(pairs), "sr": sr,
+                  "max_discordance_for_0.10": max_discordance(sr["n"], 0.10, ALPHA, POWER)}
     return out
 
 
@@ -174,7 +193,10 @@ def _budget_text(produced_by: dict[str, Any], prefix: str = "") -> str:
 
 def report_markdown(rows: Sequence[dict[str, Any]], labels: dict[str, str], header: str,
                     lh_rows: Sequence[dict[str, Any]] = (), references: Sequence[str] = (),
-                    budgets: dict[str, dict[str, Any]] | None = None) -> str:
+                    budgets: dict[str, dict[str, Any]] | None = None,
+                    routing_rows: Sequence[dict[str, Any]] = (), ref: str = "full") -> str:
+    """The run's ``report.md``: tables per cell, paired comparisons of ``ref`` with every other method (per cell
+    and pooled, with the detectable difference), the paper's ordering, routing cells and long horizon."""
     res = results(rows)
     parts = [header, ""]
     if references:
@@ -191,32 +213,39 @@ def report_markdown(rows: Sequence[dict[str, Any]], labels: dict[str, str], head
         parts.append("")
     parts.append("SR, collision and timeout: percent with the 95 % Wilson interval. NT, PL, TPZ: mean ± std over "
                  "successful episodes (their count in parentheses).\n")
-    for cell in res:
-        scene, d = cell.split("@")
-        by = {labels.get(m, m): [r for r in rows if r["scene"] == scene and float(r["density"]) == float(d)
-                                 and r["method"] == m] for m in res[cell]}
-        parts.append(f"### {scene} @ {d} ped/m²\n\n" + metrics_table_markdown(by))
-    pr = paired(rows)
-    if pr:
-        parts.append("## Paired comparisons with the full model (same seeds)\n")
-        parts.append("SR: exact McNemar test (episodes only the full model / only the other method finished). "
-                     "TPZ: Wilcoxon signed-rank over all pairs; NT/PL: over pairs both finished. Δ = full − other.\n")
-        parts.append("| cell | other | pairs | ΔSR | full only / other only | p (SR) | ΔTPZ [s] | p (TPZ) | "
-                     "ΔNT [s] | p (NT) |")
-        parts.append("|---|---|---|---|---|---|---|---|---|---|")
-        for cell, by in pr.items():
-            for m, e in by.items():
-                sr, tpz, nt = e["sr"], e["tpz_s"], e["nav_time_s"]
-                parts.append(f"| {cell} | {labels.get(m, m)} | {e['n_pairs']} | {sr['sr_diff']:+.2f} | "
-                             f"{sr['a_only']} / {sr['b_only']} | {_fmt_p(sr['p_value'])} | "
-                             f"{_fmt_d(tpz['mean_diff'])} | {_fmt_p(tpz['p_value'])} | {_fmt_d(nt['mean_diff'])} | "
-                             f"{_fmt_p(nt['p_value'])} |")
+    parts.extend(_cell_tables(rows, labels))
+    parts.extend(_paired_section(rows, labels, f"## Paired comparisons with {labels.get(ref, ref)} (same seeds)",
+                                 ref))
+    pooled = paired_pooled(rows, ref)
+    if pooled:
+        n_cells = max(e["n_cells"] for e in pooled.values())
+        parts.append(f"### Pooled over the {n_cells} cells\n")
+        parts.append("The same tests on every cell's pairs at once. *Detectable ΔSR*: the smallest SR difference "
+                     f"a two-sided McNemar test at {ALPHA:g} detects with {POWER:.0%} power at the observed "
+                     "discordance ψ. *ψ max for 10 pts*: the largest discordance at which these pairs still detect a "
+                     "10-point difference (the run is sized so that ψ stays below it).\n")
+        parts.append(f"| other | pairs | ΔSR | {ref} only / other only | ψ | p (SR) | detectable ΔSR | "
+                     "ψ max for 10 pts |")
+        parts.append("|---|---|---|---|---|---|---|---|")
+        for m, e in pooled.items():
+            sr = e["sr"]
+            parts.append(f"| {labels.get(m, m)} | {sr['n']} | {sr['sr_diff']:+.3f} | {sr['a_only']} / "
+                         f"{sr['b_only']} | {sr['discordant']:.3f} | {_fmt_p(sr['p_value'])} | "
+                         f"{_fmt_mdd(sr['detectable_diff'])} | {e['max_discordance_for_0.10']:.2f} |")
         parts.append("")
     checks = shape_checks(res)
     if checks:
         parts.append("## The paper's expected ordering, checked\n")
         parts.extend(checks)
         parts.append("")
+    if routing_rows:
+        parts.append("## Warehouse routing (not in the paper): every method follows the global planner's "
+                     "waypoints\n")
+        parts.append("The shelf hall where start and goal may lie in different aisles; each method is handed the "
+                     "same waypoints (the corners of the shortest path on the map), as in the long-horizon runs, "
+                     "so the cell measures crowd navigation along a given route.\n")
+        parts.extend(_cell_tables(routing_rows, labels))
+        parts.extend(_paired_section(routing_rows, labels, "### Paired comparisons (routing)", ref))
     if lh_rows:
         parts.append("## Long-horizon navigation on the topological map (paper §IV-C)\n")
         by_map: dict[str, dict[str, list]] = {}
@@ -225,6 +254,45 @@ def report_markdown(rows: Sequence[dict[str, Any]], labels: dict[str, str], head
         for scene, by in by_map.items():
             parts.append(f"### {scene}\n\n" + metrics_table_markdown(by))
     return "\n".join(parts) + "\n"
+
+
+def _cell_tables(rows: Sequence[dict[str, Any]], labels: dict[str, str]) -> list[str]:
+    parts = []
+    for scene, d in cells_of(rows):
+        by = {labels.get(m, m): [r for r in rows if r["scene"] == scene and float(r["density"]) == d
+                                 and r["method"] == m] for m in methods_of(rows)}
+        by = {k: v for k, v in by.items() if v}
+        parts.append(f"### {scene} @ {d:g} ped/m²\n\n" + metrics_table_markdown(by))
+    return parts
+
+
+def _paired_section(rows: Sequence[dict[str, Any]], labels: dict[str, str], title: str, ref: str) -> list[str]:
+    pr = paired(rows, ref)
+    if not pr:
+        return []
+    parts = [title + "\n",
+             f"SR: exact McNemar test (episodes only {ref} / only the other method finished); ψ = the "
+             f"discordant fraction; *detectable* = the smallest |ΔSR| detected with {POWER:.0%} power at "
+             f"{ALPHA:g} given ψ and the pairs. TPZ: Wilcoxon signed-rank over all pairs; NT: over pairs both "
+             f"finished. Δ = {ref} − other.\n",
+             f"| cell | other | pairs | ΔSR | {ref} only / other only | p (SR) | detectable ΔSR | ΔTPZ [s] | "
+             "p (TPZ) | ΔNT [s] | p (NT) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for cell, by in pr.items():
+        for m, e in by.items():
+            sr, tpz, nt = e["sr"], e["tpz_s"], e["nav_time_s"]
+            parts.append(f"| {cell} | {labels.get(m, m)} | {e['n_pairs']} | {sr['sr_diff']:+.2f} | "
+                         f"{sr['a_only']} / {sr['b_only']} | {_fmt_p(sr['p_value'])} | "
+                         f"{_fmt_mdd(sr['detectable_diff'])} | {_fmt_d(tpz['mean_diff'])} | "
+                         f"{_fmt_p(tpz['p_value'])} | {_fmt_d(nt['mean_diff'])} | {_fmt_p(nt['p_value'])} |")
+    parts.append("")
+    return parts
+
+
+def _fmt_mdd(x: float) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "n/a (ψ = 0)"
+    return "none ≤ ψ" if math.isinf(x) else f"{x:.2f}"
 
 
 def plot_sr(res: dict[str, dict[str, Any]], labels: dict[str, str], path: Path) -> None:

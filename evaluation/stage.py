@@ -1,19 +1,28 @@
 """``icrowdnav eval``: the paper's benchmark — scenes × densities × methods × seeded episodes, plus long-horizon
 runs on a topological map — with tables, paired tests, figures, videos and MCAP logs. ::
 
-    icrowdnav eval                                   # the profile's methods, scenes, densities, episodes
-    icrowdnav eval --methods '[full, dwa]' --episodes 5 --run_name quick
+    icrowdnav eval                                   # the profile's methods, scenes, densities, goals x trials
+    icrowdnav eval --methods '[full, dwa]' --goals 5 --trials 1 --run_name quick
     icrowdnav eval --resume                          # a killed run: only the episodes without a row run again
     make eval                                        # the same on the default profile
+
+The protocol (the paper's): per method and cell ``goals`` start-goal pairs × ``trials`` crowds (25 × 3 = 75), the
+same seeded episodes for every method; paired tests by episode (McNemar for SR, Wilcoxon for NT / PL / TPZ) with
+the smallest SR difference each comparison can detect at 80 % power (:mod:`evaluation.stats`), per cell and
+pooled over the cells; Wilson intervals. Time limits follow the route: max(``sim.max_episode_s``,
+``sim.timeout_s_per_m`` × the shortest start-goal path). ``routing_scenes`` (the shelf hall) are extra cells in
+which every method follows the global planner's waypoints, reported apart from the paper's cells.
 
 Inputs: ``DATA_DIR/checkpoints/policy/<name>/`` of every learned method (``make train``); the expert and DWA need
 nothing. Output ``DATA_DIR/eval/<run_name>/``::
 
     config.yaml, manifest.json   resolved config, provenance (inputs with hashes, code, versions)
     seeds.json                   the seed list every method faced (per cell and for the long-horizon runs)
-    episodes.jsonl               one row per episode: method, scene, density, seed, outcome, every metric
+    episodes.jsonl               one row per episode: method, scene, density, seed, goal, trial, outcome, every metric
+    routing/episodes.jsonl       the routing cells' rows (global-planner waypoints), apart from the paper's cells
     results.json, results.csv    per cell and method: N, mean, std, 95 % CI of every metric
-    paired.json                  the full model against each method on the same seeds (McNemar / Wilcoxon)
+    paired.json                  the full model against each method on the same seeds (McNemar / Wilcoxon, the
+                                 detectable SR difference), per cell and pooled over the cells
     report.md                    the paper's tables, paired tests, the expected ordering checked, long horizon
     figures/sr_by_cell.png       SR with CIs; figures/<episode>.png trajectories (robot coloured by time)
     videos/<episode>.mp4         both cameras, depth, the method's BEV input, top-down
@@ -23,7 +32,7 @@ nothing. Output ``DATA_DIR/eval/<run_name>/``::
                                  assumes the same config and checkpoints, as ``train --resume`` does)
     long_horizon/episodes.jsonl, long_horizon/<map>_gvg.png (the map, its GVG and every method's paths)
 
-``<episode>`` is ``[lh_]<scene>_d<density>_s<seed>_<method>``.
+``<episode>`` is ``[lh_|route_]<scene>_d<density>_s<seed>_<method>``.
 """
 
 from __future__ import annotations
@@ -38,7 +47,15 @@ import numpy as np
 
 from evaluation.harness import Job, run_jobs_cached
 from evaluation.methods import MethodSpec, resolve_methods
-from evaluation.report import paired, plot_sr, report_markdown, results, results_csv, training_budget
+from evaluation.report import (
+    paired,
+    paired_pooled,
+    plot_sr,
+    report_markdown,
+    results,
+    results_csv,
+    training_budget,
+)
 from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import BaseStageConfig, check_run_name
@@ -72,21 +89,36 @@ class EvalConfig(BaseStageConfig):
                                metadata={"help": "methods (evaluation.methods)"})
     scenes: list[str] = field(default_factory=lambda: ["office_lobby", "hospital_corridor", "warehouse"])
     densities: list[float] = field(default_factory=lambda: [0.1, 0.2])
-    episodes: int = field(default=75, metadata={"help": "episodes per cell (paper: 25 goals x 3 trials)"})
+    goals: int = field(default=25, metadata={"help": "start-goal pairs per cell (the paper: 25)"})
+    trials: int = field(default=3, metadata={"help": "crowds per goal (the paper: 3); N = goals x trials per cell"})
+    routing_scenes: list[str] = field(default_factory=lambda: ["warehouse_routing"],
+                                      metadata={"help": "extra cells where every method follows the global "
+                                                        "planner's waypoints (reported separately)"})
+    paired_with: str = field(default="full", metadata={"help": "the method every other is paired against"})
     seed_base: int = field(default=20_000, metadata={"help": "episode seeds are seed_base + seed + k"})
     workers: int = 2
     figures: int = field(default=1, metadata={"help": "trajectory PNGs per cell and method (first episodes)"})
     videos: int = field(default=1, metadata={"help": "mp4 + MCAP per cell and method (first episodes, rendered)"})
     long_horizon: LongHorizonConfig = field(default_factory=LongHorizonConfig)
-    sim: SimConfig = field(default_factory=SimConfig)
+    sim: SimConfig = field(default_factory=lambda: SimConfig(timeout_s_per_m=5.0))
     progress: bool = True
+
+    @property
+    def episodes(self) -> int:
+        """Episodes per cell and method: ``goals`` × ``trials``."""
+        return self.goals * self.trials
 
     def validate(self) -> None:
         super().validate()
         check_run_name(self.run_name)
         if not self.scenes:
             raise ConfigError("eval.scenes: expected at least one scene")
+        for k in ("goals", "trials"):
+            if not isinstance(getattr(self, k), int) or not 1 <= getattr(self, k) <= 10_000:
+                raise ConfigError(f"eval.{k}: expected an integer in [1, 10000], got {getattr(self, k)!r}")
         check_episode_grid(self.scenes, self.densities, self.episodes, self.workers)
+        if self.routing_scenes:
+            check_episode_grid(self.routing_scenes, self.densities, self.episodes, self.workers)
         if not self.methods:
             raise ConfigError("eval.methods: expected at least one method")
         if self.figures < 0 or self.videos < 0:
@@ -108,18 +140,34 @@ def inputs(cfg: EvalConfig) -> list[Path]:
             for p in (m.checkpoint / "policy.json", m.checkpoint / "policy.safetensors")]
 
 
+GOAL_SEED_OFFSET = 100_000  # goal g's scene seed is seed_base + seed + GOAL_SEED_OFFSET + g
+
+
 def seeds_of(cfg: EvalConfig) -> list[int]:
+    """The episode seeds of a cell: ``goals`` × ``trials`` consecutive seeds, goal-major."""
     return [cfg.seed_base + cfg.seed + k for k in range(cfg.episodes)]
 
 
-def benchmark_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path) -> list:
+def protocol_of(cfg: EvalConfig) -> list[dict[str, int]]:
+    """Per episode of a cell: its ``seed`` (the crowd), ``goal`` index, ``trial`` index and ``scene_seed`` (the
+    goal's clutter, start and goal — the same for every trial of the goal and every method)."""
+    return [{"seed": seed, "goal": k // cfg.trials, "trial": k % cfg.trials,
+             "scene_seed": cfg.seed_base + cfg.seed + GOAL_SEED_OFFSET + k // cfg.trials}
+            for k, seed in enumerate(seeds_of(cfg))]
+
+
+def benchmark_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path, scenes: list[str] | None = None,
+                   route: bool = False) -> list:
+    """Every (scene, density, episode, method) job; ``route``: the methods follow the global planner's waypoints."""
     jobs = []
-    for s in cfg.scenes:
+    for s in cfg.scenes if scenes is None else scenes:
         for d in cfg.densities:
-            for k, seed in enumerate(seeds_of(cfg)):
+            for k, ep in enumerate(protocol_of(cfg)):
                 for m in specs:  # methods interleaved: a killed or slow run has every method on the same seeds
-                    jobs.append(Job(m, cfg.sim, s, float(d), seed, out, figure=k < cfg.figures,
-                                    video=k < cfg.videos, mcap=k < cfg.videos))
+                    jobs.append(Job(m, cfg.sim, s, float(d), ep["seed"], out, figure=k < cfg.figures,
+                                    video=k < cfg.videos, mcap=k < cfg.videos, scene_seed=ep["scene_seed"],
+                                    route=route, tag="route_" if route else "",
+                                    extra={"goal": ep["goal"], "trial": ep["trial"]}))
     return jobs
 
 
@@ -154,6 +202,12 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
     labels = {m.name: m.label for m in specs}
     seeds = seeds_of(cfg)
     rows = run_jobs_cached(benchmark_jobs(cfg, specs, out), out / "rows", cfg.workers, "eval: benchmark", cfg.progress)
+    routing_rows: list[dict[str, Any]] = []
+    if cfg.routing_scenes:
+        routing_rows = run_jobs_cached(benchmark_jobs(cfg, specs, out / "routing", cfg.routing_scenes, route=True),
+                                       out / "rows", cfg.workers, "eval: routing", cfg.progress)
+        atomic_write_text(out / "routing" / "episodes.jsonl",
+                          "".join(json.dumps(r) + "\n" for r in json_safe(routing_rows)))
     lh_rows: list[dict[str, Any]] = []
     lh_seeds: dict[str, list[int]] = {}
     if cfg.long_horizon.runs:
@@ -172,22 +226,29 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
         atomic_write_text(out / "long_horizon" / "episodes.jsonl",
                           "".join(json.dumps(r) + "\n" for r in json_safe(lh_rows)))
     atomic_write_json(out / "seeds.json", {"benchmark": {"seeds": seeds, "scenes": cfg.scenes,
-                                                         "densities": cfg.densities},
+                                                         "routing_scenes": cfg.routing_scenes,
+                                                         "densities": cfg.densities, "episodes": protocol_of(cfg)},
                                            "long_horizon": lh_seeds})
     atomic_write_text(out / "episodes.jsonl", "".join(json.dumps(r) + "\n" for r in json_safe(rows)))
     res = results(rows)
     atomic_write_json(out / "results.json", json_safe(res))
     atomic_write_text(out / "results.csv", results_csv(res))
-    atomic_write_json(out / "paired.json", json_safe(paired(rows)))
+    atomic_write_json(out / "paired.json", json_safe({"reference": cfg.paired_with,
+                                                      "cells": paired(rows, cfg.paired_with),
+                                                      "pooled": paired_pooled(rows, cfg.paired_with),
+                                                      "routing": paired(routing_rows, cfg.paired_with)}))
     plot_sr(res, labels, out / "figures" / "sr_by_cell.png")
-    header = (f"# Benchmark `{cfg.run_name}`\n\n{cfg.episodes} episodes per cell (seeds {seeds[0]}..{seeds[-1]}, "
-              f"the same for every method; the paper uses 75 = 25 goals × 3 trials), "
+    header = (f"# Benchmark `{cfg.run_name}`\n\n{cfg.episodes} episodes per cell = {cfg.goals} goals × {cfg.trials} "
+              f"trials (seeds {seeds[0]}..{seeds[-1]}, the same for every method; the paper: 25 × 3 = 75), "
+              f"time limit max({cfg.sim.max_episode_s:g} s, {cfg.sim.timeout_s_per_m:g} s/m × shortest path), "
               f"{len(specs)} methods: " + ", ".join(f"`{m.name}` = {m.label}" for m in specs) + ".")
     refs = [m.name for m in specs if m.reference]
     budgets = {m.name: training_budget(m.checkpoint) for m in specs if m.checkpoint is not None}
-    atomic_write_text(out / "report.md", report_markdown(rows, labels, header, lh_rows, refs, budgets))
-    counts: dict[str, Any] = {"episodes": len(rows), "long_horizon_episodes": len(lh_rows)}
-    for cell, by in res.items():
+    atomic_write_text(out / "report.md", report_markdown(rows, labels, header, lh_rows, refs, budgets,
+                                                         routing_rows, cfg.paired_with))
+    counts: dict[str, Any] = {"episodes": len(rows), "routing_episodes": len(routing_rows),
+                              "long_horizon_episodes": len(lh_rows)}
+    for cell, by in {**res, **results(routing_rows)}.items():
         for m, agg in by.items():
             counts[f"sr_{m}_{cell}"] = round(float(agg["success"]["mean"]), 3)
     return counts

@@ -7,6 +7,10 @@
     obs, info = env.reset(seed=0)
     obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
 
+``reset`` options: ``start`` and ``goal`` (world xy, m) fix the pair instead of drawing it; ``scene_seed`` (int)
+draws the layout's clutter, start and goal from that seed and only the crowd and sensing noise from ``seed`` (the
+benchmark's goals × trials: every trial of a goal has the same start, goal and clutter, another crowd).
+
 Observations (``obs_mode``):
 
 * ``visual`` (the paper's policy input): ``rgb_left``/``rgb_right`` (H x W x 3 uint8), ``depth_left``/
@@ -34,7 +38,8 @@ driver must not read it). ``reset`` adds what stays fixed for the episode: ``occ
 ``cameras`` (the camera specs: intrinsics, extrinsics), ``action_codec`` (:class:`sim.robot.ActionCodec`),
 ``goal_xy`` (world frame) and ``config`` (this env's :class:`SimConfig`: control period, sensor layout). Drivers (:mod:`sim.episode`) act on ``obs`` and ``info`` only; the privileged world and
 waypoints come from wrappers (:mod:`sim.wrappers`). The episode ends on
-reaching the goal, on a collision (terminated) or at ``max_episode_s`` (truncated). ``render()`` returns a
+reaching the goal, on a collision (terminated) or at the time limit (truncated): :attr:`CrowdNavEnv.time_limit_s`
+= max(``max_episode_s``, ``timeout_s_per_m`` × the shortest start-goal path), so a longer route gets more time. ``render()`` returns a
 top-down RGB image.
 """
 
@@ -106,7 +111,9 @@ class SimConfig:
     density: float = 0.1  # pedestrians per m² of free area (the paper: 0.1 low, 0.2 high)
     dt_s: float = 0.1  # control period
     substeps: int = 1  # social-force integration steps per control step
-    max_episode_s: float = 40.0  # timeout
+    max_episode_s: float = 40.0  # timeout: the episode's time limit is max(this, timeout_s_per_m x path length)
+    timeout_s_per_m: float = 0.0  # ... the shortest start-goal path (m) times this: a route twice as long gets
+    #                               twice the time (0: the limit is max_episode_s alone; the benchmark uses 5)
     goal_radius_m: float = 0.3  # success when the robot centre is this close to the goal (paper: ρ_robot)
     obs_mode: Literal["visual", "state", "privileged"] = "visual"  # what observations hold (module doc)
     action_type: Literal["continuous", "discrete"] = "continuous"  # Box([-1, 1]²) or the 5 × 21 grid
@@ -131,6 +138,8 @@ class SimConfig:
             raise ConfigError(f"density: expected a number >= 0 (pedestrians per m²), got {self.density!r}")
         if self.density > 2.0:
             raise ConfigError(f"density: expected <= 2.0 ped/m² (denser crowds cannot be placed), got {self.density}")
+        if not math.isfinite(self.timeout_s_per_m) or not 0 <= self.timeout_s_per_m <= 1000:
+            raise ConfigError(f"timeout_s_per_m: expected a number in [0, 1000] s/m, got {self.timeout_s_per_m!r}")
         if self.dt_s <= 0 or self.substeps < 1 or self.max_episode_s <= self.dt_s:
             raise ConfigError(f"timing: expected dt_s > 0, substeps >= 1 and max_episode_s > dt_s, got "
                               f"{self.dt_s}, {self.substeps}, {self.max_episode_s}")
@@ -225,6 +234,10 @@ class CrowdNavEnv(gym.Env):
         r_layout, r_sg, r_crowd, r_body, r_det = (np.random.default_rng(s) for s in ss.spawn(5))
         self.episode_seed = ep_seed
         self.reset_seed = seed
+        if options and options.get("scene_seed") is not None:  # the benchmark's goal: layout, start and goal from
+            # the goal's seed, the crowd (and sensing) from the episode's, so trials of one goal differ only in people
+            r_layout, r_sg = (np.random.default_rng(s) for s in
+                              np.random.SeedSequence(int(options["scene_seed"])).spawn(2))
         self.layout = self.spec_scene.layout(r_layout)
         if options and "start" in options and "goal" in options:  # a given pair (long-horizon runs on a map)
             start = np.asarray(options["start"], float).reshape(2)
@@ -272,6 +285,15 @@ class CrowdNavEnv(gym.Env):
             self._shortest = self.layout.path_length(self.start, self.goal, self.cfg.robot.radius_m)
         return self._shortest
 
+    @property
+    def time_limit_s(self) -> float:
+        """This episode's time limit (s): max(``max_episode_s``, ``timeout_s_per_m`` × :attr:`shortest_path_m`)."""
+        c = self.cfg
+        if c.timeout_s_per_m <= 0:
+            return c.max_episode_s
+        length = self.shortest_path_m
+        return max(c.max_episode_s, c.timeout_s_per_m * length) if math.isfinite(length) else c.max_episode_s
+
     def _build_renderer(self) -> None:
         from sim.renderer import WorldRenderer  # lazy: pybullet (and its stderr banner) only when rendering
 
@@ -316,7 +338,8 @@ class CrowdNavEnv(gym.Env):
         elif terms["collision"] < 0:
             outcome = "collision_obstacle" if self.d_static <= c.robot.radius_m else "collision_pedestrian"
         terminated = outcome is not None
-        truncated = not terminated and self.t * c.dt_s >= c.max_episode_s - 1e-9
+        elapsed = self.t * c.dt_s  # the path length is measured only once the floor max_episode_s is reached
+        truncated = (not terminated and elapsed >= c.max_episode_s - 1e-9 and elapsed >= self.time_limit_s - 1e-9)
         if truncated:
             outcome = "timeout"
         self._outcome = outcome

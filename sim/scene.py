@@ -11,6 +11,8 @@ not marked optional is required)::
     wall_thickness_m: 0.2              # optional (0.2)
     wall_color: [r, g, b]              # optional, 0..1
     floor_color: [r, g, b]             # optional, 0..1
+    free_space:                        # optional: the free interior as a union of rectangles; the rest of
+      - [x_min, x_max, y_min, y_max]   # the bounds becomes solid (an L- or T-junction without carving)
     obstacles:                         # optional; each item has exactly one of these keys
       - box: {center: [x, y], size: [sx, sy], yaw_deg: 0, height_m: 1.0, color: [r, g, b]}
       - wall: {from: [x, y], to: [x, y], thickness_m: 0.2, height_m: 2.5, color: [r, g, b]}
@@ -26,6 +28,8 @@ not marked optional is required)::
       metric: euclidean                # euclidean | geodesic
       clearance_m: 0.5                 # free space around start and goal
       region: [x_min, x_max, y_min, y_max]   # optional, where start and goal may lie
+      max_detour: 1.25                 # optional: shortest path <= this x the straight line (no routing
+                                       # round a shelf: the test measures crowd navigation, not route finding)
     pedestrians:                       # optional
       region: [x_min, x_max, y_min, y_max]   # optional spawn/goal region
       max_count: 40                    # optional cap
@@ -111,6 +115,7 @@ class StartGoalSpec:
     metric: str = "euclidean"
     clearance_m: float = 0.5
     region: tuple[float, float, float, float] | None = None
+    max_detour: float | None = None  # shortest path / straight line, at most
 
 
 @dataclass(frozen=True)
@@ -328,19 +333,24 @@ class SceneLayout:
             metric = geo if sg.metric == "geodesic" else eu
             upper = hi * 1.04 if sg.metric == "geodesic" else hi
             ok = np.isfinite(geo) & (metric >= lo) & (metric <= upper)
+            if sg.max_detour is not None:  # grid lengths run up to ~3 % long: pre-select with that slack
+                ok &= geo <= sg.max_detour * 1.04 * eu + NAV_RES_M
             if not ok.any():
                 continue
             k = rng.choice(np.nonzero(ok)[0])
             goal = cand[k] + rng.uniform(-GRID_RES_M / 2, GRID_RES_M / 2, 2)
-            if sg.metric == "euclidean" and not exact_length:
+            if sg.metric == "euclidean" and sg.max_detour is None and not exact_length:
                 return start, goal, math.nan
             length = self.path_length(start, goal, robot_radius_m)
             if not math.isfinite(length) or (sg.metric == "geodesic" and not lo <= length <= hi):
                 continue
+            if sg.max_detour is not None and length > sg.max_detour * float(np.hypot(*(goal - start))):
+                continue
             return start, goal, length
         raise ConfigError(
             f"scene {self.spec.name!r}: found no connected start/goal pair with {sg.metric} distance in "
-            f"[{lo}, {hi}] m after {max_tries} tries"
+            f"[{lo}, {hi}] m" + ("" if sg.max_detour is None else f" and a path <= {sg.max_detour} x the "
+                                   "straight line") + f" after {max_tries} tries"
         )
 
 
@@ -474,13 +484,13 @@ def _check_num(name: str, v: float, lo: float, hi: float) -> None:
 
 
 def _check_range(name: str, r: Range) -> None:
-    if r[0] > r[1]:
-        raise FieldValueError(name, "[min, max] with min <= max", list(r))
+    if not all(math.isfinite(v) for v in r) or r[0] > r[1]:
+        raise FieldValueError(name, "[min, max], finite, with min <= max", list(r))
 
 
 def _check_rect(name: str, r: Rect | None) -> None:
-    if r is not None and (r[0] >= r[1] or r[2] >= r[3]):
-        raise FieldValueError(name, "[x_min, x_max, y_min, y_max] with min < max", list(r))
+    if r is not None and (not all(math.isfinite(v) for v in r) or r[0] >= r[1] or r[2] >= r[3]):
+        raise FieldValueError(name, "[x_min, x_max, y_min, y_max], finite, with min < max", list(r))
 
 
 def _check_color(name: str, c: Color | None) -> None:
@@ -595,6 +605,7 @@ class StartGoalFile:
     metric: Literal["euclidean", "geodesic"] = "euclidean"
     clearance_m: float = 0.5
     region: Rect | None = None
+    max_detour: float | None = None
 
     def validate(self) -> None:
         _check_range("distance_m", self.distance_m)
@@ -602,6 +613,8 @@ class StartGoalFile:
             raise FieldValueError("distance_m", "positive distances", list(self.distance_m))
         _check_num("clearance_m", self.clearance_m, 0.0, 5.0)
         _check_rect("region", self.region)
+        if self.max_detour is not None:
+            _check_num("max_detour", self.max_detour, 1.0, 100.0)
 
 
 @dataclass
@@ -628,6 +641,7 @@ class SceneFile:
     wall_thickness_m: float = 0.2
     wall_color: Color = (0.82, 0.8, 0.76)
     floor_color: Color = (0.55, 0.55, 0.52)
+    free_space: list[Rect] | None = None  # the free interior as a union of rectangles (the rest is solid)
     obstacles: list[ObstacleFile] = field(default_factory=list)
     random_obstacles: RandomObstaclesFile | None = None
     start_goal: StartGoalFile | None = None
@@ -637,6 +651,15 @@ class SceneFile:
         if not self.name:
             raise FieldValueError("name", "a non-empty string", self.name)
         _check_rect("bounds", self.bounds)
+        if self.free_space is not None:
+            if not self.free_space:
+                raise FieldValueError("free_space", "at least one rectangle", [])
+            x0, x1, y0, y1 = self.bounds
+            for k, r in enumerate(self.free_space):
+                _check_rect(f"free_space[{k}]", r)
+                if r[0] < x0 - 1e-9 or r[1] > x1 + 1e-9 or r[2] < y0 - 1e-9 or r[3] > y1 + 1e-9:
+                    raise FieldValueError(f"free_space[{k}]", f"a rectangle inside the bounds {list(self.bounds)}",
+                                          list(r))
         _check_num("wall_height_m", self.wall_height_m, 0.1, 20)
         _check_num("wall_thickness_m", self.wall_thickness_m, 0.01, 5)
         _check_color("wall_color", self.wall_color)
@@ -647,14 +670,39 @@ class SceneFile:
         ro, sg, peds = self.random_obstacles, self.start_goal or StartGoalFile(), self.pedestrians or PedestriansFile()
         return SceneSpec(
             name=self.name, split=self.split, bounds=self.bounds, description=self.description,
-            obstacles=tuple(o.build(self.wall_height_m, self.wall_color) for o in self.obstacles),
+            obstacles=tuple([*solid_outside(self.bounds, self.free_space, self.wall_height_m, self.wall_color),
+                             *(o.build(self.wall_height_m, self.wall_color) for o in self.obstacles)]),
             wall_height_m=self.wall_height_m, wall_thickness_m=self.wall_thickness_m, wall_color=self.wall_color,
             floor_color=self.floor_color,
             random_obstacles=None if ro is None else RandomObstacles(ro.count, ro.size_m, ro.height_m, ro.region,
                                                                      ro.clearance_m),
-            start_goal=StartGoalSpec(sg.distance_m, sg.metric, sg.clearance_m, sg.region),
+            start_goal=StartGoalSpec(sg.distance_m, sg.metric, sg.clearance_m, sg.region, sg.max_detour),
             ped_region=peds.region, ped_max_count=peds.max_count, path=path,
         )
+
+
+def solid_outside(bounds: Rect, free: list[Rect] | None, height_m: float, color: Color) -> list[Box]:
+    """Boxes filling the part of ``bounds`` outside the union of the ``free`` rectangles (none without them):
+    the rectangles' edges cut the bounds into cells; the solid cells of each column merge into one box per run."""
+    if not free:
+        return []
+    xs = sorted({bounds[0], bounds[1], *(v for r in free for v in r[:2] if bounds[0] < v < bounds[1])})
+    ys = sorted({bounds[2], bounds[3], *(v for r in free for v in r[2:] if bounds[2] < v < bounds[3])})
+    boxes = []
+    for xa, xb in zip(xs[:-1], xs[1:], strict=True):
+        cx = (xa + xb) / 2
+        run: list[float] | None = None
+        for ya, yb in [*zip(ys[:-1], ys[1:], strict=True), (None, None)]:
+            solid = ya is not None and not any(r[0] <= cx <= r[1] and r[2] <= (ya + yb) / 2 <= r[3] for r in free)
+            if solid and run is None:
+                run = [ya, yb]
+            elif solid:
+                run[1] = yb
+            elif run is not None:
+                boxes.append(Box(((xa + xb) / 2, (run[0] + run[1]) / 2), (xb - xa, run[1] - run[0]), 0.0,
+                                 height_m, color))
+                run = None
+    return boxes
 
 
 def parse_scene(data: Any, src: str, stem: str | None = None) -> SceneSpec:

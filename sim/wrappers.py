@@ -17,6 +17,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from sim.planners.global_path import route_waypoints
 from sim.planners.topomap import WaypointFollower
 from sim.scene import SceneLayout
 
@@ -101,11 +102,14 @@ class PrivilegedObservation(gym.Wrapper):
 
 class FollowWaypoints(gym.Wrapper):
     """Heads the observation for the current waypoint of ``waypoints`` (``M x 2``, world frame, the last = the
-    goal), tracked by a :class:`sim.planners.topomap.WaypointFollower` on the episode's layout."""
+    goal), tracked by a :class:`sim.planners.topomap.WaypointFollower` on the episode's layout. Without
+    ``waypoints``, each episode follows the global planner's route from its start to its goal
+    (:func:`sim.planners.global_path.route_waypoints`)."""
 
-    def __init__(self, env: gym.Env, waypoints: np.ndarray) -> None:
+    def __init__(self, env: gym.Env, waypoints: np.ndarray | None = None) -> None:
         super().__init__(env)
-        self.waypoints = np.asarray(waypoints, np.float64)
+        self.fixed = None if waypoints is None else np.asarray(waypoints, np.float64)
+        self.waypoints = self.fixed
         self.follower: WaypointFollower | None = None
 
     def _retarget(self, obs: dict[str, np.ndarray], info: dict[str, Any]):
@@ -120,7 +124,10 @@ class FollowWaypoints(gym.Wrapper):
 
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
-        self.follower = WaypointFollower(self.waypoints, layout=self.env.unwrapped.layout)
+        u = self.env.unwrapped
+        if self.fixed is None:
+            self.waypoints = route_waypoints(u.layout, u.start, u.goal, u.cfg.robot.radius_m)
+        self.follower = WaypointFollower(self.waypoints, layout=u.layout)
         return self._retarget(obs, info)
 
     def step(self, action):

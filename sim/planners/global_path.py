@@ -71,6 +71,19 @@ class GlobalPath:
         return out
 
 
+def route_waypoints(layout, start: np.ndarray, goal: np.ndarray, robot_radius_m: float) -> np.ndarray:
+    """The global planner's waypoints from ``start`` to ``goal`` (world frame, ``M x 2``, the last = the goal): the
+    corners of the any-angle shortest path on the grid inflated by the robot radius + 5 cm, as :class:`GlobalPath`
+    plans it. Raises ValueError when the goal cannot be reached."""
+    path = np.asarray(layout.nav(robot_radius_m + 0.05).shortest_path(layout, np.asarray(start, float),
+                                                                       np.asarray(goal, float)), float)
+    if path.ndim != 2 or len(path) == 0 or not np.all(np.isfinite(path)):
+        raise ValueError(f"no path from {np.round(start, 2).tolist()} to {np.round(goal, 2).tolist()}")
+    wps = path[1:] if len(path) > 1 else path
+    wps[-1] = np.asarray(goal, float)
+    return wps
+
+
 def distance_to_polyline(xy: np.ndarray, path: np.ndarray) -> tuple[float, int, np.ndarray]:
     """(distance, index of the closest segment's start, closest point) of ``xy`` to the polyline ``path``."""
     if len(path) == 1:

@@ -14,7 +14,7 @@ import pytest
 
 from evaluation.harness import Job, initial_state, make_env, reset_options, run_episode
 from evaluation.methods import MethodSpec, resolve_methods
-from evaluation.report import mcnemar_exact, paired, report_markdown, results, results_csv, shape_checks
+from evaluation.report import paired, report_markdown, results, results_csv, shape_checks
 from pipeline.core.errors import ConfigError, InputMissingError
 from sim.env import CrowdNavEnv, SimConfig
 
@@ -108,10 +108,6 @@ def test_report_from_fixture_rows():
     assert "office_lobby@0.2,full,success,10,0.8" in results_csv(res)
 
 
-def test_mcnemar_without_discordant_pairs_has_no_p_value():
-    assert np.isnan(mcnemar_exact([1, 0, 1], [1, 0, 1])["p_value"])
-
-
 def test_unknown_method_and_missing_checkpoint_are_clear_errors(tmp_path):
     with pytest.raises(ConfigError, match="unknown method 'sarl'"):
         resolve_methods(["sarl"], tmp_path)
@@ -138,7 +134,8 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
     from pipeline.verbs.eval import run
 
     cfg = EvalConfig(data_dir=str(tmp_path), methods=["expert"], scenes=["office_lobby"], densities=[0.1],
-                     episodes=2, workers=1, figures=0, videos=0, sim=TINY, progress=False)
+                     goals=1, trials=2, routing_scenes=["warehouse_routing"], workers=1, figures=0, videos=0,
+                     sim=TINY, progress=False)
     cfg.long_horizon = replace(cfg.long_horizon, maps=["office_floor"], runs=1, max_episode_s=2.0)
     run(cfg)
     out = tmp_path / "eval" / "benchmark"
@@ -147,11 +144,16 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
     seeds = json.loads((out / "seeds.json").read_text())
     assert seeds["benchmark"]["seeds"] == [20_000, 20_001] and len(seeds["long_horizon"]["office_floor"]) == 1
     assert (out / "long_horizon" / "office_floor_gvg.png").is_file() and (out / "report.md").is_file()
-    assert len((out / "episodes.jsonl").read_text().splitlines()) == 2
+    rows = [json.loads(line) for line in (out / "episodes.jsonl").read_text().splitlines()]
+    assert [(r["goal"], r["trial"]) for r in rows] == [(0, 0), (0, 1)]
+    routed = [json.loads(line) for line in (out / "routing" / "episodes.jsonl").read_text().splitlines()]
+    assert [r["scene"] for r in routed] == ["warehouse_routing"] * 2
+    assert "Warehouse routing" in (out / "report.md").read_text()
     # a killed run: the manifest never came and one episode's row is missing; --resume runs only that episode
     (out / "manifest.json").unlink()
     rows = sorted((out / "rows").glob("office_lobby_*.json"))
     assert len(rows) == 2 and len(list((out / "rows").glob("lh_*.json"))) == 1
+    assert len(list((out / "rows").glob("route_warehouse_routing_*.json"))) == 2
     kept = rows[0].stat().st_mtime_ns
     rows[1].unlink()
     from pipeline.core.errors import OutputExistsError

@@ -22,7 +22,7 @@ import tempfile
 from pathlib import Path
 
 GOLDEN = Path(__file__).with_name("rehousing.json")
-SCENES = ("office_lobby", "hospital_corridor", "warehouse")
+SCENES = ("office_lobby", "hospital_corridor", "warehouse_routing")  # the shelf hall (named "warehouse" when recorded)
 SEEDS = (7001, 7002)
 METHODS = ("expert", "dwa")
 KEYS = ("outcome", "steps", "success", "nav_time_s", "path_length_m", "tpz_s", "min_ped_clearance_m",

@@ -466,3 +466,48 @@ def test_privileged_path_points_follow_the_route():
     assert np.all(steps[1:] <= env.cfg.path_spacing_m + 1e-5) and np.all(steps[1:] > 0.5 * env.cfg.path_spacing_m)
     k = int(round(env.cfg.subgoal_lookahead_m / env.cfg.path_spacing_m)) - 1
     np.testing.assert_allclose(path[k], obs["subgoal"], atol=1e-4)  # the sub-goal is the point 2 m along
+
+
+def test_time_limit_follows_the_shortest_path():
+    """The benchmark's rule: limit = max(max_episode_s, timeout_s_per_m x shortest start-goal path)."""
+    env = state_env("office_lobby", 0.0, max_episode_s=5.0, timeout_s_per_m=2.0)
+    env.reset(seed=3)
+    length = env.shortest_path_m
+    assert env.time_limit_s == pytest.approx(max(5.0, 2.0 * length))
+    assert 2.0 * length > 5.0  # a ~6 m path: the route, not the floor, sets the limit here
+    steps = 0
+    truncated = terminated = False
+    while not (terminated or truncated):
+        _, _, terminated, truncated, info = env.step(env.encode_command(0.0, 0.0))  # stand still
+        steps += 1
+    assert truncated and info["outcome"] == "timeout"
+    assert steps == math.ceil(env.time_limit_s / env.cfg.dt_s - 1e-6)
+    off = state_env("office_lobby", 0.0, max_episode_s=5.0)  # timeout_s_per_m = 0: the floor alone
+    off.reset(seed=3)
+    assert off.time_limit_s == 5.0
+
+
+def test_time_limit_rule_rejects_bad_values():
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="timeout_s_per_m"):
+            state_env(timeout_s_per_m=bad)
+
+
+def test_scene_seed_fixes_start_goal_and_clutter_and_the_seed_the_crowd():
+    """The benchmark's goals x trials: every trial of a goal starts alike; only the people differ."""
+    env = state_env("warehouse", 0.1)
+    runs = []
+    for seed in (11, 12):
+        env.reset(seed=seed, options={"scene_seed": 500})
+        runs.append((env.start.copy(), env.goal.copy(), env.robot.copy(),
+                     [o.center for o in env.layout.obstacles], env.crowd.pos.copy()))
+    (s0, g0, r0, o0, c0), (s1, g1, r1, o1, c1) = runs
+    np.testing.assert_array_equal(s0, s1)
+    np.testing.assert_array_equal(g0, g1)
+    np.testing.assert_array_equal(r0, r1)
+    assert o0 == o1
+    assert not np.array_equal(c0, c1)
+    env.reset(seed=11, options={"scene_seed": 501})
+    assert not np.array_equal(env.start, s0)
+    env.reset(seed=11)  # without the option the seed draws everything, as before
+    assert not np.array_equal(env.start, s0)

@@ -24,7 +24,7 @@ from sim.scene import (
 )
 
 SHIPPED = ["cluttered_room", "corner", "doorway", "hallway", "hospital_corridor", "hospital_floor", "office_floor",
-           "office_lobby", "open_crowd", "warehouse"]
+           "office_lobby", "open_crowd", "warehouse", "warehouse_routing"]
 ROBOT_RADIUS = 0.3
 
 
@@ -52,7 +52,7 @@ def test_every_shipped_scene_loads_and_builds_a_layout(name):
 
 
 def test_splits():
-    assert scenes_of_split("test") == ["hospital_corridor", "office_lobby", "warehouse"]
+    assert scenes_of_split("test") == ["hospital_corridor", "office_lobby", "warehouse", "warehouse_routing"]
     assert scenes_of_split("long_horizon") == ["hospital_floor", "office_floor"]
     assert set(scenes_of_split("train")) == {"cluttered_room", "corner", "doorway", "hallway", "open_crowd"}
 
@@ -82,16 +82,46 @@ def test_paper_scene_widths_within_a_wall_thickness(name, x, width):
 def test_warehouse_aisles_are_2_5_m_between_shelf_rows():
     spec = load_scene("warehouse")
     shelves = [o for o in spec.obstacles if isinstance(o, Box)]
-    assert len(shelves) == 3
-    geo = StaticGeometry(shelves)  # fixed shelves only (the random clutter could stand in an aisle)
-    ys = sorted(o.center[1] for o in shelves)
-    for lo, hi in zip(ys[:-1], ys[1:], strict=True):
-        mid = (lo + hi) / 2
-        for x in (3.0, 6.0, 9.0):
-            hits = geo.raycast(np.array([x, mid]), np.array([np.pi / 2, -np.pi / 2]), 50.0)
+    assert len(shelves) == 2
+    geo = StaticGeometry([*shelves, *spec.outer_walls()])  # fixed shelves only (the clutter could stand in an aisle)
+    for x in (3.0, 7.0, 11.0):  # each of the three aisles is 2.5 m from shelf to shelf or wall
+        for y in (1.25, 4.75, 8.25):
+            hits = geo.raycast(np.array([x, y]), np.array([np.pi / 2, -np.pi / 2]), 50.0)
             assert hits.sum() == pytest.approx(2.5, abs=1e-9)
-    # the rows are 7 m long, with cross aisles at both ends
-    assert all(o.size == (7.0, 1.0) for o in shelves)
+    for x in (1.25, 12.75):  # the cross aisles at both ends are 2.5 m wide too
+        hits = geo.raycast(np.array([x, 3.0]), np.array([0.0, np.pi]), 50.0)  # beside a shelf row's end
+        assert hits.sum() == pytest.approx(2.5, abs=1e-9)
+
+
+def test_warehouse_pairs_need_no_route_round_a_shelf():
+    """Start and goal ~6 m apart along a path at most 1.25 x the straight line (the paper's aisle test); the shelf
+    hall (warehouse_routing) keeps pairs whose route goes round a shelf."""
+    spec = load_scene("warehouse")
+    assert spec.start_goal.max_detour == 1.25
+    ratios = []
+    for seed in range(12):
+        layout = spec.layout(np.random.default_rng(seed))
+        start, goal, length = layout.sample_start_goal(np.random.default_rng(100 + seed), 0.3)
+        straight = float(np.hypot(*(goal - start)))
+        assert 5.45 <= straight <= 6.55  # the goal is jittered within its grid cell
+        ratios.append(length / straight)
+    assert max(ratios) <= 1.25
+    hall = load_scene("warehouse_routing")
+    assert hall.start_goal.max_detour is None
+    long_routes = 0
+    for seed in range(12):
+        layout = hall.layout(np.random.default_rng(seed))
+        start, goal, length = layout.sample_start_goal(np.random.default_rng(100 + seed), 0.3)
+        long_routes += length > 1.25 * float(np.hypot(*(goal - start)))
+    assert long_routes >= 1
+
+
+@pytest.mark.parametrize("value", [0.9, float("nan"), float("inf")])
+def test_max_detour_out_of_range_is_a_named_error(value):
+    data = {"name": "x", "split": "test", "bounds": [0, 8, 0, 8],
+            "start_goal": {"distance_m": [3, 4], "max_detour": value}}
+    with pytest.raises(ConfigError, match="max_detour"):
+        parse_scene(data, "x.yaml", "x")
 
 
 # ----------------------------------------------------------------------------------------- start/goal sampling
@@ -414,3 +444,24 @@ def test_free_points_do_not_depend_on_earlier_queries():
     for c in (0.3404, 0.3412, 0.3499):
         np.testing.assert_array_equal(fresh.free_points(np.random.default_rng(7), 200, c),
                                       used.free_points(np.random.default_rng(7), 200, c))
+
+
+def test_free_space_rectangles_make_the_rest_of_the_bounds_solid():
+    """A T-junction written as two rectangles: their union is free, everything else inside the bounds is solid."""
+    data = {"name": "t_junction", "split": "test", "bounds": [0, 10, 0, 8],
+            "free_space": [[0, 10, 5, 8], [3.5, 6.5, 0, 5]]}
+    spec = parse_scene(data, "t_junction.yaml", "t_junction")
+    layout = spec.layout()
+    free = np.array([[1.0, 6.5], [9.0, 6.5], [5.0, 1.0], [5.0, 5.5]])
+    solid = np.array([[1.0, 2.0], [9.0, 2.0], [3.0, 4.0], [7.0, 4.9]])
+    assert np.all(layout.clearance_at(free) > 0.4)
+    assert np.all(layout.geometry.signed_distance(solid)[0] < 0)
+    start, goal, length = layout.sample_start_goal(np.random.default_rng(0), 0.3)
+    assert math.isfinite(length)
+
+
+@pytest.mark.parametrize("rect", [[-1, 5, 0, 4], [0, 5, 4, 3], [0, float("nan"), 0, 4]])
+def test_free_space_outside_the_bounds_or_degenerate_is_a_named_error(rect):
+    data = {"name": "x", "split": "test", "bounds": [0, 10, 0, 8], "free_space": [rect]}
+    with pytest.raises(ConfigError, match=r"free_space\[0\]"):
+        parse_scene(data, "x.yaml", "x")

@@ -53,3 +53,19 @@ def test_with_privileges_adds_the_world_only_for_privileged_methods():
     assert "world" not in info
     obs, info = with_privileges(CrowdNavEnv(config=cfg), "privileged").reset(seed=0)
     assert "world" in info and "peds" in obs
+
+
+def test_follow_waypoints_without_waypoints_follows_the_global_planners_route():
+    env = FollowWaypoints(CrowdNavEnv(scene="warehouse_routing", density=0.0, obs_mode="state", info_level="basic"))
+    routed = 0
+    for seed in range(6):
+        obs, info = env.reset(seed=seed)
+        u = env.unwrapped
+        np.testing.assert_allclose(env.waypoints[-1], u.goal)
+        legs = np.vstack([u.start, env.waypoints])
+        assert np.sum(np.hypot(*np.diff(legs, axis=0).T)) == pytest.approx(u.shortest_path_m, rel=0.03)
+        for a, b in zip(legs[:-1], legs[1:], strict=True):  # every leg of the route is free for the robot
+            assert u.layout.segments_clear(a[None], b[None], u.cfg.robot.radius_m)[0]
+        routed += len(env.waypoints) > 1
+        np.testing.assert_array_equal(info["waypoint"], env.follower.current(u.robot[:2]))
+    assert routed >= 1  # some pairs of the shelf hall need a corner
