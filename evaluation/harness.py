@@ -29,6 +29,7 @@ from recorder.schema import episode_meta_from_env, frame_from_env
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
 from sim.metrics import episode_metrics
+from sim.scenario import scenario_metrics
 from sim.viz import colorize_depth, compose_frame, plot_episode_topdown, write_video
 from sim.wrappers import FollowWaypoints
 
@@ -53,6 +54,7 @@ class Job:
     start: np.ndarray | None = None
     scene_seed: int | None = None  # the benchmark's goal: clutter, start and goal from this seed (env reset option)
     route: bool = False  # follow the global planner's waypoints from start to goal (the routing cells)
+    scenario: str = ""  # a scenario (sim.scenario): its scene, start, goal and scripted pedestrians; ``scene`` names it
     tag: str = ""  # a prefix for file names (e.g. "lh")
     save_trace: bool = True  # traces/<name>.npz
     row_cache: Path | None = None  # write the finished row to <row_cache>/<name>.json (last: eval --resume skips it)
@@ -80,7 +82,8 @@ def make_env(job: Job) -> gym.Env:
     over = job.method.env_overrides()
     if rendered:
         over["obs_mode"] = "visual"
-    cfg = replace(job.sim, scene=job.scene, density=job.density, info_level="full" if job.mcap else "basic", **over)
+    where = {"scenario": job.scenario} if job.scenario else {"scene": job.scene, "scenario": ""}
+    cfg = replace(job.sim, **where, density=job.density, info_level="full" if job.mcap else "basic", **over)
     env: gym.Env = CrowdNavEnv(config=cfg, render_mode="rgb_array" if job.video else None)
     if job.waypoints is not None or job.route:
         env = FollowWaypoints(env, job.waypoints)
@@ -138,10 +141,13 @@ def run_episode(job: Job) -> dict[str, Any]:
     trace = u.trace(method=job.method.name)
     layout = u.layout
     time_limit_s = float(u.time_limit_s)
+    scripted, events = u.crowd.scripted.copy(), list(u.crowd.events)
     env.close()
     row = {"method": job.method.name, "scene": Path(job.scene).stem, "density": job.density, "seed": job.seed,
            "outcome": trace.outcome, "steps": trace.n_steps, **episode_metrics(trace),
            "time_limit_s": time_limit_s, **job.extra}
+    if job.scenario:
+        row.update(scenario_metrics(trace, scripted, events))
     if job.save_trace:
         (job.out / "traces").mkdir(parents=True, exist_ok=True)
         trace.save_npz(job.out / "traces" / f"{job.name}.npz")

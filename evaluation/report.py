@@ -20,6 +20,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from evaluation.stats import detectable_difference, max_discordance, mcnemar_exact, pooled_mcnemar
 from sim.metrics import aggregate, metrics_table_markdown, paired_test
 from sim.viz import save_figure
@@ -194,7 +196,8 @@ def _budget_text(produced_by: dict[str, Any], prefix: str = "") -> str:
 def report_markdown(rows: Sequence[dict[str, Any]], labels: dict[str, str], header: str,
                     lh_rows: Sequence[dict[str, Any]] = (), references: Sequence[str] = (),
                     budgets: dict[str, dict[str, Any]] | None = None,
-                    routing_rows: Sequence[dict[str, Any]] = (), ref: str = "full") -> str:
+                    routing_rows: Sequence[dict[str, Any]] = (), ref: str = "full",
+                    scenario_rows: Sequence[dict[str, Any]] = ()) -> str:
     """The run's ``report.md``: tables per cell, paired comparisons of ``ref`` with every other method (per cell
     and pooled, with the detectable difference), the paper's ordering, routing cells and long horizon."""
     res = results(rows)
@@ -246,6 +249,8 @@ def report_markdown(rows: Sequence[dict[str, Any]], labels: dict[str, str], head
                      "so the cell measures crowd navigation along a given route.\n")
         parts.extend(_cell_tables(routing_rows, labels))
         parts.extend(_paired_section(routing_rows, labels, "### Paired comparisons (routing)", ref))
+    if scenario_rows:
+        parts.extend(scenario_table(scenario_rows, labels))
     if lh_rows:
         parts.append("## Long-horizon navigation on the topological map (paper §IV-C)\n")
         by_map: dict[str, dict[str, list]] = {}
@@ -254,6 +259,34 @@ def report_markdown(rows: Sequence[dict[str, Any]], labels: dict[str, str], head
         for scene, by in by_map.items():
             parts.append(f"### {scene}\n\n" + metrics_table_markdown(by))
     return "\n".join(parts) + "\n"
+
+
+def scenario_table(rows: Sequence[dict[str, Any]], labels: dict[str, str]) -> list[str]:
+    """The scenario suite: per scenario and method, SR, collisions with the scripted pedestrians, the minimum
+    clearance to them and the reaction time to their cue (:func:`sim.scenario.scenario_metrics`)."""
+    parts = ["## Scenario suite (scripted pedestrians)\n",
+             "Per scenario and method over its seeded trials: SR; *hit scripted*: episodes ending in a collision with "
+             "a scripted pedestrian; *min clearance*: robot footprint to the nearest scripted body, mean ± std [m]; "
+             "*reaction*: seconds from the onset of the pedestrian's cue (head/torso lead before a turn, else the "
+             "start) to the first command change that increases the predicted clearance — median over the "
+             "episodes that reacted, with their count (a negative value: the robot was already changing course "
+             "before the cue).\n",
+             "| scenario | method | N | SR | hit scripted | min clearance [m] | reaction [s] (reacted) |",
+             "|---|---|---|---|---|---|---|"]
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        for m in methods_of(rows):
+            rs = [r for r in rows if r["scene"] == scene and r["method"] == m]
+            if not rs:
+                continue
+            clr = np.array([r["min_clearance_scripted_m"] for r in rs], float)
+            react = np.array([r["reaction_time_s"] for r in rs], float)
+            react = react[np.isfinite(react)]
+            parts.append(f"| {scene} | {labels.get(m, m)} | {len(rs)} | {np.mean([r['success'] for r in rs]):.2f} | "
+                         f"{int(sum(r['collision_scripted'] for r in rs))} | {np.nanmean(clr):.2f} ± "
+                         f"{np.nanstd(clr):.2f} | {(f'{np.median(react):.1f}' if len(react) else 'n/a')} "
+                         f"({len(react)}/{len(rs)}) |")
+    parts.append("")
+    return parts
 
 
 def _cell_tables(rows: Sequence[dict[str, Any]], labels: dict[str, str]) -> list[str]:

@@ -20,6 +20,8 @@ nothing. Output ``DATA_DIR/eval/<run_name>/``::
     seeds.json                   the seed list every method faced (per cell and for the long-horizon runs)
     episodes.jsonl               one row per episode: method, scene, density, seed, goal, trial, outcome, every metric
     routing/episodes.jsonl       the routing cells' rows (global-planner waypoints), apart from the paper's cells
+    scenarios/episodes.jsonl     the scenario suite's rows (+ collision with / clearance to the scripted pedestrians,
+                                 reaction time); scenarios/figures, videos, mcap: the first trials
     results.json, results.csv    per cell and method: N, mean, std, 95 % CI of every metric
     paired.json                  the full model against each method on the same seeds (McNemar / Wilcoxon, the
                                  detectable SR difference), per cell and pooled over the cells
@@ -32,7 +34,7 @@ nothing. Output ``DATA_DIR/eval/<run_name>/``::
                                  assumes the same config and checkpoints, as ``train --resume`` does)
     long_horizon/episodes.jsonl, long_horizon/<map>_gvg.png (the map, its GVG and every method's paths)
 
-``<episode>`` is ``[lh_|route_]<scene>_d<density>_s<seed>_<method>``.
+``<episode>`` is ``[lh_|route_|sc_]<scene or scenario>_d<density>_s<seed>_<method>``.
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
 from sim.env import CrowdNavEnv, SimConfig
 from sim.planners.topomap import build_gvg, plot_topomap
+from sim.scenario import load_scenario
 from sim.scene import check_episode_grid
 from sim.trace import EpisodeTrace
 
@@ -94,6 +97,10 @@ class EvalConfig(BaseStageConfig):
     routing_scenes: list[str] = field(default_factory=lambda: ["warehouse_routing"],
                                       metadata={"help": "extra cells where every method follows the global "
                                                         "planner's waypoints (reported separately)"})
+    scenarios: list[str] = field(default_factory=lambda: ["blind_corner", "crossing_turn", "head_on", "overtaking",
+                                                          "doorway"],
+                                 metadata={"help": "scenario files (sim/scenarios/ or paths) every method runs"})
+    scenario_trials: int = field(default=3, metadata={"help": "seeded episodes per scenario and method"})
     paired_with: str = field(default="full", metadata={"help": "the method every other is paired against"})
     seed_base: int = field(default=20_000, metadata={"help": "episode seeds are seed_base + seed + k"})
     workers: int = 2
@@ -119,6 +126,12 @@ class EvalConfig(BaseStageConfig):
         check_episode_grid(self.scenes, self.densities, self.episodes, self.workers)
         if self.routing_scenes:
             check_episode_grid(self.routing_scenes, self.densities, self.episodes, self.workers)
+        for name in self.scenarios:
+            load_scenario(name)  # unknown / invalid -> one ConfigError naming file, field, expected, actual
+        if len(set(self.scenarios)) != len(self.scenarios):
+            raise ConfigError(f"eval.scenarios: expected distinct scenarios, got {self.scenarios}")
+        if not isinstance(self.scenario_trials, int) or not 1 <= self.scenario_trials <= 1000:
+            raise ConfigError(f"eval.scenario_trials: expected an integer in [1, 1000], got {self.scenario_trials!r}")
         if not self.methods:
             raise ConfigError("eval.methods: expected at least one method")
         if self.figures < 0 or self.videos < 0:
@@ -171,6 +184,20 @@ def benchmark_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path, scenes: 
     return jobs
 
 
+def scenario_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path) -> list:
+    """Every (scenario, trial, method) job: the scenario's density, seeds ``seed_base + seed + 200_000 + trial``;
+    the first trials get a figure and a video + MCAP log as for the benchmark cells."""
+    jobs = []
+    for name in cfg.scenarios:
+        sc = load_scenario(name)
+        for t in range(cfg.scenario_trials):
+            for m in specs:
+                jobs.append(Job(m, cfg.sim, sc.name, sc.density, cfg.seed_base + cfg.seed + 200_000 + t, out,
+                                figure=t < max(cfg.figures, 1), video=t < cfg.videos, mcap=t < cfg.videos,
+                                scenario=name, tag="sc_", extra={"trial": t}))
+    return jobs
+
+
 def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:
     """Per map and run: the seed, a start node, a goal among the candidate goals, the GVG waypoints."""
 
@@ -208,6 +235,12 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
                                        out / "rows", cfg.workers, "eval: routing", cfg.progress)
         atomic_write_text(out / "routing" / "episodes.jsonl",
                           "".join(json.dumps(r) + "\n" for r in json_safe(routing_rows)))
+    sc_rows: list[dict[str, Any]] = []
+    if cfg.scenarios:
+        sc_rows = run_jobs_cached(scenario_jobs(cfg, specs, out / "scenarios"), out / "rows", cfg.workers,
+                                  "eval: scenarios", cfg.progress)
+        atomic_write_text(out / "scenarios" / "episodes.jsonl",
+                          "".join(json.dumps(r) + "\n" for r in json_safe(sc_rows)))
     lh_rows: list[dict[str, Any]] = []
     lh_seeds: dict[str, list[int]] = {}
     if cfg.long_horizon.runs:
@@ -227,6 +260,8 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
                           "".join(json.dumps(r) + "\n" for r in json_safe(lh_rows)))
     atomic_write_json(out / "seeds.json", {"benchmark": {"seeds": seeds, "scenes": cfg.scenes,
                                                          "routing_scenes": cfg.routing_scenes,
+                                                         "scenarios": cfg.scenarios,
+                                                         "scenario_trials": cfg.scenario_trials,
                                                          "densities": cfg.densities, "episodes": protocol_of(cfg)},
                                            "long_horizon": lh_seeds})
     atomic_write_text(out / "episodes.jsonl", "".join(json.dumps(r) + "\n" for r in json_safe(rows)))
@@ -245,9 +280,9 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
     refs = [m.name for m in specs if m.reference]
     budgets = {m.name: training_budget(m.checkpoint) for m in specs if m.checkpoint is not None}
     atomic_write_text(out / "report.md", report_markdown(rows, labels, header, lh_rows, refs, budgets,
-                                                         routing_rows, cfg.paired_with))
+                                                         routing_rows, cfg.paired_with, sc_rows))
     counts: dict[str, Any] = {"episodes": len(rows), "routing_episodes": len(routing_rows),
-                              "long_horizon_episodes": len(lh_rows)}
+                              "scenario_episodes": len(sc_rows), "long_horizon_episodes": len(lh_rows)}
     for cell, by in {**res, **results(routing_rows)}.items():
         for m, agg in by.items():
             counts[f"sr_{m}_{cell}"] = round(float(agg["success"]["mean"]), 3)

@@ -20,6 +20,14 @@ default); during the lead the head and torso already turn toward the pending goa
 the old one; then the pending goal becomes the active one and the walking direction follows through the
 relaxation time ``tau``.
 
+Scripted pedestrians (:class:`ScriptedPed`, from a scenario file: :mod:`sim.scenario`) follow the same forces and
+show the same cue: each stands at its start until its trigger fires (a time, or the robot coming within a distance
+of a point), then announces its first waypoint for ``lead_s`` (head and torso turn, feet still) and walks; ``lead_s``
+before it reaches a waypoint it announces the next one, so the walking direction changes at the waypoint while the
+head has led by ``lead_s``. After the last waypoint it stands. Every trigger and turn cue is logged in
+:attr:`Crowd.events` (the onset of the cue, for the robot's reaction time). They are appended after the random
+pedestrians (indices ``n_random ..``), drawing nothing from the random stream.
+
 :func:`social_force_reference` is the plain per-agent loop the vectorised :meth:`Crowd.social_forces` is
 tested and benchmarked against.
 """
@@ -36,6 +44,29 @@ from sim.geometry import wrap_angle
 from sim.scene import SceneLayout
 
 WALK, IDLE = 0, 1
+ARRIVED_M = 0.3  # a scripted pedestrian has reached its last waypoint within this distance
+
+
+@dataclass(frozen=True)
+class ScriptedPed:
+    """A pedestrian whose route and start are scripted (world frame, m, m/s, s)."""
+
+    start: tuple[float, float]
+    waypoints: tuple[tuple[float, float], ...]  # walked in order; the last is where it stops
+    speed_mps: float = 1.0
+    lead_s: float = 0.7  # the cue: head and torso turn this long before the walking direction does
+    trigger_time_s: float | None = None  # starts at this time ...
+    trigger_within_m: float | None = None  # ... or when the robot comes this close to ``trigger_point``
+    trigger_point: tuple[float, float] | None = None  # (default: its start)
+
+    def fires(self, time_s: float, robot_xy: np.ndarray | None) -> bool:
+        """Whether the trigger fires now (no trigger: at once)."""
+        if self.trigger_time_s is not None and time_s + 1e-9 >= self.trigger_time_s:
+            return True
+        if self.trigger_within_m is not None and robot_xy is not None:
+            p = self.trigger_point if self.trigger_point is not None else self.start
+            return math.hypot(robot_xy[0] - p[0], robot_xy[1] - p[1]) <= self.trigger_within_m
+        return self.trigger_time_s is None and self.trigger_within_m is None
 
 
 def norm2d(v: np.ndarray) -> np.ndarray:
@@ -102,23 +133,46 @@ class Crowd:
     """
 
     def __init__(self, layout: SceneLayout, cfg: CrowdConfig, rng: np.random.Generator, n: int,
-                 radius: np.ndarray, avoid_xy: list[np.ndarray] | None = None, avoid_m: float = 1.0):
+                 radius: np.ndarray, avoid_xy: list[np.ndarray] | None = None, avoid_m: float = 1.0,
+                 scripted: tuple[ScriptedPed, ...] = ()):
         self.layout = layout
         self.cfg = cfg
         self.rng = rng
-        self.n = n
+        self.script = tuple(scripted)
+        k = len(self.script)
+        self.n_random = n
+        self.n = n + k
         self.radius = np.asarray(radius, dtype=np.float64)
+        if len(self.radius) != self.n:
+            raise ValueError(f"Crowd: expected {self.n} radii ({n} random + {k} scripted), got {len(self.radius)}")
+        starts = np.array([p.start for p in self.script], float).reshape(k, 2)
         self.v0 = np.clip(rng.normal(cfg.speed_mean_mps, cfg.speed_std_mps, n), 0.5, 1.5)
-        self.pos = self._spawn(n, avoid_xy or [], avoid_m)
+        self.pos = self._spawn(n, [*(avoid_xy or []), *starts], avoid_m)
         self.goal = self._draw_goals(np.arange(n))
         heading = self.goal - self.pos
         heading /= np.maximum(np.linalg.norm(heading, axis=1, keepdims=True), 1e-9)
         self.vel = heading * self.v0[:, None] * rng.uniform(0.0, 1.0, (n, 1))
+        self.v0 = np.concatenate([self.v0, [p.speed_mps for p in self.script]])
+        self.pos = np.vstack([self.pos, starts])
+        self.goal = np.vstack([self.goal, starts])  # scripted: standing at the start until the trigger
+        self.vel = np.vstack([self.vel, np.zeros((k, 2))])
         self.pending = self.goal.copy()
-        self.lead = np.zeros(n)
-        self.mode = np.full(n, WALK, dtype=np.int8)
-        self.idle_left = np.zeros(n)
-        self.slow_for = np.zeros(n)
+        self.lead = np.zeros(self.n)
+        self.mode = np.concatenate([np.full(n, WALK, dtype=np.int8), np.full(k, IDLE, dtype=np.int8)])
+        self.idle_left = np.concatenate([np.zeros(n), np.full(k, np.inf)])
+        self.slow_for = np.zeros(self.n)
+        self.scripted = np.arange(self.n) >= n
+        self.script_next = [-1] * k  # per scripted pedestrian: the waypoint it walks (or will walk) to; -1: waiting
+        self.time_s = 0.0
+        self.events: list[dict[str, float | int | str]] = []  # {"t_s", "ped", "kind": "start" | "turn"}
+
+    def initial_yaw(self) -> np.ndarray:
+        """``N`` facing directions at reset: toward the goal (random pedestrians), toward the first waypoint
+        (scripted ones)."""
+        target = self.goal.copy()
+        for j, p in enumerate(self.script):
+            target[self.n_random + j] = p.waypoints[0]
+        return np.arctan2(target[:, 1] - self.pos[:, 1], target[:, 0] - self.pos[:, 0])
 
     # ---------------------------------------------------------------------------------------------- sampling
     def _region(self):
@@ -207,7 +261,7 @@ class Crowd:
 
     def step(self, dt: float, robot_xy: np.ndarray | None = None, robot_radius: float = 0.3) -> None:
         """Advance ``dt`` seconds: behaviour (goals, leads, idling), forces, integration, wall constraint."""
-        self._behaviour(dt)
+        self._behaviour(dt, robot_xy)
         acc = self.social_forces(robot_xy, robot_radius)
         vel = self.vel + dt * acc
         speed = norm2d(vel)
@@ -230,8 +284,9 @@ class Crowd:
             vel[bad] -= np.minimum(vn, 0.0)[:, None] * n_w
         self.pos, self.vel = pos, vel
 
-    def _behaviour(self, dt: float) -> None:
+    def _behaviour(self, dt: float, robot_xy: np.ndarray | None = None) -> None:
         c, rng = self.cfg, self.rng
+        free = ~self.scripted  # the random pedestrians' behaviour below; the scripted ones follow their script
         # pending goals whose lead has run out become active
         had = self.lead > 0
         self.lead -= dt
@@ -243,9 +298,9 @@ class Crowd:
         # idle pedestrians count down, then decide where to go (and announce it)
         idle = self.mode == IDLE
         self.idle_left[idle] -= dt
-        wake = idle & (self.idle_left <= 0) & (self.lead <= 0)
+        wake = idle & (self.idle_left <= 0) & (self.lead <= 0) & free
         # walkers near their goal, stuck, or changing their mind decide on a new goal
-        walking = (self.mode == WALK) & (self.lead <= 0)
+        walking = (self.mode == WALK) & (self.lead <= 0) & free
         near = walking & (norm2d(self.goal - self.pos) < c.goal_reached_m)
         speed = norm2d(self.vel)
         self.slow_for = np.where(walking & (speed < 0.15), self.slow_for + dt, 0.0)
@@ -263,6 +318,37 @@ class Crowd:
             self.pending[idx] = self._draw_goals(idx)
             self.lead[idx] = rng.uniform(c.lead_min_s, c.lead_max_s, len(idx))
             self.slow_for[idx] = 0.0
+        if self.script:
+            self._follow_scripts(robot_xy)
+        self.time_s += dt
+
+    def _follow_scripts(self, robot_xy: np.ndarray | None) -> None:
+        """Triggers, turn cues and arrivals of the scripted pedestrians (see the module docstring)."""
+        for j, p in enumerate(self.script):
+            i = self.n_random + j
+            k = self.script_next[j]
+            if self.lead[i] > 0 or k >= len(p.waypoints):
+                continue  # a cue is running, or it has arrived
+            if k < 0:
+                if p.fires(self.time_s, robot_xy):
+                    self._announce(j, 0, "start")
+                continue
+            remaining = math.hypot(*(np.asarray(p.waypoints[k]) - self.pos[i]))
+            if k == len(p.waypoints) - 1:
+                if remaining < ARRIVED_M:
+                    self.mode[i], self.idle_left[i] = IDLE, np.inf
+                    self.goal[i] = self.pending[i] = self.pos[i]
+                    self.script_next[j] = len(p.waypoints)
+            elif remaining <= p.speed_mps * p.lead_s + ARRIVED_M / 2:
+                self._announce(j, k + 1, "turn")
+
+    def _announce(self, j: int, k: int, kind: str) -> None:
+        i = self.n_random + j
+        p = self.script[j]
+        self.pending[i] = p.waypoints[k]
+        self.lead[i] = max(p.lead_s, 1e-3)
+        self.script_next[j] = k
+        self.events.append({"t_s": round(self.time_s, 9), "ped": i, "kind": kind})
 
     def attention_xy(self) -> np.ndarray:
         """``N x 2`` where each pedestrian is heading in mind: the pending goal during a lead, else the goal."""
@@ -325,4 +411,5 @@ def heading_of(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     return np.where(n > 1e-6, np.arctan2(v[:, 1], v[:, 0]), fallback)
 
 
-__all__ = ["Crowd", "CrowdConfig", "social_force_reference", "heading_of", "wrap_angle", "WALK", "IDLE"]
+__all__ = ["Crowd", "CrowdConfig", "ScriptedPed", "social_force_reference", "heading_of", "wrap_angle", "WALK",
+           "IDLE"]

@@ -62,6 +62,7 @@ from sim.humans import Bodies, BodyConfig
 from sim.planners.global_path import GlobalPath
 from sim.reward import RewardConfig, reward_terms
 from sim.robot import ActionCodec, RobotConfig, unicycle_step
+from sim.scenario import ScenarioSpec, load_scenario
 from sim.scene import SceneLayout, SceneSpec, load_scene
 from sim.trace import EpisodeTrace
 
@@ -108,6 +109,8 @@ class SimConfig:
     """Everything that defines an episode of the crowd world (units in the names)."""
 
     scene: str = "office_lobby"  # shipped scene name or path to a scene YAML file
+    scenario: str = ""  # a scenario name or file (sim.scenario): its scene, start, goal and scripted pedestrians
+    #                     replace `scene` and the drawn pair; `density` still adds a random crowd
     density: float = 0.1  # pedestrians per m² of free area (the paper: 0.1 low, 0.2 high)
     dt_s: float = 0.1  # control period
     substeps: int = 1  # social-force integration steps per control step
@@ -133,7 +136,10 @@ class SimConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     def validate(self) -> None:
-        load_scene(self.scene)  # unknown scene / malformed file -> ConfigError naming it
+        if self.scenario:
+            load_scenario(self.scenario)  # unknown scenario / malformed file -> ConfigError naming it
+        else:
+            load_scene(self.scene)  # unknown scene / malformed file -> ConfigError naming it
         if not isinstance(self.density, int | float) or not math.isfinite(self.density) or self.density < 0:
             raise ConfigError(f"density: expected a number >= 0 (pedestrians per m²), got {self.density!r}")
         if self.density > 2.0:
@@ -188,7 +194,8 @@ class CrowdNavEnv(gym.Env):
             raise ConfigError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
         self.cfg = cfg
         self.render_mode = render_mode
-        self.spec_scene: SceneSpec = load_scene(cfg.scene)
+        self.scenario: ScenarioSpec | None = load_scenario(cfg.scenario) if cfg.scenario else None
+        self.spec_scene: SceneSpec = self.scenario.scene if self.scenario else load_scene(cfg.scene)
         self.cameras = cfg.camera.specs()
         self.detector: PoseDetector = detector or OracleDetector(cfg.detector)
         self.codec = ActionCodec(cfg.action_type, cfg.robot)
@@ -239,7 +246,10 @@ class CrowdNavEnv(gym.Env):
             r_layout, r_sg = (np.random.default_rng(s) for s in
                               np.random.SeedSequence(int(options["scene_seed"])).spawn(2))
         self.layout = self.spec_scene.layout(r_layout)
-        if options and "start" in options and "goal" in options:  # a given pair (long-horizon runs on a map)
+        sc = self.scenario
+        if sc is not None:  # a staged situation: its pair and heading
+            start, goal, geo = np.array(sc.start, float), np.array(sc.goal, float), math.nan
+        elif options and "start" in options and "goal" in options:  # a given pair (long-horizon runs on a map)
             start = np.asarray(options["start"], float).reshape(2)
             goal = np.asarray(options["goal"], float).reshape(2)
             geo = math.nan
@@ -248,14 +258,15 @@ class CrowdNavEnv(gym.Env):
         self.start, self.goal = start, goal
         self._shortest = geo if math.isfinite(geo) else None  # exact length, computed on first use if not known
         to_goal = math.atan2(goal[1] - start[1], goal[0] - start[0])
-        self.robot = np.array([start[0], start[1], to_goal + r_sg.uniform(-0.5, 0.5)])
+        yaw = sc.start_yaw if sc is not None else to_goal + r_sg.uniform(-0.5, 0.5)
+        self.robot = np.array([start[0], start[1], yaw])
         self.robot_v = np.zeros(2)  # [v, omega] last command
         n = self.layout.ped_count(c.density)
-        self.bodies = Bodies(c.body, r_body, n, np.zeros(n))
+        scripted = sc.pedestrians if sc is not None else ()
+        self.bodies = Bodies(c.body, r_body, n + len(scripted), np.zeros(n + len(scripted)))
         self.crowd = Crowd(self.layout, c.crowd, r_crowd, n, self.bodies.radius, avoid_xy=[start, goal],
-                           avoid_m=c.spawn_clearance_m + c.robot.radius_m)
-        self.bodies.body_yaw[:] = np.arctan2(self.crowd.goal[:, 1] - self.crowd.pos[:, 1],
-                                             self.crowd.goal[:, 0] - self.crowd.pos[:, 0])
+                           avoid_m=c.spawn_clearance_m + c.robot.radius_m, scripted=scripted)
+        self.bodies.body_yaw[:] = self.crowd.initial_yaw()
         self.bodies.torso_yaw[:] = self.bodies.body_yaw
         self.bodies.head_yaw[:] = self.bodies.body_yaw
         self.det_rng = r_det

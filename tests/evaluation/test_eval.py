@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from evaluation.harness import Job, initial_state, make_env, reset_options, run_episode
 from evaluation.methods import MethodSpec, resolve_methods
@@ -120,11 +121,20 @@ def test_unknown_method_and_missing_checkpoint_are_clear_errors(tmp_path):
     (["--methods", "[expert, nosuch]"], "unknown method 'nosuch'"),
     (["--methods", "[full]"], "no finished policy checkpoint"),
     (["--scenes", "[]"], "eval.scenes: expected at least one scene"),
+    (["--scenarios", "[nosuch]"], "unknown scenario 'nosuch'"),
+    (["--scenarios", "[{bad}]"], "config key 'pedestrians[0].waypoints[0]': expected a waypoint outside every"),
+    (["--scenarios", "[{nan}]"], "config key 'goal': expected finite numbers"),
+    (["--goals", "0"], "eval.goals: expected an integer in [1, 10000], got 0"),
 ])
 def test_eval_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, args, match):
+    data = yaml.safe_load((ROOT / "sim" / "scenarios" / "blind_corner.yaml").read_text())
+    bad = {**data, "name": "bad", "pedestrians": [{**data["pedestrians"][0], "waypoints": [[3.0, 6.0]]}]}
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(bad))
+    (tmp_path / "nan.yaml").write_text(yaml.safe_dump({**data, "name": "nan", "goal": [float("nan"), 1.5]}))
+    args = [a.format(bad=tmp_path / "bad.yaml", nan=tmp_path / "nan.yaml") for a in args]
     r = subprocess.run([sys.executable, "-m", "pipeline", "eval", "--profile", "smoke", "--data-dir", str(tmp_path),
                         *args], capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert r.returncode != 0
+    assert r.returncode == 2, r.stderr
     assert match in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "eval").exists()
 
@@ -134,8 +144,8 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
     from pipeline.verbs.eval import run
 
     cfg = EvalConfig(data_dir=str(tmp_path), methods=["expert"], scenes=["office_lobby"], densities=[0.1],
-                     goals=1, trials=2, routing_scenes=["warehouse_routing"], workers=1, figures=0, videos=0,
-                     sim=TINY, progress=False)
+                     goals=1, trials=2, routing_scenes=["warehouse_routing"], scenarios=["head_on"],
+                     scenario_trials=1, workers=1, figures=0, videos=0, sim=TINY, progress=False)
     cfg.long_horizon = replace(cfg.long_horizon, maps=["office_floor"], runs=1, max_episode_s=2.0)
     run(cfg)
     out = tmp_path / "eval" / "benchmark"
@@ -149,6 +159,10 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
     routed = [json.loads(line) for line in (out / "routing" / "episodes.jsonl").read_text().splitlines()]
     assert [r["scene"] for r in routed] == ["warehouse_routing"] * 2
     assert "Warehouse routing" in (out / "report.md").read_text()
+    (sc,) = [json.loads(line) for line in (out / "scenarios" / "episodes.jsonl").read_text().splitlines()]
+    assert sc["scene"] == "head_on" and {"collision_scripted", "min_clearance_scripted_m", "reaction_time_s"} <= set(sc)
+    assert "Scenario suite" in (out / "report.md").read_text()
+    assert (out / "scenarios" / "figures" / f"sc_head_on_d0_s{sc['seed']}_expert.png").is_file()
     # a killed run: the manifest never came and one episode's row is missing; --resume runs only that episode
     (out / "manifest.json").unlink()
     rows = sorted((out / "rows").glob("office_lobby_*.json"))

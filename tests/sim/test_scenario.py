@@ -1,0 +1,180 @@
+"""Scenario files: parsing and named errors, trigger timing, the scripted pedestrian's head lead before a turn,
+determinism, and the metrics (collision with / clearance to the scripted pedestrian, reaction time)."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from pipeline.core.errors import ConfigError, InputMissingError
+from sim.env import CrowdNavEnv
+from sim.geometry import wrap_angle
+from sim.scenario import (
+    SCENARIOS_DIR,
+    available_scenarios,
+    load_scenario,
+    parse_scenario,
+    reaction_time_s,
+    scenario_metrics,
+)
+
+SHIPPED = ["blind_corner", "crossing_turn", "doorway", "head_on", "overtaking"]
+
+
+def _data(name: str) -> dict:
+    return yaml.safe_load((SCENARIOS_DIR / f"{name}.yaml").read_text())
+
+
+def _env(scenario: str, **kw) -> CrowdNavEnv:
+    kw.setdefault("obs_mode", "state")
+    kw.setdefault("info_level", "basic")
+    return CrowdNavEnv(scenario=scenario, density=0.0, **kw)
+
+
+def test_shipped_scenarios_load():
+    assert available_scenarios() == SHIPPED
+    for name in SHIPPED:
+        sc = load_scenario(name)
+        assert sc.name == name and sc.pedestrians
+        assert sc.scene.random_obstacles is None
+
+
+def test_blind_corner_layout_is_two_corridors_with_solid_inner_corners():
+    layout = load_scenario("blind_corner").scene.layout()
+    assert np.all(layout.clearance_at(np.array([[1.5, 1.5], [12.5, 1.5], [7.5, 8.0]])) > 0.5)
+    inner = np.array([[5.5, 3.5], [9.5, 3.5]])  # just beside the junction: solid, so the walker is hidden
+    assert np.all(layout.geometry.signed_distance(inner)[0] < 0)
+
+
+def _bad(name: str, edit) -> str:
+    data = copy.deepcopy(_data(name))
+    edit(data)
+    with pytest.raises(ConfigError) as e:
+        parse_scenario(data, f"{name}.yaml", name)
+    return str(e.value)
+
+
+@pytest.mark.parametrize("edit,match", [
+    (lambda d: d.update(layout=None, scene="no_such_scene"), r"'scene'.*unknown scene 'no_such_scene'"),
+    (lambda d: d["pedestrians"][0]["waypoints"].__setitem__(0, [3.0, 6.0]), r"waypoints\[0\].*outside every obstacle"),
+    (lambda d: d.update(goal=[7.5, 8.0], start=[3.0, 7.0]), r"'start'.*free start"),
+    (lambda d: d["pedestrians"][0]["trigger"].update(point=[7.5, 9.0], robot_within_m=1.0), r"could never fire"),
+    (lambda d: d["pedestrians"][0].update(speed_mps=float("nan")), r"speed_mps.*finite"),
+    (lambda d: d.update(start=[float("inf"), 1.5]), r"'start'.*finite"),
+    (lambda d: d["pedestrians"][0]["trigger"].update(time_s=2.0), r"exactly one of time_s / robot_within_m"),
+    (lambda d: d.update(scene="corner"), r"exactly one of 'scene'.*both"),
+    (lambda d: d.update(pedestrians=[]), r"pedestrians.*1 to 20"),
+])
+def test_bad_scenarios_are_one_named_error(edit, match):
+    msg = _bad("blind_corner", edit)
+    assert msg.startswith("scenario file blind_corner.yaml")
+    assert __import__("re").search(match, msg), msg
+
+
+def test_unreachable_goal_is_a_named_error():
+    def edit(d):
+        d["layout"]["free_space"] = [[0.0, 6.0, 0.0, 3.0], [8.0, 14.0, 0.0, 3.0], [6.0, 9.0, 3.0, 10.0]]
+        d["layout"]["obstacles"] = [{"box": {"center": [7.0, 1.5], "size": [2.0, 3.0]}}]
+    assert "no path from" in _bad("blind_corner", edit)
+
+
+def test_walk_through_a_wall_is_a_named_error():
+    def edit(d):
+        d["pedestrians"][0]["waypoints"] = [[7.5, 1.8], [3.0, 1.8], [3.0, 6.0]]
+    msg = _bad("blind_corner", edit)
+    assert "waypoints[2]" in msg
+
+
+def test_unknown_scenario_and_missing_file():
+    with pytest.raises(ConfigError, match="unknown scenario 'nope'; known scenarios: blind_corner"):
+        load_scenario("nope")
+    with pytest.raises(InputMissingError):
+        load_scenario("/no/such/scenario.yaml")
+
+
+def test_distance_trigger_fires_when_the_robot_comes_within_the_distance():
+    env = _env("blind_corner")
+    env.reset(seed=0)
+    ped = load_scenario("blind_corner").pedestrians[0]
+    i = env.crowd.n_random
+    start = env.crowd.pos[i].copy()
+    fired_at = None
+    for _k in range(200):
+        before = env.robot[:2].copy()
+        env.step(env.encode_command(0.5, 0.0))  # straight along the corridor at 0.5 m/s
+        if env.crowd.events and fired_at is None:
+            fired_at = before  # the trigger is checked at the start of the step, on the robot's position then
+            break
+        np.testing.assert_allclose(env.crowd.pos[i], start, atol=0.05)  # standing still until then
+    assert fired_at is not None and env.crowd.events[0]["kind"] == "start"
+    d = math.hypot(*(fired_at - np.array(ped.trigger_point)))
+    assert ped.trigger_within_m - 0.5 * 0.1 - 1e-6 <= d <= ped.trigger_within_m + 1e-6  # within one step of 3.0 m
+
+
+def test_time_trigger_and_head_lead_before_a_scripted_turn():
+    """crossing_turn: the head turns toward the new direction lead_s before the walking direction follows."""
+    env = _env("crossing_turn")
+    env.reset(seed=0)
+    i = env.crowd.n_random
+    lead = load_scenario("crossing_turn").pedestrians[0].lead_s
+    turn_dir = -math.pi / 2  # the turn across the robot's path: south
+    head, walk, events = [], [], []
+    for _k in range(120):
+        env.step(env.encode_command(0.0, 0.0))
+        head.append(float(env.bodies.head_yaw[i]))
+        walk.append(math.atan2(env.crowd.vel[i, 1], env.crowd.vel[i, 0]))
+    events = [e for e in env.crowd.events if e["ped"] == i]
+    assert [e["kind"] for e in events] == ["start", "turn"]
+    assert events[0]["t_s"] == 0.0  # no trigger: walks from the start
+    t = np.arange(1, 121) * 0.1
+
+    def first(series, within):
+        return float(t[np.argmax(np.abs(wrap_angle(np.array(series) - turn_dir)) < within)])
+
+    head_turned, walk_turned = first(head, math.radians(45)), first(walk, math.radians(45))
+    assert events[1]["t_s"] < head_turned < walk_turned
+    assert walk_turned - head_turned >= 0.5 * lead  # the head leads the walking direction by about lead_s
+
+
+def test_scenario_episode_is_deterministic():
+    runs = []
+    for _ in range(2):
+        env = _env("doorway")
+        env.reset(seed=5)
+        for _ in range(60):
+            env.step(env.encode_command(0.6, 0.1))
+        tr = env.trace()
+        runs.append((tr.robot_pose, tr.ped_xy, tr.ped_head_yaw, list(env.crowd.events)))
+    for a, b in zip(runs[0][:3], runs[1][:3], strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert runs[0][3] == runs[1][3]
+
+
+def test_scenario_metrics_collision_clearance_and_reaction():
+    env = _env("head_on")
+    env.reset(seed=0)
+    done = False
+    while not done:  # drive straight into the walker
+        _, _, term, trunc, info = env.step(env.encode_command(0.6, 0.0))
+        done = term or trunc
+    tr = env.trace()
+    m = scenario_metrics(tr, env.crowd.scripted, env.crowd.events)
+    assert tr.outcome == "collision_pedestrian" and m["collision_scripted"] == 1.0
+    assert m["min_clearance_scripted_m"] <= 0.0
+    assert m["cue_onset_s"] == 0.0 and math.isnan(m["reaction_time_s"])  # never changed its command
+
+
+def test_reaction_time_finds_the_first_command_that_opens_the_gap():
+    env = _env("head_on")
+    env.reset(seed=0)
+    for k in range(60):  # straight for 3 s, then veer left (away from the walker, who keeps to y = 1.0-1.1)
+        env.step(env.encode_command(0.6, 0.0 if k < 30 else 0.8))
+    tr = env.trace()
+    peds = np.nonzero(env.crowd.scripted)[0]
+    assert reaction_time_s(tr, peds, 0.0) == pytest.approx(3.0)
+    assert reaction_time_s(tr, peds, 1.0) == pytest.approx(2.0)
+    assert math.isnan(reaction_time_s(tr, peds, 3.5))  # no change of command after the onset
