@@ -201,8 +201,10 @@ class Crowd:
         """Random goals in line of sight of each pedestrian in ``idx`` (``len(idx) x 2``), all drawn at once.
 
         Each pedestrian gets ``k`` free candidates; the first at a distance in ``goal_distance_m`` whose straight
-        segment keeps the body clear of obstacles wins; failing that, any visible candidate; failing that, it
-        stays where it is.
+        segment keeps the body clear of obstacles wins (when the scene's ``pedestrians.goal_choice`` is
+        ``farthest``: the farthest visible candidate beyond the minimum distance, so people walk corridors end to
+        end — random goals within a range crowd the middle of a layout, where corridors meet); failing that, any
+        visible candidate; failing that, it stays where it is.
         """
         m = len(idx)
         lo, hi = self.cfg.goal_distance_m
@@ -213,8 +215,13 @@ class Crowd:
         d = norm2d(cand - start)
         clear = self.layout.segments_min_clearance(start.reshape(-1, 2), cand.reshape(-1, 2)).reshape(m, k)
         vis = clear >= r[:, None]
-        ok = (d >= lo) & (d <= hi) & (clear >= r[:, None] + 0.05)
-        choice = np.where(ok.any(1), np.argmax(ok, 1), np.argmax(vis, 1))
+        if self.layout.spec.ped_goal_choice == "farthest":  # walk the corridors end to end: no upper bound
+            ok = (d >= lo) & (clear >= r[:, None] + 0.05)
+            pick = np.argmax(np.where(ok, d, -1.0), 1)
+        else:
+            ok = (d >= lo) & (d <= hi) & (clear >= r[:, None] + 0.05)
+            pick = np.argmax(ok, 1)
+        choice = np.where(ok.any(1), pick, np.argmax(vis, 1))
         out = cand[np.arange(m), choice]
         stay = ~ok.any(1) & ~vis.any(1)
         out[stay] = self.pos[idx][stay]

@@ -33,6 +33,7 @@ not marked optional is required)::
     pedestrians:                       # optional
       region: [x_min, x_max, y_min, y_max]   # optional spawn/goal region
       max_count: 40                    # optional cap
+      goal_choice: first               # optional: first | farthest visible goal in range (corridor layouts)
 
 A file is decoded and checked by the same machinery as the stage configs (:mod:`pipeline.core.config`: draccus
 decodes it into :class:`SceneFile`, then every ``validate()`` runs), so its errors name the file, the key, the
@@ -135,6 +136,7 @@ class SceneSpec:
     start_goal: StartGoalSpec = field(default_factory=StartGoalSpec)
     ped_region: tuple[float, float, float, float] | None = None
     ped_max_count: int = 60
+    ped_goal_choice: str = "first"  # first | farthest (see PedestriansFile)
     path: str = ""
 
     def outer_walls(self) -> list[Box]:
@@ -623,6 +625,9 @@ class PedestriansFile:
 
     region: Rect | None = None
     max_count: int = 60
+    goal_choice: Literal["first", "farthest"] = "first"  # of the visible candidate goals in range: the first
+    #   drawn (open rooms), or the farthest (corridor layouts: people walk the corridors instead of gathering
+    #   where they meet, which is visible from every corridor)
 
     def validate(self) -> None:
         _check_rect("region", self.region)
@@ -677,7 +682,7 @@ class SceneFile:
             random_obstacles=None if ro is None else RandomObstacles(ro.count, ro.size_m, ro.height_m, ro.region,
                                                                      ro.clearance_m),
             start_goal=StartGoalSpec(sg.distance_m, sg.metric, sg.clearance_m, sg.region, sg.max_detour),
-            ped_region=peds.region, ped_max_count=peds.max_count, path=path,
+            ped_region=peds.region, ped_max_count=peds.max_count, ped_goal_choice=peds.goal_choice, path=path,
         )
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -216,3 +218,22 @@ def test_crowd_is_deterministic_for_a_seed():
 def test_heading_of():
     v = np.array([[1.0, 0.0], [0.0, 2.0], [0.0, 0.0]])
     np.testing.assert_allclose(heading_of(v, np.array([0.3, 0.3, 0.3])), [0.0, np.pi / 2, 0.3])
+
+
+def test_farthest_goal_choice_spreads_the_crowd_along_the_corridors():
+    """In the L-junction, random goals in range crowd the arms' middles; farthest visible goals fill the ends."""
+    base = load_scene("corner")
+    ends = {}
+    for choice in ("first", "farthest"):
+        layout = dataclasses.replace(base, ped_goal_choice=choice).layout()
+        at_end, total = 0, 0
+        for seed in range(4):
+            crowd = Crowd(layout, CrowdConfig(), np.random.default_rng(seed), 10, np.full(10, 0.25))
+            for k in range(600):
+                crowd.step(0.1, None)
+                if k >= 100:
+                    p = crowd.pos
+                    at_end += int(np.sum((p[:, 0] < 2.0) | (p[:, 1] > 8.0)))  # the far 2 m of each arm
+                    total += len(p)
+        ends[choice] = at_end / total
+    assert ends["farthest"] > 1.3 * ends["first"], ends
