@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -137,6 +138,9 @@ class EvalConfig(BaseStageConfig):
         if self.figures < 0 or self.videos < 0:
             raise ConfigError(f"eval.figures/videos: expected >= 0, got {self.figures}/{self.videos}")
         lh = self.long_horizon
+        if not all(math.isfinite(v) for v in (lh.min_path_m, lh.max_episode_s, lh.density)) or lh.density < 0:
+            raise ConfigError(f"eval.long_horizon: expected finite min_path_m, max_episode_s and density >= 0, got "
+                              f"{lh.min_path_m}, {lh.max_episode_s}, {lh.density}")
         if lh.runs < 0 or lh.min_path_m <= 0 or lh.max_episode_s <= self.sim.dt_s:
             raise ConfigError("eval.long_horizon: expected runs >= 0, min_path_m > 0, max_episode_s > dt_s")
         if lh.runs:

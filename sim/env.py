@@ -146,6 +146,10 @@ class SimConfig:
             raise ConfigError(f"density: expected <= 2.0 ped/m² (denser crowds cannot be placed), got {self.density}")
         if not math.isfinite(self.timeout_s_per_m) or not 0 <= self.timeout_s_per_m <= 1000:
             raise ConfigError(f"timeout_s_per_m: expected a number in [0, 1000] s/m, got {self.timeout_s_per_m!r}")
+        for k, hi in (("dt_s", 10.0), ("max_episode_s", 86_400.0)):  # NaN passes every comparison: check first
+            v = getattr(self, k)
+            if not isinstance(v, int | float) or not math.isfinite(v) or not 0 < v <= hi:
+                raise ConfigError(f"{k}: expected a finite number in (0, {hi:g}] s, got {v!r}")
         if self.dt_s <= 0 or self.substeps < 1 or self.max_episode_s <= self.dt_s:
             raise ConfigError(f"timing: expected dt_s > 0, substeps >= 1 and max_episode_s > dt_s, got "
                               f"{self.dt_s}, {self.substeps}, {self.max_episode_s}")

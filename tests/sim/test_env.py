@@ -511,3 +511,11 @@ def test_scene_seed_fixes_start_goal_and_clutter_and_the_seed_the_crowd():
     assert not np.array_equal(env.start, s0)
     env.reset(seed=11)  # without the option the seed draws everything, as before
     assert not np.array_equal(env.start, s0)
+
+
+@pytest.mark.parametrize("key,value", [("max_episode_s", float("inf")), ("max_episode_s", float("nan")),
+                                       ("dt_s", float("nan")), ("dt_s", float("inf"))])
+def test_non_finite_timing_is_a_named_error(key, value):
+    """NaN passes every comparison and inf switches the timeout off: both are refused by name."""
+    with pytest.raises(ConfigError, match=f"{key}: expected a finite number"):
+        state_env(**{key: value})
