@@ -262,11 +262,16 @@ class CrowdNavEnv(gym.Env):
         self.start, self.goal = start, goal
         self._shortest = geo if math.isfinite(geo) else None  # exact length, computed on first use if not known
         to_goal = math.atan2(goal[1] - start[1], goal[0] - start[0])
-        yaw = sc.start_yaw if sc is not None else to_goal + r_sg.uniform(-0.5, 0.5)
+        if sc is not None:  # trials of a scenario differ in the robot's heading and the scripted walkers' speeds
+            yaw = sc.start_yaw + (r_sg.uniform(-sc.yaw_jitter, sc.yaw_jitter) if sc.yaw_jitter else 0.0)
+        else:
+            yaw = to_goal + r_sg.uniform(-0.5, 0.5)
         self.robot = np.array([start[0], start[1], yaw])
         self.robot_v = np.zeros(2)  # [v, omega] last command
         n = self.layout.ped_count(c.density)
-        scripted = sc.pedestrians if sc is not None else ()
+        scripted = () if sc is None else tuple(
+            replace(p, speed_mps=p.speed_mps * (1 + r_sg.uniform(-sc.speed_jitter, sc.speed_jitter)))
+            for p in sc.pedestrians)
         self.bodies = Bodies(c.body, r_body, n + len(scripted), np.zeros(n + len(scripted)))
         self.crowd = Crowd(self.layout, c.crowd, r_crowd, n, self.bodies.radius, avoid_xy=[start, goal],
                            avoid_m=c.spawn_clearance_m + c.robot.radius_m, scripted=scripted)

@@ -11,6 +11,8 @@ A scenario is a YAML file in ``sim/scenarios/`` (or any path). Schema (units in 
     goal: [x, y]                       # its goal
     start_yaw_deg: 0                   # optional: the robot's heading at start (default: facing the goal)
     density: 0.0                       # optional: random pedestrians per m² of free area, beside the scripted
+    yaw_jitter_rad: 0.2                # optional: trials draw the robot's heading within ± this of start_yaw
+    speed_jitter: 0.1                  # optional: ... and each scripted walker's speed within ± this fraction
     pedestrians:                       # scripted pedestrians (at least one)
       - start: [x, y]                  # where it stands until its trigger fires
         waypoints: [[x, y], ...]       # walked in order, straight from one to the next; it stops at the last
@@ -125,9 +127,17 @@ class ScenarioFile:
     scene: str | None = None
     start_yaw_deg: float | None = None
     density: float = 0.0
+    yaw_jitter_rad: float = 0.2
+    speed_jitter: float = 0.1
     pedestrians: list[ScriptedPedFile] = field(default_factory=list)
 
     def validate(self) -> None:
+        _finite("yaw_jitter_rad", self.yaw_jitter_rad)
+        if not 0 <= self.yaw_jitter_rad <= math.pi:
+            raise FieldValueError("yaw_jitter_rad", "an angle in [0, pi] rad", self.yaw_jitter_rad)
+        _finite("speed_jitter", self.speed_jitter)
+        if not 0 <= self.speed_jitter <= 0.5:
+            raise FieldValueError("speed_jitter", "a fraction in [0, 0.5]", self.speed_jitter)
         if not self.name:
             raise FieldValueError("name", "a non-empty string", self.name)
         _finite("start", *self.start)
@@ -154,10 +164,8 @@ class ScenarioSpec:
     pedestrians: tuple[ScriptedPed, ...]
     description: str = ""
     path: str = ""
-
-    def reset_options(self) -> dict[str, Any]:
-        """The env reset options that place the robot (``start``, ``goal``, ``start_yaw``)."""
-        return {"start": list(self.start), "goal": list(self.goal), "start_yaw": self.start_yaw}
+    yaw_jitter: float = 0.2  # rad: per trial, the robot's heading within ± this
+    speed_jitter: float = 0.1  # per trial, each scripted walker's speed within ± this fraction
 
 
 def available_scenarios() -> list[str]:
@@ -222,7 +230,8 @@ def parse_scenario(data: Any, src: str, stem: str | None = None) -> ScenarioSpec
     start, goal = tuple(map(float, sc.start)), tuple(map(float, sc.goal))
     yaw = (math.radians(sc.start_yaw_deg) if sc.start_yaw_deg is not None
            else math.atan2(goal[1] - start[1], goal[0] - start[0]))
-    spec = ScenarioSpec(sc.name, scene, start, goal, yaw, float(sc.density), peds, sc.description, src)
+    spec = ScenarioSpec(sc.name, scene, start, goal, yaw, float(sc.density), peds, sc.description, src,
+                        float(sc.yaw_jitter_rad), float(sc.speed_jitter))
     _check_against_layout(spec, source)
     return spec
 

@@ -35,6 +35,11 @@ def _env(scenario: str, **kw) -> CrowdNavEnv:
     return CrowdNavEnv(scenario=scenario, density=0.0, **kw)
 
 
+def _reset_facing_east(env: CrowdNavEnv, seed: int) -> None:
+    env.reset(seed=seed)
+    env.robot[2] = 0.0  # the trial's heading jitter undone: these tests drive straight along the corridor
+
+
 def test_shipped_scenarios_load():
     assert available_scenarios() == SHIPPED
     for name in SHIPPED:
@@ -68,6 +73,7 @@ def _bad(name: str, edit) -> str:
     (lambda d: d["pedestrians"][0]["trigger"].update(time_s=2.0), r"exactly one of time_s / robot_within_m"),
     (lambda d: d.update(scene="corner"), r"exactly one of 'scene'.*both"),
     (lambda d: d.update(pedestrians=[]), r"pedestrians.*1 to 20"),
+    (lambda d: d.update(speed_jitter=0.9), r"speed_jitter.*\[0, 0.5\]"),
 ])
 def test_bad_scenarios_are_one_named_error(edit, match):
     msg = _bad("blind_corner", edit)
@@ -98,7 +104,7 @@ def test_unknown_scenario_and_missing_file():
 
 def test_distance_trigger_fires_when_the_robot_comes_within_the_distance():
     env = _env("blind_corner")
-    env.reset(seed=0)
+    _reset_facing_east(env, 0)
     ped = load_scenario("blind_corner").pedestrians[0]
     i = env.crowd.n_random
     start = env.crowd.pos[i].copy()
@@ -140,6 +146,19 @@ def test_time_trigger_and_head_lead_before_a_scripted_turn():
     assert walk_turned - head_turned >= 0.5 * lead  # the head leads the walking direction by about lead_s
 
 
+def test_trials_differ_in_heading_and_walker_speed_within_the_jitter():
+    env = _env("crossing_turn")
+    sc = load_scenario("crossing_turn")
+    seen = set()
+    for seed in range(4):
+        env.reset(seed=seed)
+        assert abs(env.robot[2] - sc.start_yaw) <= sc.yaw_jitter + 1e-9
+        v0 = float(env.crowd.v0[env.crowd.n_random])
+        assert abs(v0 / sc.pedestrians[0].speed_mps - 1) <= sc.speed_jitter + 1e-9
+        seen.add(round(v0, 6))
+    assert len(seen) == 4
+
+
 def test_scenario_episode_is_deterministic():
     runs = []
     for _ in range(2):
@@ -156,7 +175,7 @@ def test_scenario_episode_is_deterministic():
 
 def test_scenario_metrics_collision_clearance_and_reaction():
     env = _env("head_on")
-    env.reset(seed=0)
+    _reset_facing_east(env, 0)
     done = False
     while not done:  # drive straight into the walker
         _, _, term, trunc, info = env.step(env.encode_command(0.6, 0.0))
@@ -170,7 +189,7 @@ def test_scenario_metrics_collision_clearance_and_reaction():
 
 def test_reaction_time_finds_the_first_command_that_opens_the_gap():
     env = _env("head_on")
-    env.reset(seed=0)
+    _reset_facing_east(env, 0)
     for k in range(60):  # straight for 3 s, then veer left (away from the walker, who keeps to y = 1.0-1.1)
         env.step(env.encode_command(0.6, 0.0 if k < 30 else 0.8))
     tr = env.trace()
