@@ -47,11 +47,11 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.core.config import FieldValueError, from_dict, read_yaml, validate_tree
+from pipeline.core.config import FieldValueError, read_yaml
 from pipeline.core.errors import ConfigError, InputMissingError
 from sim.crowd import ScriptedPed
 from sim.planners.global_path import distance_to_polyline
-from sim.scene import SceneLayout, SceneSpec, load_scene, parse_scene
+from sim.scene import SceneLayout, SceneSpec, decode_file, load_scene, named_file, parse_scene
 from sim.trace import EpisodeTrace
 
 SCENARIOS_DIR = Path(__file__).resolve().parent / "scenarios"
@@ -179,15 +179,7 @@ def load_scenario(name_or_path: str) -> ScenarioSpec:
         ConfigError: an unknown name (listing the known ones) or an invalid file (file, field, expected, actual).
         InputMissingError: a path that does not exist.
     """
-    p = Path(name_or_path)
-    if p.suffix in (".yaml", ".yml") or "/" in name_or_path:
-        if not p.exists():
-            raise InputMissingError(f"scenario file not found: {p}")
-    else:
-        p = SCENARIOS_DIR / f"{name_or_path}.yaml"
-        if not p.exists():
-            raise ConfigError(f"unknown scenario {name_or_path!r}; known scenarios: "
-                              f"{', '.join(available_scenarios())} (or pass a path to a scenario YAML file)")
+    p = named_file(name_or_path, SCENARIOS_DIR, "scenario")
     return _load_scenario_file(str(p.resolve()), p.stat().st_mtime_ns)
 
 
@@ -204,13 +196,7 @@ def parse_scenario(data: Any, src: str, stem: str | None = None) -> ScenarioSpec
         raise ConfigError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
     data = dict(data)
     layout = data.pop("layout", None)
-    sc = from_dict(ScenarioFile, data, source)
-    try:
-        validate_tree(sc)
-    except ConfigError as e:
-        raise ConfigError(f"{source}: {e}") from None
-    if stem is not None and sc.name != stem:
-        raise ConfigError(f"{source}: config key 'name': expected the file stem {stem!r}, got {sc.name!r}")
+    sc = decode_file(ScenarioFile, data, source, stem)
     if (sc.scene is None) == (layout is None):
         raise ConfigError(f"{source}: expected exactly one of 'scene' (a scene name or file) and 'layout' (a scene "
                           f"written inline), got {'both' if layout is not None else 'neither'}")

@@ -723,14 +723,20 @@ def parse_scene(data: Any, src: str, stem: str | None = None) -> SceneSpec:
             if isinstance(item, dict) and isinstance(item.get("wall"), dict) else item
             for item in data["obstacles"]
         ]}
-    scene = from_dict(SceneFile, data, source)
+    return decode_file(SceneFile, data, source, stem).spec(src)
+
+
+def decode_file(cls: type, data: Any, source: str, stem: str | None) -> Any:
+    """A data file (scene, scenario) decoded into ``cls`` and validated; its ``name`` must equal the file ``stem``
+    when one is given. Errors name ``source``, the key, the expected and the actual value."""
+    obj = from_dict(cls, data, source)
     try:
-        validate_tree(scene)
+        validate_tree(obj)
     except ConfigError as e:
         raise ConfigError(f"{source}: {e}") from None
-    if stem is not None and scene.name != stem:
-        raise ConfigError(f"{source}: config key 'name': expected the file stem {stem!r}, got {scene.name!r}")
-    return scene.spec(src)
+    if stem is not None and obj.name != stem:
+        raise ConfigError(f"{source}: config key 'name': expected the file stem {stem!r}, got {obj.name!r}")
+    return obj
 
 
 def load_scene(name_or_path: str) -> SceneSpec:
@@ -740,16 +746,28 @@ def load_scene(name_or_path: str) -> SceneSpec:
         ConfigError: unknown scene name (listing the known ones) or an invalid file.
         InputMissingError: a path that does not exist.
     """
+    p = named_file(name_or_path, SCENES_DIR, "scene")
+    return _load_scene_file(str(p.resolve()), p.stat().st_mtime_ns)
+
+
+def named_file(name_or_path: str, folder: Path, what: str) -> Path:
+    """The YAML file a name or path stands for: ``<folder>/<name>.yaml`` for a shipped name, else the path.
+
+    Raises:
+        ConfigError: an unknown name (listing the shipped ones).
+        InputMissingError: a path that does not exist.
+    """
     p = Path(name_or_path)
     if p.suffix in (".yaml", ".yml") or "/" in name_or_path:
         if not p.exists():
-            raise InputMissingError(f"scene file not found: {p}")
-    else:
-        p = SCENES_DIR / f"{name_or_path}.yaml"
-        if not p.exists():
-            raise ConfigError(f"unknown scene {name_or_path!r}; known scenes: {', '.join(available_scenes())} "
-                              "(or pass a path to a scene YAML file)")
-    return _load_scene_file(str(p.resolve()), p.stat().st_mtime_ns)
+            raise InputMissingError(f"{what} file not found: {p}")
+        return p
+    p = folder / f"{name_or_path}.yaml"
+    if not p.exists():
+        known = ", ".join(sorted(q.stem for q in folder.glob("*.yaml")))
+        raise ConfigError(f"unknown {what} {name_or_path!r}; known {what}s: {known} (or pass a path to a {what} "
+                          "YAML file)")
+    return p
 
 
 @functools.lru_cache(maxsize=64)
