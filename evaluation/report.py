@@ -70,54 +70,52 @@ def _num(v: Any) -> str:
     return "" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{float(v):.6g}"
 
 
-def paired(rows: Sequence[dict[str, Any]], ref: str = "full") -> dict[str, dict[str, Any]]:
-    """``{"<cell>": {other: {"sr": mcnemar, "tpz_s": wilcoxon, "nav_time_s": ..., "path_length_m": ...}}}``."""
-    out: dict[str, dict[str, Any]] = {}
+def _matched(rows: Sequence[dict[str, Any]], ref: str):
+    """Per cell with ``ref`` and per other method: ``(cell, other, ref_rows, other_rows)``, the rows of the seeds
+    both ran, in seed order."""
     for scene, d in cells_of(rows):
         cell = [r for r in rows if r["scene"] == scene and float(r["density"]) == d]
         by = {m: {r["seed"]: r for r in cell if r["method"] == m} for m in methods_of(cell)}
         if ref not in by:
             continue
-        res: dict[str, Any] = {}
         for m, other in by.items():
-            if m == ref:
-                continue
-            seeds = sorted(set(by[ref]) & set(other))
-            a, b = [by[ref][s] for s in seeds], [other[s] for s in seeds]
-            sr = mcnemar_exact([r["success"] for r in a], [r["success"] for r in b])
-            sr["detectable_diff"] = detectable_difference(sr["n"], sr["discordant"], ALPHA, POWER)
-            entry = {"n_pairs": len(seeds), "sr": sr,
-                     "tpz_s": paired_test([r["tpz_s"] for r in a], [r["tpz_s"] for r in b])}
-            both = [(x, y) for x, y in zip(a, b, strict=True) if x["success"] == 1 and y["success"] == 1]
-            for k in ("nav_time_s", "path_length_m"):
-                entry[k] = paired_test([x[k] for x, _ in both], [y[k] for _, y in both])
-            res[m] = entry
-        out[f"{scene}@{d:g}"] = res
+            if m != ref:
+                seeds = sorted(set(by[ref]) & set(other))
+                yield f"{scene}@{d:g}", m, [by[ref][s] for s in seeds], [other[s] for s in seeds]
+
+
+def _sr_test(a: Sequence[dict[str, Any]], b: Sequence[dict[str, Any]]) -> dict[str, float]:
+    """Exact McNemar on the successes of matched rows, with the SR difference it detects at POWER."""
+    sr = mcnemar_exact([r["success"] for r in a], [r["success"] for r in b])
+    sr["detectable_diff"] = detectable_difference(sr["n"], sr["discordant"], ALPHA, POWER)
+    return sr
+
+
+def paired(rows: Sequence[dict[str, Any]], ref: str = "full") -> dict[str, dict[str, Any]]:
+    """``{"<cell>": {other: {"sr": mcnemar, "tpz_s": wilcoxon, "nav_time_s": ..., "path_length_m": ...}}}``."""
+    out: dict[str, dict[str, Any]] = {}
+    for cell, m, a, b in _matched(rows, ref):
+        entry = {"n_pairs": len(a), "sr": _sr_test(a, b),
+                 "tpz_s": paired_test([r["tpz_s"] for r in a], [r["tpz_s"] for r in b])}
+        both = [(x, y) for x, y in zip(a, b, strict=True) if x["success"] == 1 and y["success"] == 1]
+        for k in ("nav_time_s", "path_length_m"):
+            entry[k] = paired_test([x[k] for x, _ in both], [y[k] for _, y in both])
+        out.setdefault(cell, {})[m] = entry
     return out
 
 
 def paired_pooled(rows: Sequence[dict[str, Any]], ref: str = "full") -> dict[str, dict[str, Any]]:
-    """The full model against every other method over all cells' pairs at once: ``{other: {"sr": McNemar with
-    its detectable difference, "n_cells", "sized_for": the largest discordance at which a 10-point difference is
-    still detectable with these pairs}}``."""
-    by_cell: dict[str, list[tuple[list[float], list[float]]]] = {}
-    for scene, d in cells_of(rows):
-        cell = [r for r in rows if r["scene"] == scene and float(r["density"]) == d]
-        ref_rows = {r["seed"]: r for r in cell if r["method"] == ref}
-        if not ref_rows:
-            continue
-        for m in methods_of(cell):
-            if m == ref:
-                continue
-            other = {r["seed"]: r for r in cell if r["method"] == m}
-            seeds = sorted(set(ref_rows) & set(other))
-            by_cell.setdefault(m, []).append(([ref_rows[k]["success"] for k in seeds],
-                                              [other[k]["success"] for k in seeds]))
+    """``ref`` against every other method over all cells' pairs at once: ``{other: {"sr": McNemar with its
+    detectable difference, "n_cells", "max_discordance_for_0.10": the largest discordance at which a 10-point
+    difference is still detectable with these pairs}}``."""
+    by_method: dict[str, list[tuple[list[float], list[float]]]] = {}
+    for _, m, a, b in _matched(rows, ref):
+        by_method.setdefault(m, []).append(([r["success"] for r in a], [r["success"] for r in b]))
     out = {}
-    for m, pairs in by_cell.items():
-        sr = pooled_mcnemar(pairs)
+    for m, cells in by_method.items():
+        sr = pooled_mcnemar(cells)
         sr["detectable_diff"] = detectable_difference(sr["n"], sr["discordant"], ALPHA, POWER)
-        out[m] = {"n_cells": len(pairs), "sr": sr,
+        out[m] = {"n_cells": len(cells), "sr": sr,
                   "max_discordance_for_0.10": max_discordance(sr["n"], 0.10, ALPHA, POWER)}
     return out
 

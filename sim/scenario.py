@@ -307,15 +307,15 @@ def reaction_time_s(trace: EpisodeTrace, peds: np.ndarray, onset_s: float, horiz
         fut = trace.ped_xy[k + 1:k + 1 + steps][:, peds]  # T' x P x 2
         if len(fut) == 0:
             break
-        n = len(fut)
-
-        def clear(c: np.ndarray, k: int = k, fut: np.ndarray = fut, n: int = n) -> float:
-            path = _rollout(pose[k], c, dt, n)
-            return float(np.min(np.hypot(*(fut - path[:, None, :]).transpose(2, 0, 1))))
-
-        if clear(cmd[k]) > clear(cmd[k - 1]) + 1e-3:
+        if _clearance(pose[k], cmd[k], fut, dt) > _clearance(pose[k], cmd[k - 1], fut, dt) + 1e-3:
             return k * dt - onset_s
     return math.nan
+
+
+def _clearance(pose: np.ndarray, cmd: np.ndarray, fut: np.ndarray, dt: float) -> float:
+    """Smallest centre distance between the robot holding ``cmd`` from ``pose`` and pedestrians ``fut`` (T x P x 2)."""
+    path = _rollout(pose, cmd, dt, len(fut))
+    return float(np.min(np.hypot(*(fut - path[:, None, :]).transpose(2, 0, 1))))
 
 
 def scenario_metrics(trace: EpisodeTrace, scripted: np.ndarray, events: list[dict[str, Any]]) -> dict[str, float]:
