@@ -9,7 +9,8 @@ Usage::
 
 ``KEY`` is any dotted config key (``--sim.camera.width_px 320``, as in lerobot's draccus CLI); dashes may replace
 underscores (``--max-episode-s 30``). Every user error (:class:`ICrowdNavError`) is printed as exactly one line
-``error: <message>`` on stderr, with exit status 2.
+``error: <message>`` on stderr, with exit status 2; a run stopped by Ctrl-C exits 130 (SIGTERM: 143 where the
+stage catches it, as recording does).
 
 The values are decoded into the stage's config dataclass by draccus (:mod:`pipeline.core.config`), and the help
 of each key comes from its field's comment or docstring as draccus reads it. The argv split itself
@@ -44,7 +45,7 @@ from pipeline.core.config import (
     nested_dataclass,
     profiles_dir,
 )
-from pipeline.core.errors import ConfigError, ICrowdNavError
+from pipeline.core.errors import ConfigError, ICrowdNavError, StoppedError
 from pipeline.core.stage import Stage, run_stage_ex
 
 PROG = "icrowdnav"
@@ -168,7 +169,7 @@ def format_stage_help(stage: Stage) -> str:
     default_w = min(max((len(r[2]) for r in rows), default=0), 24)
     for key, tname, default, helptext in rows:
         if key == "resume" and not stage.resumable:
-            helptext += " [not supported by this stage]"
+            helptext += " [this stage: atomic, so resume rebuilds a missing or stale output]"
         lines.append(
             f"  --{key:<{key_w}}{tname:<{type_w}}  default {default:<{default_w}}  {helptext}".rstrip()
         )
@@ -322,7 +323,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv: Arguments without the program name (default: ``sys.argv[1:]``).
 
     Returns:
-        The exit status: 0 on success, 2 on a user error (one ``error:`` line on stderr), 130 on Ctrl-C.
+        The exit status: 0 on success, 2 on a user error (one ``error:`` line on stderr), 130 on Ctrl-C and 143
+        on SIGTERM where the stage stops cleanly (recording: one ``error:`` line saying what is finished), 130 on
+        Ctrl-C anywhere else.
     """
     args = list(sys.argv[1:] if argv is None else argv)
     setup_logging()
@@ -336,6 +339,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return run_stage_cli(target, rest, [PROG, *args])
         status = target(rest)
         return 0 if status is None else int(status)
+    except StoppedError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return e.exit_code
     except ICrowdNavError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -37,10 +37,11 @@ from tqdm import tqdm
 from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text
 from pipeline.core.config import BaseStageConfig, check_run_name
-from pipeline.core.errors import ConfigError, ICrowdNavError
+from pipeline.core.errors import ConfigError, StoppedError
 from pipeline.core.manifest import hash_file
 from recorder.drive import DRIVERS, drive_episode
 from recorder.mcap.reader import episode_summary
+from recorder.mcap.signals import Interrupted as Signalled
 from recorder.mcap.signals import graceful_signals
 from recorder.mcap.writer import EpisodeWriter
 from sim.env import SimConfig
@@ -49,8 +50,8 @@ from sim.scene import check_episode_grid, scenes_of_split
 log = logging.getLogger("icrowdnav")
 
 
-class Interrupted(ICrowdNavError):
-    """The run was stopped by SIGTERM/SIGINT; finished episodes are kept."""
+class Interrupted(StoppedError):
+    """The run was stopped by SIGTERM/SIGINT; finished episodes are kept (exit status 128 + the signal)."""
 
 
 @dataclass
@@ -110,9 +111,21 @@ def record_one(sim_cfg: SimConfig, job: Job, out: Path, driver: str) -> dict:
             "seconds": round(time.perf_counter() - t0, 3), "mcap_seconds": round(mcap_s, 3)}
 
 
-def _worker(args: tuple) -> dict:
-    with graceful_signals():
-        return record_one(*args)
+_STOP: mp.synchronize.Event | None = None  # set in pool workers by _init_worker: the run is stopping
+
+
+def _worker(args: tuple) -> dict | None:
+    """One episode in a pool worker; None without starting it once the run is stopping (a worker that was
+    stopped itself, or a sibling, sets the shared event: episodes already queued to the pool are not begun)."""
+    if _STOP is not None and _STOP.is_set():
+        return None
+    try:
+        with graceful_signals():
+            return record_one(*args)
+    except Signalled:
+        if _STOP is not None:
+            _STOP.set()
+        raise
 
 
 def body(cfg: RecordConfig, out: Path) -> dict:
@@ -142,19 +155,23 @@ def body(cfg: RecordConfig, out: Path) -> dict:
             "success_rate": round(sum(r["outcome"] == "success" for r in rows.values()) / len(rows), 4)}
 
 
-def _init_worker() -> None:
+def _init_worker(stop: mp.synchronize.Event) -> None:
     """Pool workers: ignore Ctrl-C while idle (the main process coordinates the stop) and die on SIGTERM.
 
     While a worker records, :func:`_worker` installs :func:`recorder.mcap.signals.graceful_signals`, so SIGTERM or
     SIGINT then abort the open episode cleanly (a valid ``*.mcap.partial``).
     """
+    global _STOP
+    _STOP = stop
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-def _stop_pool(pool: ProcessPoolExecutor, grace_s: float = 3.0) -> None:
-    """Cancel queued episodes, ask running workers to abort theirs (SIGTERM: a valid ``*.mcap.partial``), and
+def _stop_pool(pool: ProcessPoolExecutor, stop: mp.synchronize.Event, grace_s: float = 3.0) -> None:
+    """Stop starting episodes (the shared event; the executor pre-queues a few jobs that cancelling does not
+    reach), cancel queued ones, ask running workers to abort theirs (SIGTERM: a valid ``*.mcap.partial``), and
     kill whatever is still alive after ``grace_s`` (its open episode stays ``.partial``; ``--resume`` redoes it)."""
+    stop.set()
     procs = list(getattr(pool, "_processes", {}).values())  # CPython's executor keeps its workers here
     pool.shutdown(wait=False, cancel_futures=True)
     for p in procs:
@@ -180,7 +197,9 @@ def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: l
                     bar.update()
                 return
         # the pool is created outside graceful_signals: forked workers must not inherit its handlers
-        pool = ProcessPoolExecutor(cfg.workers, mp_context=mp.get_context("fork"), initializer=_init_worker)
+        ctx = mp.get_context("fork")
+        stop = ctx.Event()
+        pool = ProcessPoolExecutor(cfg.workers, mp_context=ctx, initializer=_init_worker, initargs=(stop,))
         try:
             with graceful_signals():
                 pending = {pool.submit(_worker, (cfg.sim, j, out, cfg.driver)) for j in todo}
@@ -188,11 +207,13 @@ def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: l
                     finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                     for f in finished:
                         r = f.result()
+                        if r is None:  # not begun: the run is stopping (a worker was signalled)
+                            raise KeyboardInterrupt
                         rows[r["file"]] = r
                         _write_rows(out, rows, jobs)
                         bar.update()
         except BaseException:
-            _stop_pool(pool)
+            _stop_pool(pool, stop)
             raise
         pool.shutdown(wait=True)
     except (KeyboardInterrupt, BrokenProcessPool) as e:
@@ -200,8 +221,10 @@ def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: l
         rows.update(_finished_rows(out, jobs))  # what is on disk, including episodes workers finished meanwhile
         partial = sorted(p.name for p in out.glob("*.mcap.partial"))
         names = f" ({', '.join(partial[:3])})" if partial else ""
+        code = e.exit_code if isinstance(e, Signalled) else 130 if isinstance(e, KeyboardInterrupt) else 2
         raise Interrupted(f"record interrupted: {len(rows)} episodes finished (of {len(jobs)}) in {out}, "
-                          f"{len(partial)} left unfinished{names}; rerun with --resume to continue") from e
+                          f"{len(partial)} left unfinished{names}; rerun with --resume to continue",
+                          exit_code=code) from e
     finally:
         bar.close()
 

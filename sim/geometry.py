@@ -48,6 +48,9 @@ class Cylinder:
 Obstacle = Box | Cylinder
 
 
+_PAIRS_PER_CHUNK = 1 << 21  # point-obstacle pairs per pass of signed_distance (~16 MB per float64 temporary)
+
+
 class StaticGeometry:
     """Packed arrays of a scene's obstacles for vectorised queries.
 
@@ -83,6 +86,17 @@ class StaticGeometry:
         pts = np.asarray(points, dtype=np.float64)
         shape = pts.shape[:-1]
         p = pts.reshape(-1, 2)
+        chunk = max(1, _PAIRS_PER_CHUNK // max(self.n_obstacles, 1))
+        if len(p) > chunk:  # bounded memory: each temporary is (points in the chunk) x obstacles
+            parts = [self._signed_distance(p[i:i + chunk]) for i in range(0, len(p), chunk)]
+            best = np.concatenate([d for d, _ in parts])
+            closest = np.concatenate([c for _, c in parts])
+        else:
+            best, closest = self._signed_distance(p)
+        return best.reshape(shape), closest.reshape(*shape, 2)
+
+    def _signed_distance(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`signed_distance` of ``P x 2`` points (one chunk)."""
         best = np.full(len(p), np.inf)
         closest = p.copy()
         if len(self.box_center):
@@ -120,7 +134,7 @@ class StaticGeometry:
             cp = self.cyl_center[j] + d[rows, j] / rj * self.cyl_radius[j][:, None]
             best = np.where(better, sdj, best)
             closest = np.where(better[:, None], cp, closest)
-        return best.reshape(shape), closest.reshape(*shape, 2)
+        return best, closest
 
     def raycast(self, origins: np.ndarray, angles: np.ndarray, max_range: float) -> np.ndarray:
         """Distance along rays to the first obstacle surface (a 2D range scan of the static map).

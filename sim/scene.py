@@ -64,6 +64,12 @@ SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 SPLITS = ("train", "test", "long_horizon")
 GRID_RES_M = 0.05  # occupancy grid resolution
 NAV_RES_M = 0.1  # shortest-path grid resolution
+# Size limits, checked when a file is read, before any grid is allocated (the largest shipped scene, office_floor,
+# has 600 m², 32 obstacles and ~8e6 cell-obstacle pairs): the clearance grid costs GRID_RES_M⁻² cells per m² and
+# its signed-distance pass time ∝ cells × obstacles.
+MAX_AREA_M2 = 5_000.0
+MAX_OBSTACLES = 1_000  # listed + the random clutter's maximum + the boxes filling outside free_space
+MAX_CELL_OBSTACLE_PAIRS = 200_000_000  # ≈ 15 s of the signed-distance pass on one core (measured: 2.5e8 in 18.6 s)
 
 
 def check_episode_grid(scenes: list[str], densities: list[float], episodes: int, workers: int) -> None:
@@ -564,6 +570,18 @@ class ObstacleFile:
         if len(kinds) != 1:
             raise ValueError(f"expected exactly one of box / wall / cylinder, got {kinds or 'none'}")
 
+    def extent(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Axis-aligned (min x, min y), (max x, max y) that contain the obstacle (a box's circumscribed circle)."""
+        if self.box is not None:
+            (cx, cy), r = self.box.center, math.hypot(*self.box.size) / 2
+        elif self.wall is not None:
+            (ax, ay), (bx, by), t = self.wall.from_, self.wall.to, self.wall.thickness_m / 2
+            return (min(ax, bx) - t, min(ay, by) - t), (max(ax, bx) + t, max(ay, by) + t)
+        else:
+            assert self.cylinder is not None
+            (cx, cy), r = self.cylinder.center, self.cylinder.radius_m
+        return (cx - r, cy - r), (cx + r, cy + r)
+
     def build(self, wall_height_m: float, wall_color: Color) -> Obstacle:
         if self.box is not None:
             b = self.box
@@ -669,6 +687,33 @@ class SceneFile:
         _check_num("wall_thickness_m", self.wall_thickness_m, 0.01, 5)
         _check_color("wall_color", self.wall_color)
         _check_color("floor_color", self.floor_color)
+        self._check_size()
+        for k, o in enumerate(self.obstacles):
+            lo, hi = o.extent()
+            x0, x1, y0, y1 = self.bounds
+            if hi[0] < x0 or lo[0] > x1 or hi[1] < y0 or lo[1] > y1:
+                raise FieldValueError(f"obstacles[{k}]", f"an obstacle that overlaps the bounds {list(self.bounds)}",
+                                      f"one spanning x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g}")
+
+    def _check_size(self) -> None:
+        """The limits of the module (area, obstacle count, grid cells × obstacles), before anything is built."""
+        x0, x1, y0, y1 = self.bounds
+        area = (x1 - x0) * (y1 - y0)
+        if area > MAX_AREA_M2:
+            raise FieldValueError("bounds", f"an area of at most {MAX_AREA_M2:g} m² (the limit)",
+                                  f"{list(self.bounds)} ({area:g} m²)")
+        n_free = len(self.free_space or [])
+        n_obst = (len(self.obstacles) + 4 + (self.random_obstacles.count[1] if self.random_obstacles else 0)
+                  + (2 * n_free + 1) ** 2 * (n_free > 0))
+        if n_obst > MAX_OBSTACLES:
+            raise FieldValueError("obstacles", f"at most {MAX_OBSTACLES} obstacles in all (the limit; listed, "
+                                  "random clutter's maximum, outer walls and boxes outside free_space)", n_obst)
+        m = self.wall_thickness_m
+        cells = math.ceil((x1 - x0 + 2 * m) / GRID_RES_M) * math.ceil((y1 - y0 + 2 * m) / GRID_RES_M)
+        if cells * n_obst > MAX_CELL_OBSTACLE_PAIRS:
+            raise FieldValueError("obstacles", f"at most {MAX_CELL_OBSTACLE_PAIRS:.0e} grid cells × obstacles "
+                                  f"(the limit; {cells} cells of {GRID_RES_M} m)", f"{n_obst} obstacles "
+                                  f"({cells * n_obst:.2e} pairs)")
 
     def spec(self, path: str) -> SceneSpec:
         """The runtime :class:`SceneSpec` of this (validated) file."""

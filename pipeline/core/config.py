@@ -58,6 +58,7 @@ import enum
 import functools
 import hashlib
 import json
+import math
 import os
 import re
 import types
@@ -108,7 +109,9 @@ class BaseStageConfig:
     )
     resume: bool = field(
         default=False,
-        metadata={"help": "continue a partially written output directory (resumable stages only)"},
+        metadata={"help": "continue a killed run: a resumable stage continues its partial output, any other "
+                          "stage (published atomically) keeps an up-to-date output and rebuilds a missing or "
+                          "stale one"},
     )
 
     def validate(self) -> None:
@@ -426,6 +429,8 @@ def _decode(cls: type[T], raw: Mapping[str, Any], source: str, prefix: str = "")
 def _yaml_scalar(text: str, key: str) -> Any:
     try:
         return yaml.safe_load(text)
+    except RecursionError:
+        raise ConfigError(f"config key '{key}' in {CLI_SOURCE}: cannot parse a value nested this deeply") from None
     except yaml.YAMLError as e:
         problem = getattr(e, "problem", None) or type(e).__name__
         raise ConfigError(
@@ -589,8 +594,27 @@ def apply_dict(cfg: T, data: Mapping[str, Any], source: str) -> T:
     return _overlay(decoded, cfg, data, "")
 
 
+def _check_finite(value: Any, key: str) -> None:
+    """Every float of a config, a scene or a scenario file must be finite: NaN passes every range comparison
+    (``not lo <= nan <= hi`` is the only safe spelling) and inf silently switches limits off, so they are refused
+    here, once for every field, before any ``validate()`` compares them. Floats inside lists, tuples and dict
+    values are checked too; nested dataclasses are checked by their own visit."""
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ConfigError(f"config key '{key}': expected a finite number, got {value!r}")
+    elif isinstance(value, list | tuple):
+        for i, item in enumerate(value):
+            _check_finite(item, f"{key}[{i}]")
+    elif isinstance(value, dict):
+        for k, item in value.items():
+            _check_finite(item, f"{key}.{k}")
+
+
 def validate_tree(cfg: Any, prefix: str = "") -> None:
     """Calls ``validate()`` on every dataclass in ``cfg``, depth-first, children before their parent.
+
+    Every float field (and every float inside a list, tuple or dict field) is first checked finite
+    (:func:`_check_finite`), so a section's ``validate()`` only ever compares finite numbers.
 
     Dataclasses inside lists, tuples and dict values are visited too. A ``ValueError`` raised by a
     ``validate()`` is turned into a :class:`ConfigError` naming the section (a :class:`FieldValueError`: naming
@@ -608,6 +632,7 @@ def validate_tree(cfg: Any, prefix: str = "") -> None:
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
         key = _join(prefix, f.name)
+        _check_finite(value, key)
         if isinstance(value, list | tuple):
             for i, item in enumerate(value):
                 validate_tree(item, f"{key}[{i}]")
@@ -664,26 +689,43 @@ def available_profiles(directory: Path | None = None) -> list[str]:
     return sorted(p.stem for p in d.glob("*.yaml") if p.is_file())
 
 
-def read_yaml(path: Path, what: str) -> Any:
+MAX_YAML_BYTES = 1 << 20  # 1 MiB: the largest shipped data file is ~2 KB; PyYAML reads ~80 KB/s of nested YAML
+
+
+def read_yaml(path: Path, what: str, max_bytes: int = MAX_YAML_BYTES) -> Any:
     """Reads a YAML file (``yaml.safe_load``; an empty file reads as None).
 
     Args:
         path: The file.
         what: What it is (``"profile"``, ``"config file"``, ``"scene file"``), for error messages.
+        max_bytes: Larger files are refused before they are read (a 10 MB file spends minutes in the parser).
 
     Raises:
         InputMissingError: The file does not exist.
-        ConfigError: The file cannot be read or is not valid YAML (naming the line and column).
+        ConfigError: The file cannot be read, is larger than ``max_bytes``, or is not valid YAML (naming the
+            line and column).
     """
     path = Path(path)
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise InputMissingError(f"missing {what}: {path}") from None
+    except OSError as e:
+        raise ConfigError(f"cannot read {what} {path}: {e.strerror or e}") from None
+    if size > max_bytes:
+        raise ConfigError(f"{what} {path}: expected at most {max_bytes} bytes (the limit), got {size} bytes")
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise InputMissingError(f"missing {what}: {path}") from None
     except (IsADirectoryError, UnicodeDecodeError) as e:
         raise ConfigError(f"cannot read {what} {path}: {e}") from None
+    except OSError as e:  # permission denied, a FIFO, ...
+        raise ConfigError(f"cannot read {what} {path}: {e.strerror or e}") from None
     try:
         return yaml.safe_load(text)
+    except RecursionError:
+        raise ConfigError(f"malformed YAML in {what} {path}: nested too deeply to parse") from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         at = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""

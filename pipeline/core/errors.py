@@ -32,3 +32,13 @@ class OutputExistsError(ICrowdNavError):
 
 class CorruptArtifactError(ICrowdNavError):
     """A file written by the pipeline exists but cannot be read back (bad JSON, missing fields, ...)."""
+
+
+class StoppedError(ICrowdNavError):
+    """The run was stopped by a signal (Ctrl-C, SIGTERM) after saving what it finished; the CLI prints the message
+    as its ``error:`` line and exits with :attr:`exit_code` (``128 + signal number``: 130 for Ctrl-C, 143 for
+    SIGTERM), the status a shell reports for a process stopped by that signal."""
+
+    def __init__(self, message: str, exit_code: int = 130):
+        super().__init__(message)
+        self.exit_code = exit_code

@@ -215,8 +215,11 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
         )
     validate_tree(cfg)
     mode = mode_of(cfg)
-    if mode == "resume" and not stage.resumable:
-        raise ConfigError(f"stage '{stage.name}' cannot resume a partial output; use --overwrite to redo it")
+    atomic_resume = mode == "resume" and not stage.resumable
+    if atomic_resume:
+        # the stage publishes its output atomically, so a killed run left nothing partial: "continue" means keep
+        # an up-to-date output and rebuild a missing or stale one (`make record ARGS=--resume` after a kill)
+        mode = "new"
     input_paths = [Path(p) for p in stage.inputs(cfg)]
     for p in input_paths:
         require_input(p, f"input of stage '{stage.name}'")
@@ -232,7 +235,10 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
         if reason is None:
             log.info("%s: up to date (%s)", stage.name, out)
             return Manifest.read(out / MANIFEST_NAME), False
-        if not out.is_dir() or any(out.iterdir()):
+        if atomic_resume and out.is_dir():
+            log.info("%s: --resume: rebuilding %s (%s)", stage.name, out, reason)
+            mode = "overwrite"
+        elif not out.is_dir() or any(out.iterdir()):
             resume_hint = " or --resume to continue it" if stage.resumable else ""
             raise OutputExistsError(
                 f"output directory {out} already exists and is not up to date ({reason}); "
@@ -284,6 +290,9 @@ def run_stage(stage: Stage, cfg: Any, command: list[str] | None = None) -> Manif
     Raises:
         InputMissingError: An input path does not exist.
         OutputExistsError: The output exists, is not up to date, and neither overwrite nor resume is set.
-        ConfigError: Invalid config, or ``resume`` for a stage that is not resumable.
+        ConfigError: Invalid config.
+
+    ``resume`` on a stage that is not :attr:`Stage.resumable` (its output is published atomically, so a killed run
+    left nothing partial) keeps an up-to-date output and (re)builds a missing or stale one.
     """
     return run_stage_ex(stage, cfg, command)[0]

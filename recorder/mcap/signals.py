@@ -33,6 +33,10 @@ class Interrupted(KeyboardInterrupt):  # noqa: N818 - named like KeyboardInterru
         self.exit_code = 128 + self.signum
         super().__init__(f"interrupted by {signal.Signals(signum).name}")
 
+    def __reduce__(self) -> tuple:
+        """Pickles by signal number (a pool worker's exception travels to the main process)."""
+        return type(self), (self.signum,)
+
 
 _tls = threading.local()  # per thread: depth of critical() blocks and a deferred signal
 

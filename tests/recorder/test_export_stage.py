@@ -224,8 +224,6 @@ BAD = [
     pytest.param(lambda d: export_argv(d, repo_id="a/b/c"), ["repo_id", "'a/b/c'"], id="repo-id-three-parts"),
     pytest.param(lambda d: export_argv(d, repo_id="../escape"), ["repo_id", "'../escape'"],
                  id="repo-id-escaping"),
-    pytest.param(lambda d: [*export_argv(d), "--resume"], ["export", "cannot resume", "--overwrite"],
-                 id="resume-not-supported"),
     pytest.param(lambda d: [*export_argv(d), "--profile", "nope"], ["unknown profile 'nope'"],
                  id="unknown-profile"),
 ]

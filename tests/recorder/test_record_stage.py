@@ -303,7 +303,7 @@ def test_signal_stops_gracefully_and_resume_completes(tmp_path, capsys, long_ref
             p.wait()
     err = stderr.read_text()
     assert elapsed < STOP_TIMEOUT_S, err
-    assert p.returncode > 0, (p.returncode, err)  # exited by itself, not killed by the signal
+    assert p.returncode == 128 + sig, (p.returncode, err)  # exited by itself with the signal's status
     errors = error_lines(err)
     assert len(errors) == 1, err
     assert "interrupted" in errors[0] and "--resume" in errors[0] and str(out) in errors[0]
@@ -385,7 +385,7 @@ def test_sigterm_with_two_workers_stops_with_one_error_line_and_resume_completes
     s = sigterm_parent_two_workers
     out = s.data / "raw" / "expert"
     assert s.elapsed < STOP_TIMEOUT_S, s.stderr
-    assert s.rc > 0, (s.rc, s.stderr)
+    assert s.rc == 128 + signal.SIGTERM, (s.rc, s.stderr)
     errors = error_lines(s.stderr)
     assert len(errors) == 1, s.stderr
     assert "interrupted" in errors[0] and "--resume" in errors[0]
@@ -417,6 +417,41 @@ def test_ctrl_c_with_an_idle_worker_prints_only_the_error_line(tmp_path_factory)
     assert len(error_lines(s.stderr)) == 1, s.stderr
     assert s.elapsed < STOP_TIMEOUT_S
     assert "Traceback" not in s.stderr, s.stderr
+    assert s.rc == 130, (s.rc, s.stderr)  # the CLI's documented Ctrl-C status
+
+
+def test_a_stopping_run_begins_no_queued_episode(tmp_path, monkeypatch):
+    """The executor pre-queues jobs that cancelling does not reach: once the shared stop event is set (by the main
+    process, or by a worker that was signalled), a worker returns None for them without opening a file."""
+    import multiprocessing as mp
+
+    import recorder.record as rec
+
+    calls = []
+    monkeypatch.setattr(rec, "record_one", lambda *a: calls.append(a) or {"file": "x.mcap"})
+    stop = mp.get_context("fork").Event()
+    monkeypatch.setattr(rec, "_STOP", stop)
+    assert rec._worker(("sim", "job", tmp_path, "expert")) == {"file": "x.mcap"}
+    stop.set()
+    assert rec._worker(("sim", "job", tmp_path, "expert")) is None
+    assert len(calls) == 1 and list(tmp_path.iterdir()) == []
+
+
+def test_a_signalled_worker_sets_the_stop_event(monkeypatch):
+    import multiprocessing as mp
+
+    import recorder.record as rec
+    from recorder.mcap.signals import Interrupted as Signalled
+
+    def stopped(*a):
+        raise Signalled(signal.SIGTERM)
+
+    monkeypatch.setattr(rec, "record_one", stopped)
+    stop = mp.get_context("fork").Event()
+    monkeypatch.setattr(rec, "_STOP", stop)
+    with pytest.raises(Signalled):
+        rec._worker(("sim", "job", None, "expert"))
+    assert stop.is_set()
 
 
 def test_signal_while_an_episode_file_is_opened_leaves_a_valid_partial(tmp_path, monkeypatch):

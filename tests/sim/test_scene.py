@@ -331,6 +331,15 @@ BAD = [
      "'random_obstacles.count'"),
     ("pedestrians", {"max_count": -1}, "'pedestrians.max_count'"),
     ("description", ["a"], "'description'"),
+    ("bounds", [0.0, float("nan"), 0.0, 6.0], "'bounds[1]'"),
+    ("bounds", [0.0, float("inf"), 0.0, 6.0], "'bounds[1]'"),
+    ("bounds", [0.0, 200.0, 0.0, 100.0], "'bounds'"),  # 20,000 m² > MAX_AREA_M2
+    ("obstacles/0/box/center", [float("nan"), 1.0], "'obstacles[0].box.center[0]'"),
+    ("obstacles/0/box/center", [50.0, 50.0], "'obstacles[0]'"),  # far outside the bounds
+    ("obstacles/2/cylinder/radius_m", float("inf"), "'obstacles[2].cylinder.radius_m'"),
+    ("obstacles/1/wall", {"from": [-40.0, -40.0], "to": [-30.0, -40.0]}, "'obstacles[1]'"),  # all outside
+    ("start_goal/clearance_m", float("nan"), "'start_goal.clearance_m'"),
+    ("wall_height_m", float("nan"), "'wall_height_m'"),
 ]
 
 
@@ -465,3 +474,39 @@ def test_free_space_outside_the_bounds_or_degenerate_is_a_named_error(rect):
     data = {"name": "x", "split": "test", "bounds": [0, 10, 0, 8], "free_space": [rect]}
     with pytest.raises(ConfigError, match=r"free_space\[0\]"):
         parse_scene(data, "x.yaml", "x")
+
+
+def test_obstacle_partly_inside_the_bounds_is_accepted():
+    data = _mutate("obstacles/0/box/center", [8.3, 3.0])  # straddles the right edge
+    parse_scene(data, "x.yaml")
+
+
+@pytest.mark.parametrize("n,field", [(2_000, "obstacles"), (400, "obstacles")])
+def test_scene_size_limits_are_checked_before_any_grid(monkeypatch, n, field):
+    """Too many obstacles, or too many grid cells × obstacles, is refused by the validator with the limit in the
+    message (the 400-obstacle case: 4,500 m² → ~1.8e6 cells × 404 > 2e8 pairs); nothing is built."""
+    import sim.scene as scene_mod
+
+    def no_layout(*a, **k):
+        raise AssertionError("a layout was built")
+
+    monkeypatch.setattr(scene_mod.SceneLayout, "__init__", no_layout)
+    data = {"name": "x", "split": "test", "bounds": [0, 90, 0, 50],
+            "obstacles": [{"cylinder": {"center": [1 + (k % 80), 1 + k // 80], "radius_m": 0.1}} for k in range(n)]}
+    with pytest.raises(ConfigError, match=rf"'{field}'.*limit") as ei:
+        parse_scene(data, "x.yaml", "x")
+    assert "x.yaml" in str(ei.value)
+
+
+def test_scene_file_size_limit(tmp_path):
+    from pipeline.core.config import MAX_YAML_BYTES
+
+    p = _write(tmp_path, "huge", "name: huge\n# " + "x" * MAX_YAML_BYTES + "\n")
+    with pytest.raises(ConfigError, match=r"huge\.yaml.*at most .* bytes"):
+        load_scene(str(p))
+
+
+def test_deeply_nested_yaml_is_a_named_error(tmp_path):
+    p = _write(tmp_path, "deep", "name: deep\nbounds: " + "[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(ConfigError, match=r"deep\.yaml"):
+        load_scene(str(p))

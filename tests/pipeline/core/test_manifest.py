@@ -16,7 +16,15 @@ import yaml
 import pipeline
 from pipeline.core.config import BaseStageConfig, apply_dict, config_hash, from_dict
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError, OutputExistsError
-from pipeline.core.manifest import FileRecord, Manifest, collect_versions, git_info, hash_file, hash_tree
+from pipeline.core.manifest import (
+    MANIFEST_NAME,
+    FileRecord,
+    Manifest,
+    collect_versions,
+    git_info,
+    hash_file,
+    hash_tree,
+)
 from pipeline.core.stage import Stage, mode_of, run_stage, run_stage_ex
 
 # ------------------------------------------------------------------ manifest
@@ -255,12 +263,25 @@ def test_body_exception_leaves_nothing(cfg: ToyStageConfig) -> None:
 
 def test_resume(cfg: ToyStageConfig) -> None:
     resume = apply_dict(cfg, {"resume": True}, "test")
-    with pytest.raises(ConfigError, match="stage 'toy' cannot resume"):
-        run_stage(TOY, resume)
     run_stage(TOY_RESUMABLE, resume)
     assert CALLS == [cfg.data_dir / "toy"]  # resumable stages write in place
     run_stage(TOY_RESUMABLE, resume)
     assert len(CALLS) == 2  # resume always runs the body (it skips finished work itself)
+
+
+def test_resume_of_an_atomic_stage_keeps_an_up_to_date_output_and_rebuilds_a_stale_one(cfg) -> None:
+    """A stage that is not resumable publishes atomically: --resume (as `make record ARGS=--resume` passes it to
+    export) builds a missing output, skips an up-to-date one and rebuilds a stale one (the old kept until done)."""
+    resume = apply_dict(cfg, {"resume": True}, "test")
+    _, ran = run_stage_ex(TOY, resume)
+    assert ran and (cfg.data_dir / "toy" / MANIFEST_NAME).is_file()
+    _, ran = run_stage_ex(TOY, resume)
+    assert not ran
+    with pytest.raises(OutputExistsError):  # without --resume a stale output is still refused
+        run_stage(TOY, apply_dict(cfg, {"episodes": 3}, "test"))
+    manifest, ran = run_stage_ex(TOY, apply_dict(resume, {"episodes": 3}, "test"))
+    assert ran and manifest.params["episodes"] == 3
+    assert sorted(p.name for p in cfg.data_dir.iterdir()) == ["toy"]  # no staging or old dir left
 
 
 def test_mode_of() -> None:
