@@ -352,6 +352,7 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
         if ds is None:
             raise InputMissingError("no episodes to export: the input list is empty")
         ds.finalize()
+        _sort_stats(root)
     except BaseException:
         if ds is not None:
             with contextlib.suppress(Exception):
@@ -378,6 +379,15 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
     atomic_write_text(root / ICROWDNAV_EPISODES, "".join(json.dumps(_json_safe(r)) + "\n" for r in rows))
     return {"episodes": len(rows), "frames": n_frames, "seconds": round(seconds, 3),
             "frames_per_s": round(n_frames / seconds, 2) if seconds > 0 else 0.0}
+
+
+def _sort_stats(root: Path) -> None:
+    """Rewrites ``meta/stats.json`` with sorted keys (lerobot's aggregation collects the feature names in a set,
+    so its key order follows PYTHONHASHSEED); same values, same layout (lerobot's indent of 4)."""
+    path = root / "meta" / "stats.json"
+    if path.is_file():
+        stats = json.loads(path.read_text())
+        atomic_write_text(path, json.dumps(stats, indent=4, ensure_ascii=False, sort_keys=True))
 
 
 def _json_safe(obj: Any) -> Any:

@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import logging
+import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -61,6 +62,8 @@ class Stage:
             run keeps what it finished (recording); a new run into a missing directory then runs as
             ``resume``. Requires ``resumable``.
         code: The packages whose sources make up the stage's code hash (an output made by other code is stale).
+        scaffold: File names an in-place body writes before any work (``seeds.json``): a run that created the
+            output directory and failed holding nothing but these, empty files and empty folders leaves nothing.
     """
 
     name: str
@@ -72,6 +75,13 @@ class Stage:
     resumable: bool = False
     in_place: bool = False
     code: tuple[str, ...] = CODE_PACKAGES
+    scaffold: tuple[str, ...] = ()
+
+
+def holds_work(out: Path, scaffold: tuple[str, ...] = ()) -> bool:
+    """Whether an in-place output directory holds anything a resume could use: a non-empty file whose name is not
+    in ``scaffold`` (``*.partial`` files count: ``icrowdnav recover`` salvages them)."""
+    return any(p.is_file() and p.name not in scaffold and p.stat().st_size > 0 for p in out.rglob("*"))
 
 
 def mode_of(cfg: Any) -> OutputMode:
@@ -200,7 +210,7 @@ def _check_writable(directory: Path) -> None:
     except OSError as e:
         raise ConfigError(f"data directory not writable: cannot create {directory} ({e.strerror or e})") from None
     if not os.access(directory, os.W_OK | os.X_OK):
-        raise ConfigError(f"data directory not writable: {directory}")
+        raise ConfigError(f"directory not writable: {directory} (expected write permission for this user)")
 
 
 def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tuple[Manifest, bool]:
@@ -227,6 +237,8 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
     _check_writable(out.parent)
     if stage.in_place and mode == "new" and not out.exists():
         mode = "resume"  # write in place from the start: a kill keeps every finished piece
+    if mode == "resume" and out.is_dir():
+        _check_writable(out)  # continuing writes into it (an unwritable one: a named error, not PermissionError)
     data_dir = getattr(cfg, "data_dir", None)
     inputs = hash_inputs(input_paths, data_dir)
 
@@ -249,6 +261,19 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
     params = to_dict(cfg)
     command = list(sys.argv) if command is None else list(command)
     t0 = time.monotonic()
+    created = mode == "resume" and not out.exists()
+    try:
+        return _run_body(stage, cfg, out, mode, chash, params, inputs, command, t0)
+    except BaseException:
+        if created and out.is_dir() and not holds_work(out, stage.scaffold):
+            log.info("%s: failed before finishing any work; removing %s", stage.name, out)
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
+def _run_body(stage: Stage, cfg: Any, out: Path, mode: str, chash: str, params: dict, inputs: list[FileRecord],
+              command: list[str], t0: float) -> tuple[Manifest, bool]:
+    """The body in its :class:`OutputDir`, then ``config.yaml`` and ``manifest.json``."""
     with OutputDir(out, mode) as od:
         log.info("%s: running (mode %s) -> %s", stage.name, mode, out)
         counts = _clean_counts(stage.name, stage.body(cfg, od.path))

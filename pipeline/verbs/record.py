@@ -14,6 +14,7 @@ STAGE = Stage(
     body=body,
     resumable=True,
     in_place=True,
+    scaffold=("seeds.json", "episodes.jsonl"),
     code=("pipeline", "sim", "recorder"),
 )
 

@@ -114,6 +114,19 @@ def test_export_is_a_stock_lerobot_dataset_with_provenance(exported, capsys):
     assert (cfg["run_name"], cfg["repo_id"]) == ("expert", REPO_ID)
 
 
+def test_stats_json_keys_are_sorted_so_its_bytes_do_not_follow_the_hash_seed(exported):
+    """lerobot aggregates the feature names in a set; the export rewrites meta/stats.json sorted at every level."""
+    root = exported / "datasets" / "test" / "tiny"
+    text = (root / "meta" / "stats.json").read_text()
+    stats = json.loads(text)
+
+    def sorted_everywhere(d) -> bool:
+        return not isinstance(d, dict) or (list(d) == sorted(d) and all(sorted_everywhere(v) for v in d.values()))
+
+    assert len(stats) > 5 and sorted_everywhere(stats)
+    assert text == json.dumps(stats, indent=4, ensure_ascii=False, sort_keys=True)
+
+
 def test_second_export_is_up_to_date_and_does_no_work(exported, capsys):
     before = snapshot(exported)
     rc, stdout, _ = run_cli(capsys, export_argv(exported))

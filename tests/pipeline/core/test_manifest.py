@@ -291,3 +291,54 @@ def test_mode_of() -> None:
     assert mode_of(dataclasses.replace(base, resume=True)) == "resume"
     with pytest.raises(ConfigError, match="exclude each other"):
         mode_of(dataclasses.replace(base, resume=True, overwrite=True))
+
+
+TOY_IN_PLACE = dataclasses.replace(TOY, resumable=True, in_place=True, scaffold=("seeds.json",))
+
+
+def _in_place_body(work: bool):
+    def body(cfg: ToyStageConfig, out: Path) -> dict:
+        (out / "seeds.json").write_text("[1, 2]")
+        (out / "episodes").mkdir()
+        (out / "episodes" / "empty.txt").write_text("")
+        if work:
+            (out / "episodes" / "ep000.txt").write_text("finished episode")
+        raise RuntimeError("body crashed")
+    return body
+
+
+def test_failed_in_place_run_without_work_leaves_nothing(cfg: ToyStageConfig) -> None:
+    with pytest.raises(RuntimeError, match="body crashed"):
+        run_stage(dataclasses.replace(TOY_IN_PLACE, body=_in_place_body(work=False)), cfg)
+    assert not (cfg.data_dir / "toy").exists()
+
+
+def test_failed_in_place_run_with_work_keeps_it_and_the_next_run_says_resume(cfg: ToyStageConfig) -> None:
+    with pytest.raises(RuntimeError, match="body crashed"):
+        run_stage(dataclasses.replace(TOY_IN_PLACE, body=_in_place_body(work=True)), cfg)
+    assert (cfg.data_dir / "toy" / "episodes" / "ep000.txt").is_file()
+    with pytest.raises(OutputExistsError, match="--resume to continue it"):
+        run_stage(TOY_IN_PLACE, cfg)
+    run_stage(TOY_IN_PLACE, apply_dict(cfg, {"resume": True}, "test"))
+    assert (cfg.data_dir / "toy" / MANIFEST_NAME).is_file()
+
+
+def test_failed_resume_of_an_existing_dir_never_removes_it(cfg: ToyStageConfig) -> None:
+    out = cfg.data_dir / "toy"
+    out.mkdir(parents=True)
+    with pytest.raises(RuntimeError, match="body crashed"):
+        run_stage(dataclasses.replace(TOY_IN_PLACE, body=_in_place_body(work=False)),
+                  apply_dict(cfg, {"resume": True}, "test"))
+    assert out.is_dir()
+
+
+def test_resume_into_an_unwritable_output_is_a_named_error(cfg: ToyStageConfig, monkeypatch) -> None:
+    import os
+
+    out = cfg.data_dir / "toy"
+    out.mkdir(parents=True)
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if Path(p) == out else real(p, mode))
+    with pytest.raises(ConfigError, match=rf"directory not writable: {re.escape(str(out))}"):
+        run_stage(TOY_IN_PLACE, apply_dict(cfg, {"resume": True}, "test"))
+    assert CALLS == []
