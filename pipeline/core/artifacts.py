@@ -285,6 +285,7 @@ class OutputDir:
         """
         if self._entered:
             raise RuntimeError(f"OutputDir({self.final}) is not re-entrant")
+        self._created = [p for p in (self.final, *self.final.parents) if not p.exists()]
         self._cleanup_stale()
         if self.mode == "new" and _is_nonempty(self.final):
             raise OutputExistsError(
@@ -320,6 +321,7 @@ class OutputDir:
             return False
         if exc_type is not None:
             _remove(self.staging)
+            self._remove_created_parents()
             return False
         try:
             self._publish()
@@ -327,6 +329,13 @@ class OutputDir:
             _remove(self.staging)
             raise
         return False
+
+    def _remove_created_parents(self) -> None:
+        """After a failure: the parent folders this run created, if still empty (deepest first)."""
+        for p in getattr(self, "_created", []):
+            if p != self.final:
+                with contextlib.suppress(OSError):
+                    p.rmdir()
 
     def _publish(self) -> None:
         """Moves the staging directory to ``final`` (replacing an existing one in mode ``overwrite``)."""

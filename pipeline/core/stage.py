@@ -26,7 +26,13 @@ from typing import Any
 
 from pipeline.core.artifacts import OutputDir, OutputMode, require_input
 from pipeline.core.config import config_hash, dump_yaml, to_dict, validate_tree
-from pipeline.core.errors import ConfigError, ICrowdNavError, OutputExistsError
+from pipeline.core.errors import (
+    ConfigError,
+    CorruptArtifactError,
+    ICrowdNavError,
+    InputMissingError,
+    OutputExistsError,
+)
 from pipeline.core.manifest import (
     CODE_PACKAGES,
     MANIFEST_NAME,
@@ -140,6 +146,36 @@ def hash_inputs(paths: list[Path], data_dir: Path | None = None) -> list[FileRec
     return [unique[k] for k in sorted(unique)]
 
 
+def verify_inputs(paths: list[Path], records: list[FileRecord], data_dir: Path | None = None) -> None:
+    """Checks every input directory that is a finished stage output against its ``manifest.json``: each file the
+    manifest lists must be there with the recorded size and sha256 (the hashes are those :func:`hash_inputs` just
+    computed, so this costs no extra read). A recording edited or damaged after its stage finished is refused by
+    name here instead of being exported, trained on or evaluated.
+
+    Raises:
+        CorruptArtifactError: a listed file differs from its record, or the manifest is unreadable.
+        InputMissingError: a listed file is missing.
+    """
+    by_path = {r.path: r for r in records}
+    for p in paths:
+        p = Path(p)
+        mpath = p / MANIFEST_NAME
+        if not (p.is_dir() and mpath.is_file() and (p / CONFIG_NAME).is_file()):
+            continue
+        manifest = Manifest.read(mpath)  # a damaged manifest: CorruptArtifactError naming it
+        prefix = _record_path(p, data_dir).rstrip("/")
+        redo = f"restore it or redo stage '{manifest.stage}' with --overwrite"
+        for rec in manifest.outputs:
+            got = by_path.get(f"{prefix}/{rec.path}" if prefix not in ("", ".") else rec.path)
+            if got is None:
+                raise InputMissingError(f"missing file {p / rec.path}: listed in {mpath}; {redo}")
+            if (got.bytes, got.sha256) != (rec.bytes, rec.sha256):
+                found = f"{got.bytes} bytes" if got.bytes != rec.bytes else f"sha256 {got.sha256[:16]}..."
+                expected = f"{rec.bytes} bytes" if got.bytes != rec.bytes else f"sha256 {rec.sha256[:16]}..."
+                raise CorruptArtifactError(f"corrupt file {p / rec.path}: expected {expected} (recorded in {mpath}), "
+                                           f"found {found}; {redo}")
+
+
 def _clean_counts(stage: str, counts: Any) -> dict[str, float | int | str]:
     """Checks a body's return value; numpy scalars are turned into Python numbers."""
     if counts is None:
@@ -202,13 +238,17 @@ def staleness(stage: Stage, cfg: Any, out_dir: Path, inputs: list[FileRecord]) -
 
 
 def _check_writable(directory: Path) -> None:
-    """Fail fast, before any work, when the output's parent directory cannot be created or written."""
+    """Fail fast, before any work, when ``directory`` cannot be created or written; creates nothing (a run refused
+    later, e.g. for a damaged input, leaves no empty folders): the nearest existing ancestor must be a writable
+    directory."""
     import os
 
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"data directory not writable: cannot create {directory} ({e.strerror or e})") from None
+    existing = directory
+    while not existing.exists() and existing.parent != existing:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f"data directory not writable: cannot create {directory} ({existing} is not a directory)")
+    directory = existing
     if not os.access(directory, os.W_OK | os.X_OK):
         raise ConfigError(f"directory not writable: {directory} (expected write permission for this user)")
 
@@ -241,6 +281,7 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
         _check_writable(out)  # continuing writes into it (an unwritable one: a named error, not PermissionError)
     data_dir = getattr(cfg, "data_dir", None)
     inputs = hash_inputs(input_paths, data_dir)
+    verify_inputs(input_paths, inputs, data_dir)
 
     if mode == "new" and out.exists():
         reason = staleness(stage, cfg, out, inputs) if out.is_dir() else f"{out} is not a directory"

@@ -258,7 +258,7 @@ def test_inputs_are_hashed_and_changes_detected(cfg: ToyStageConfig) -> None:
 def test_body_exception_leaves_nothing(cfg: ToyStageConfig) -> None:
     with pytest.raises(RuntimeError, match="body crashed"):
         run_stage(TOY, apply_dict(cfg, {"fail": True}, "test"))
-    assert list(cfg.data_dir.iterdir()) == []
+    assert not cfg.data_dir.exists()  # not even the folders the failed run would have published into
 
 
 def test_resume(cfg: ToyStageConfig) -> None:
@@ -342,3 +342,73 @@ def test_resume_into_an_unwritable_output_is_a_named_error(cfg: ToyStageConfig, 
     with pytest.raises(ConfigError, match=rf"directory not writable: {re.escape(str(out))}"):
         run_stage(TOY_IN_PLACE, apply_dict(cfg, {"resume": True}, "test"))
     assert CALLS == []
+
+
+# ------------------------------------------------------------------ verify_output / release_output
+
+
+def _finished_output(root: Path, files: dict[str, bytes]) -> Path:
+    """A stage-like output directory: files, config.yaml and a manifest.json listing them (as run_stage writes)."""
+    for rel, data in files.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_bytes(data)
+    (root / "config.yaml").write_text("seed: 0\n")
+    dataclasses.replace(make_manifest(), outputs=hash_tree(root)).write(root / MANIFEST_NAME)
+    return root
+
+
+def test_verify_output_accepts_an_intact_listed_file_and_hashes_it_once(tmp_path: Path, monkeypatch) -> None:
+    from pipeline.core import manifest as mod
+
+    out = _finished_output(tmp_path / "ckpt", {"w.bin": b"weights" * 100, "sub/x.bin": b"x"})
+    calls = []
+    monkeypatch.setattr(mod, "hash_file", lambda p: calls.append(p) or hash_file(p))
+    assert mod.owning_manifest(out / "sub" / "x.bin") == out / MANIFEST_NAME
+    rec = mod.verify_output(out / "w.bin")
+    assert rec == FileRecord("w.bin", sha(b"weights" * 100), 700)
+    assert mod.verify_output(out / "sub" / "x.bin").path == "sub/x.bin"
+    assert mod.verify_output(out / "w.bin") == rec and len(calls) == 2  # the intact file is not hashed again
+
+
+def test_verify_output_names_a_damaged_file_expected_and_found(tmp_path: Path) -> None:
+    from pipeline.core.manifest import verify_output
+
+    out = _finished_output(tmp_path / "ckpt", {"w.bin": b"\x01" * 64, "v.bin": b"\x02" * 64})
+    good, damaged = sha(b"\x01" * 64), b"\x01" * 32 + b"\xff" * 32
+    (out / "w.bin").write_bytes(damaged)  # same size, other bytes
+    with pytest.raises(CorruptArtifactError) as e:
+        verify_output(out / "w.bin")
+    msg = str(e.value)
+    assert str(out / "w.bin") in msg and "\n" not in msg
+    assert f"expected sha256 {good[:16]}" in msg and f"found {sha(damaged)[:16]}" in msg
+    assert str(out / MANIFEST_NAME) in msg
+    (out / "v.bin").write_bytes(b"\x02" * 10)  # truncated
+    with pytest.raises(CorruptArtifactError, match=r"v\.bin: expected 64 bytes .* found 10 bytes"):
+        verify_output(out / "v.bin")
+    with pytest.raises(InputMissingError, match="nope.bin"):
+        verify_output(out / "nope.bin")
+
+
+def test_verify_output_skips_files_no_manifest_lists(tmp_path: Path) -> None:
+    from pipeline.core.manifest import owning_manifest, verify_output
+
+    out = _finished_output(tmp_path / "ckpt", {"w.bin": b"w"})
+    (out / "later.bin").write_bytes(b"written after the manifest")  # e.g. resume state of a later run
+    assert verify_output(out / "later.bin") is None
+    loose = tmp_path / "loose" / "w.bin"  # no manifest at all (a staging dir, user-given weights)
+    loose.parent.mkdir()
+    loose.write_bytes(b"w")
+    assert verify_output(loose) is None
+    (tmp_path / "loose" / MANIFEST_NAME).write_text('{"name": "some web app"}')  # not a stage's: no config.yaml
+    assert owning_manifest(loose) is None and verify_output(loose) is None
+
+
+def test_release_output_drops_the_manifest_that_lists_a_rewritten_file(tmp_path: Path) -> None:
+    from pipeline.core.manifest import release_output, verify_output
+
+    out = _finished_output(tmp_path / "ckpt", {"w.bin": b"old"})
+    assert release_output(out / "new.bin") is None and (out / MANIFEST_NAME).is_file()  # not listed: kept
+    assert release_output(out / "w.bin") == out / MANIFEST_NAME
+    assert not (out / MANIFEST_NAME).exists()
+    (out / "w.bin").write_bytes(b"new bytes of a resumed run")
+    assert verify_output(out / "w.bin") is None  # unfinished until the stage writes a new manifest
