@@ -63,6 +63,7 @@ from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
+from rl.policy import check_checkpoint_weights
 from sim.env import CrowdNavEnv, SimConfig
 from sim.planners.topomap import build_gvg, plot_topomap
 from sim.scenario import load_scenario
@@ -153,6 +154,9 @@ def output_dir(cfg: EvalConfig) -> Path:
 
 def inputs(cfg: EvalConfig) -> list[Path]:
     specs = resolve_methods(cfg.methods, Path(cfg.data_dir))  # unknown / missing -> one clear error, nothing written
+    for m in specs:  # a damaged or non-finite checkpoint: one error naming the file, before any episode (or MCAP)
+        if m.checkpoint is not None:
+            check_checkpoint_weights(m.checkpoint)
     return [p for m in specs if m.checkpoint is not None
             for p in (m.checkpoint / "policy.json", m.checkpoint / "policy.safetensors")]
 

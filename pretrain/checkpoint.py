@@ -18,17 +18,17 @@ Tree (``DATA_DIR/checkpoints/<name>/``, default name ``bev``)::
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
-from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
-from pipeline.core.manifest import MANIFEST_NAME
+from pipeline.core.manifest import MANIFEST_NAME, release_output, verify_output
 from pretrain.geometry import Camera
 from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
 
@@ -44,27 +44,88 @@ def save_safetensors(module: torch.nn.Module, path: Path, metadata: dict[str, st
     """Saves a module's state dict atomically (temporary name, then rename).
 
     The same weights and metadata give the same bytes: safetensors writes its metadata from a Rust hash map
-    (random order per call), so the metadata travels as one key, ``icrowdnav``, holding sorted JSON.
+    (random order per call), so the metadata travels as one key, ``icrowdnav``, holding sorted JSON. Rewriting a
+    file that a finished output's manifest lists (a ``--resume`` run writing in place) first drops that manifest
+    (:func:`pipeline.core.manifest.release_output`): the directory is unfinished until its stage writes a new one.
     """
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     state = {k: v.detach().contiguous().clone() for k, v in module.state_dict().items()}
     meta = {"icrowdnav": json.dumps(metadata, sort_keys=True)} if metadata else None
     save_file(state, str(tmp), metadata=meta)
+    release_output(path)
     tmp.replace(path)
+
+
+def check_finite(tensors: Mapping[str, Any], path: Path, prefix: str = "") -> None:
+    """Refuses NaN or infinite values in any floating-point tensor of a (nested) mapping read from ``path``.
+
+    Raises:
+        CorruptArtifactError: names the file, the first such tensor and how many of its values are not finite.
+    """
+    for name, value in tensors.items():
+        key = f"{prefix}{name}"
+        if isinstance(value, Mapping):
+            check_finite(value, path, f"{key}.")
+        elif isinstance(value, torch.Tensor) and (value.is_floating_point() or value.is_complex()):
+            # numpy: one thread, ~1 ms for a 7 MB policy; torch's OpenMP pool spun ~1 s on a busy 2-core machine
+            t = value.detach().cpu()
+            try:
+                finite = np.isfinite(t.numpy())
+            except TypeError:  # bfloat16, float8: no numpy dtype
+                finite = torch.isfinite(t).numpy()
+            if not finite.all():
+                bad = finite.size - int(finite.sum())
+                raise CorruptArtifactError(f"corrupt weights file {path}: tensor '{key}' has {bad} non-finite (NaN or "
+                                           f"infinite) value(s) of {finite.size}, expected finite weights")
+
+
+def read_weights(path: Path, hint: str = "") -> dict[str, Any]:
+    """Reads a weights file, checked: the one way weights are read (policies, baselines, the BEV encoder and its
+    heads, user-given pretrained weights).
+
+    1. the file exists;
+    2. it matches the sha256 and size its stage's manifest records for it, when a manifest lists it
+       (:func:`pipeline.core.manifest.verify_output`: hashed once per process; unlisted files are not verified);
+    3. it parses: ``.safetensors`` with safetensors, any other suffix with ``torch.load(weights_only=True)``;
+    4. every floating-point tensor is finite (:func:`check_finite`).
+
+    Args:
+        path: The weights file.
+        hint: Advice appended to the message when the file does not parse.
+
+    Returns:
+        The stored mapping (name -> tensor; a torch file may nest it, e.g. under ``model``).
+
+    Raises:
+        InputMissingError: the file is missing. CorruptArtifactError: a failed check, naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputMissingError(f"missing weights file {path}")
+    verify_output(path)
+    try:
+        if path.suffix == ".safetensors":
+            state: Any = load_file(str(path))
+        else:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # safetensors and torch raise many types (SafetensorError, UnpicklingError, EOFError, ...)
+        raise CorruptArtifactError(f"corrupt weights file {path}: cannot read it ({type(e).__name__}: "
+                                   f"{str(e)[:200]}){'; ' + hint if hint else ''}") from None
+    if not isinstance(state, Mapping):
+        raise CorruptArtifactError(f"weights file {path}: expected a mapping of names to tensors, got "
+                                   f"{type(state).__name__}")
+    check_finite(state, path)
+    return dict(state)
 
 
 def load_safetensors(module: torch.nn.Module, path: Path,
                      upgrade: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]] | None = None) -> None:
-    """Loads a state dict into ``module`` (strict); any problem names the file. ``upgrade``: maps the stored state
-    dict to the module's current key names first (checkpoints of an older layout)."""
+    """Loads a state dict into ``module`` (strict) from a file read by :func:`read_weights` (verified against its
+    manifest, finite); any problem names the file. ``upgrade``: maps the stored state dict to the module's current
+    key names first (checkpoints of an older layout)."""
     path = Path(path)
-    if not path.is_file():
-        raise InputMissingError(f"missing weights file {path}")
-    try:
-        state = load_file(str(path))
-    except (SafetensorError, OSError, ValueError, RuntimeError) as e:
-        raise CorruptArtifactError(f"corrupt weights file {path}: {e}") from None
+    state = read_weights(path)
     if upgrade is not None:
         state = upgrade(state)
     try:

@@ -33,6 +33,7 @@ import torch
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pipeline.core.keys import OBS_ODOM, PRIV_LOCAL_OCCUPANCY, PRIV_PED_STATE, depth_key, image_key
 from pretrain.geometry import BEVGrid, Camera, cameras_from_meta, sample_depth
+from recorder.doctor_dataset import require_sound_dataset
 
 log = logging.getLogger("icrowdnav")
 
@@ -61,8 +62,10 @@ def check_dataset(root: Path, cameras: list[Camera] | None = None) -> DatasetMet
         cameras: the cameras whose images and depth must be there (default: the dataset's own).
 
     Raises:
-        InputMissingError: no dataset at ``root``, or it lacks needed features (all of them are named).
-        CorruptArtifactError: unreadable metadata.
+        InputMissingError: no dataset at ``root``, or it lacks needed features (all of them are named), or a file
+            it needs is missing (named).
+        CorruptArtifactError: unreadable metadata, or a damaged file (named): the dataset doctor's cheap checks
+            (:func:`recorder.doctor_dataset.require_sound_dataset`, ~25 ms) run before lerobot opens it.
     """
     root = Path(root)
     info_path = root / "meta" / "info.json"
@@ -94,6 +97,7 @@ def check_dataset(root: Path, cameras: list[Camera] | None = None) -> DatasetMet
     if "local_map" not in side.get("spec", {}):
         raise CorruptArtifactError(f"dataset {root}: meta/icrowdnav.json has no spec.local_map (the geometry of "
                                    "privileged.local_occupancy)")
+    require_sound_dataset(root)  # a deleted / truncated parquet or video: named here, not by lerobot's errors
     return DatasetMeta(info, side, cameras)
 
 

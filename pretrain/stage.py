@@ -29,7 +29,7 @@ from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.config import BaseStageConfig, check_run_name, config_hash
 from pipeline.core.errors import ConfigError, CorruptArtifactError
-from pretrain.checkpoint import METRICS_JSON, write_encoder_checkpoint
+from pretrain.checkpoint import METRICS_JSON, read_weights, write_encoder_checkpoint
 from pretrain.data import Batch, check_dataset, check_grid_in_local_map, load_frames, split_episodes
 from pretrain.figures import plot_curves, plot_fov, plot_sample
 from pretrain.geometry import check_grid_fits_cameras
@@ -105,15 +105,7 @@ def inputs(cfg: PretrainConfig) -> list[Path]:
 def load_backbone_weights(encoder, path: str) -> None:
     """Initialises the ResNet-18 trunk from a user-given torchvision ``resnet18`` state dict (.pth / .safetensors)."""
     p = Path(path)
-    try:
-        if p.suffix == ".safetensors":
-            from safetensors.torch import load_file
-
-            sd = load_file(str(p))
-        else:
-            sd = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as e:
-        raise CorruptArtifactError(f"backbone weights {p}: cannot read ({type(e).__name__}: {e})") from None
+    sd = read_weights(p)  # missing / unreadable / damaged / non-finite -> one error naming the file
     names = ["conv1", "bn1", "relu", "maxpool", "layer1", "layer2", "layer3", "layer4"]
     mapped = {}
     for k, v in sd.items():

@@ -173,6 +173,24 @@ def load_policy(ckpt: Path) -> tuple[ActorCriticPolicy, dict[str, Any]]:
     return policy, desc
 
 
+def check_checkpoint_weights(ckpt: Path) -> None:
+    """Reads the weights a policy or baseline checkpoint directory uses — ``policy.safetensors`` and, for a student,
+    its encoder's ``encoder.safetensors`` — through :func:`pretrain.checkpoint.read_weights` (sha256 against the
+    manifest, finite values), so that a damaged checkpoint is refused before any episode starts. Forked episode
+    workers inherit the hash check (each file is hashed once).
+
+    Raises:
+        InputMissingError / CorruptArtifactError: naming the file.
+    """
+    from pretrain.checkpoint import ENCODER_WEIGHTS, read_weights  # lazy: torchvision (~3 s) to read weights
+
+    ckpt = Path(ckpt)
+    desc = read_policy_json(ckpt)
+    read_weights(ckpt / POLICY_WEIGHTS)
+    if desc.get("kind") == "student" and desc.get("encoder"):
+        read_weights(Path(desc["encoder"]) / ENCODER_WEIGHTS)
+
+
 def freeze_actor(policy: ActorCriticPolicy) -> list[torch.nn.Parameter]:
     """Stops gradients into everything but the value branch (``mlp_extractor.value_net``, ``value_net``): the
     shared extractor, the policy MLP, the action head (and a log-std). Returns the parameters it froze (PPO's

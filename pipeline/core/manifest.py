@@ -325,6 +325,114 @@ class Manifest:
         return cls.from_dict(data, path)
 
 
+CONFIG_NAME = "config.yaml"  # the resolved config, written next to every manifest by pipeline.core.stage
+
+# (path, size, mtime_ns, inode, sha256 the manifest records) of every file verify_output found intact in this
+# process; forked workers inherit it, so a checkpoint is hashed once per process tree, not once per worker
+_VERIFIED: set[tuple[str, int, int, int, str]] = set()
+
+
+def owning_manifest(path: Path) -> Path | None:
+    """The ``manifest.json`` of the stage output directory that holds ``path``, or None.
+
+    That is the nearest ``manifest.json`` in the parent directories of ``path`` that has a ``config.yaml`` beside it
+    (every stage output directory has both, written by :func:`pipeline.core.stage.run_stage`; a ``manifest.json``
+    of some other tool higher up is not taken for one). Symbolic links in ``path`` are kept, not resolved.
+    """
+    for d in Path(os.path.abspath(path)).parents:
+        if (d / MANIFEST_NAME).is_file() and (d / CONFIG_NAME).is_file():
+            return d / MANIFEST_NAME
+    return None
+
+
+def _listed(path: Path) -> tuple[Path, Manifest, FileRecord] | None:
+    """(manifest path, manifest, the manifest's record of ``path``), or None when no manifest lists it."""
+    mpath = owning_manifest(path)
+    if mpath is None:
+        return None
+    rel = Path(os.path.abspath(path)).relative_to(mpath.parent).as_posix()
+    manifest = Manifest.read(mpath)
+    record = next((r for r in manifest.outputs if r.path == rel), None)
+    return None if record is None else (mpath, manifest, record)
+
+
+def verify_output(path: Path) -> FileRecord | None:
+    """Checks a file that a stage wrote against its stage's ``manifest.json`` before the file is used.
+
+    Every checkpoint load goes through this (:func:`pretrain.checkpoint.read_weights`): a file whose bytes were
+    damaged after its stage finished — a bad copy, a disk error, an edit — is refused here with its name instead of
+    loading garbage (a damaged tensor payload under an intact safetensors header loads without complaint).
+
+    Only files that a manifest lists are verified, against the nearest manifest (:func:`owning_manifest`). Not
+    verified (None is returned): a file outside any stage output (e.g. user-given pretrained weights); a file of an
+    unfinished output, which has no manifest yet (a staging directory, or intermediate checkpoints such as
+    ``imitation/<k>/`` while the stage runs); and resume state (``state/last.pt``, ``ppo/last.zip``, ``rl/state.pt``),
+    which is read without calling this at all: a ``--resume`` run rewrites it in place before its stage writes a
+    new manifest, so the old manifest's record of it is stale by design. A weights file rewritten in place by such a
+    run drops the stale manifest first (:func:`release_output`), so it is never checked against an old record.
+
+    The sha256 of a file is computed once per process (and per forked worker pool): an intact file is remembered by
+    path, size, mtime, inode and the recorded hash (about 1 s per GB hashed; the manifest is read on every call).
+
+    Args:
+        path: The file about to be read.
+
+    Returns:
+        The manifest's record of the file when it was verified, None when no manifest lists it.
+
+    Raises:
+        InputMissingError: ``path`` does not exist.
+        CorruptArtifactError: its size or sha256 differs from the manifest's record, or the manifest is unreadable.
+    """
+    path = Path(path)
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise InputMissingError(f"missing file {path}") from None
+    found = _listed(path)
+    if found is None:
+        return None
+    mpath, _, record = found
+    key = (os.path.abspath(path), st.st_size, st.st_mtime_ns, st.st_ino, record.sha256)
+    if key in _VERIFIED:
+        return record
+    redo = "restore it from a good copy or redo its stage with --overwrite"
+    if st.st_size != record.bytes:
+        raise CorruptArtifactError(f"corrupt file {path}: expected {record.bytes} bytes (recorded in {mpath}), "
+                                   f"found {st.st_size} bytes; {redo}")
+    actual = hash_file(path)
+    if actual != record.sha256:
+        raise CorruptArtifactError(f"corrupt file {path}: expected sha256 {record.sha256[:16]}... (recorded in {mpath}), "
+                                   f"found {actual[:16]}... (same size: damaged bytes); {redo}")
+    _VERIFIED.add(key)
+    return record
+
+
+def release_output(path: Path) -> Path | None:
+    """Deletes the ``manifest.json`` that lists ``path``, because ``path`` is about to be rewritten in place.
+
+    A ``--resume`` run writes straight into a finished output directory, whose old manifest then no longer
+    describes it; without the manifest the directory counts as unfinished (which it is) until its stage writes a
+    new one, and :func:`verify_output` does not check the rewritten file against the stale record. Called by the
+    writer of checkpoint weights (:func:`pretrain.checkpoint.save_safetensors`) before it replaces a file.
+
+    Returns:
+        The manifest deleted, or None when no manifest lists ``path`` (the usual case: stages write into a fresh
+        staging directory).
+    """
+    mpath = owning_manifest(path)
+    if mpath is None:
+        return None
+    try:
+        listed = _listed(path) is not None
+    except CorruptArtifactError:
+        listed = True  # unreadable: it describes nothing any more, and the stage writes a new one when it finishes
+    if not listed:
+        return None
+    mpath.unlink(missing_ok=True)
+    return mpath
+
+
 CODE_PACKAGES = ("pipeline", "sim", "recorder", "pretrain", "rl")
 
 

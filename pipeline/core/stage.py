@@ -35,6 +35,7 @@ from pipeline.core.errors import (
 )
 from pipeline.core.manifest import (
     CODE_PACKAGES,
+    CONFIG_NAME,
     MANIFEST_NAME,
     FileRecord,
     Manifest,
@@ -47,7 +48,6 @@ from pipeline.core.manifest import (
 
 log = logging.getLogger("icrowdnav")
 
-CONFIG_NAME = "config.yaml"
 _CODE_ROOT = Path(__file__).resolve().parent
 
 

@@ -123,7 +123,7 @@ def test_unknown_method_and_missing_checkpoint_are_clear_errors(tmp_path):
     (["--scenes", "[]"], "eval.scenes: expected at least one scene"),
     (["--scenarios", "[nosuch]"], "unknown scenario 'nosuch'"),
     (["--scenarios", "[{bad}]"], "config key 'pedestrians[0].waypoints[0]': expected a waypoint outside every"),
-    (["--scenarios", "[{nan}]"], "config key 'goal': expected finite numbers"),
+    (["--scenarios", "[{nan}]"], "config key 'goal[0]': expected a finite number"),
     (["--goals", "0"], "eval.goals: expected an integer in [1, 10000], got 0"),
 ])
 def test_eval_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, args, match):
@@ -136,6 +136,43 @@ def test_eval_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, args, match
                         *args], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert r.returncode == 2, r.stderr
     assert match in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "eval").exists()
+
+
+@pytest.mark.parametrize("damage", ["bytes", "nan"])
+def test_damaged_checkpoint_is_one_named_error_before_any_episode(tmp_path, damage):
+    """Damaged tensor bytes under an intact header (the manifest's sha256 differs) or NaN weights (saved so: the hash
+    matches) stop eval in its input check, naming the file: no episode runs, no MCAP is left half-written."""
+    import struct
+
+    import torch
+
+    from evaluation.stage import EvalConfig
+    from pipeline.core.errors import CorruptArtifactError
+    from pipeline.core.manifest import Manifest, hash_tree
+    from pipeline.verbs.eval import run
+    from pretrain.checkpoint import save_safetensors
+
+    ck = tmp_path / "checkpoints" / "policy" / "teacher"
+    ck.mkdir(parents=True)
+    model = torch.nn.Linear(4, 4)
+    if damage == "nan":
+        with torch.no_grad():
+            model.weight[2, 1] = float("nan")
+    w = ck / "policy.safetensors"
+    save_safetensors(model, w)
+    (ck / "policy.json").write_text(json.dumps({"kind": "teacher", "observation_space": {}, "net": {}}))
+    (ck / "config.yaml").write_text("seed: 0\n")
+    Manifest(stage="train", params={}, config_hash="0" * 64, seed=0, outputs=hash_tree(ck)).write(ck / "manifest.json")
+    if damage == "bytes":
+        data = bytearray(w.read_bytes())
+        data[-4:] = struct.pack("<f", 7.0)  # the last weight: finite, wrong
+        w.write_bytes(bytes(data))
+    cfg = EvalConfig(data_dir=str(tmp_path), methods=["teacher"], scenes=["office_lobby"], densities=[0.1], goals=1,
+                     trials=1, workers=1, figures=0, videos=1, sim=TINY, progress=False)
+    want = "expected sha256" if damage == "bytes" else "tensor 'weight' has 1 non-finite"
+    with pytest.raises(CorruptArtifactError, match=f"{w}: {want}"):
+        run(cfg)
     assert not (tmp_path / "eval").exists()
 
 

@@ -1,5 +1,6 @@
-"""Tests of pretrain.data without a dataset: people rasterisation, the BEV pretext labels of a hand-built
-episode, clip/batch cutting, the episode split and the grid-vs-local-map check."""
+"""Tests of pretrain.data: people rasterisation, the BEV pretext labels of a hand-built episode, clip/batch cutting,
+the episode split and the grid-vs-local-map check (without a dataset); a damaged dataset named before lerobot opens
+it (on a copy of the tests' tiny dataset)."""
 
 from __future__ import annotations
 
@@ -8,11 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.core.errors import ConfigError
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pretrain.data import (
     FrameStore,
+    check_dataset,
     check_grid_in_local_map,
     episode_labels,
+    load_frames,
     make_batches,
     make_clips,
     rasterise_people,
@@ -333,3 +336,22 @@ def test_check_grid_in_local_map_rejects_a_grid_beyond_the_map(x_bound, y_bound)
 def test_check_grid_in_local_map_accepts_fitting_grids():
     check_grid_in_local_map(default_grid(), LOCAL_MAP, "test dataset")
     check_grid_in_local_map(BEVGrid((-2.0, 8.0, 0.1), (-5.0, 5.0, 0.1), (0.1, 2.0)), LOCAL_MAP, "test dataset")
+
+
+@pytest.mark.parametrize("damage", ["deleted", "truncated"])
+def test_damaged_parquet_is_named_before_lerobot_opens_the_dataset(dataset_copy, tiny_dataset, damage) -> None:
+    """lerobot says 'OfflineModeIsEnabled: Cannot reach https://huggingface.co/...' for a deleted data file and
+    'DatasetGenerationError' for a truncated one; the doctor's cheap checks name the file first (check_dataset is
+    what `pretrain`'s inputs and load_frames call)."""
+    p = dataset_copy / "data" / "chunk-000" / "file-000.parquet"
+    if damage == "deleted":
+        p.unlink()
+    else:
+        p.write_bytes(p.read_bytes()[:-300])
+    error, what = (InputMissingError, "missing") if damage == "deleted" else (CorruptArtifactError, "not a readable")
+    pattern = f"damaged dataset {dataset_copy}: {p}: {what}"
+    with pytest.raises(error, match=pattern):
+        check_dataset(dataset_copy)
+    cams = check_dataset(tiny_dataset.root).cameras
+    with pytest.raises(error, match=pattern):
+        load_frames(dataset_copy, cams, default_grid(), 4, [0.5, 1.0], progress=False)

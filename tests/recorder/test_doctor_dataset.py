@@ -152,3 +152,35 @@ def test_info_totals_must_match(dataset_copy, tiny_dataset):
     problems = check_dataset(dataset_copy, videos=False, stats=False)
     want = f"total_frames {tiny_dataset.counts['frames'] + 5}"
     assert any(want in line for line in _lines_naming(problems, dataset_copy, "meta/info.json")), problems
+
+
+def test_deleted_data_file_is_named_as_missing(dataset_copy):
+    (dataset_copy / DATA).unlink()
+    problems = check_dataset(dataset_copy, videos=False, stats=False)
+    named = _lines_naming(problems, dataset_copy, DATA)
+    assert named and "missing: meta/episodes places episodes 0..1 in this data file" in named[0], problems
+
+
+def test_missing_video_is_named_without_decoding(dataset_copy):
+    other = dataset_copy / VIDEO.replace("right", "left")
+    other.unlink()
+    (dataset_copy / VIDEO).write_bytes(b"")
+    problems = check_dataset(dataset_copy, videos=False, stats=False)
+    assert any("is missing" in line for line in _lines_naming(problems, dataset_copy, VIDEO.replace("right", "left")))
+    assert any("empty (0 bytes)" in line for line in _lines_naming(problems, dataset_copy, VIDEO)), problems
+
+
+def test_require_sound_dataset_raises_one_named_error(dataset_copy, tiny_dataset):
+    """The cheap checks as one error (what pretrain / train run before lerobot opens a dataset)."""
+    from pipeline.core.errors import CorruptArtifactError, InputMissingError
+    from recorder.doctor_dataset import require_sound_dataset
+
+    require_sound_dataset(tiny_dataset.root)  # a sound dataset passes
+    p = dataset_copy / DATA
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CorruptArtifactError, match=rf"{p}: not a readable parquet file \(footer missing"):
+        require_sound_dataset(dataset_copy)
+    p.unlink()
+    with pytest.raises(InputMissingError, match=rf"damaged dataset {dataset_copy}: {p}: missing"):
+        require_sound_dataset(dataset_copy)

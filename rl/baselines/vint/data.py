@@ -16,6 +16,7 @@ from pipeline.core import layout
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
 from pipeline.core.keys import OBS_GOAL, OBS_ODOM, image_key
 from pretrain.data import decode_video_file
+from recorder.doctor_dataset import require_sound_dataset
 from rl.baselines.vint.configuration import CAMERAS
 from sim.geometry import world_to_robot_each
 
@@ -142,6 +143,7 @@ def check_dataset(root: Path) -> dict:
     missing = [k for k in need if k not in features]
     if missing:
         raise InputMissingError(f"vint: dataset {root} lacks {', '.join(missing)}; record it with `make record`")
+    require_sound_dataset(root)  # a deleted / truncated parquet or video: named here, not by lerobot's errors
     return features
 
 

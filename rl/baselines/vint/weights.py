@@ -6,7 +6,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load_file
 
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from rl.baselines.vint.model import ViNTStyle
@@ -32,16 +31,11 @@ def efficientnet_pytorch_b0_keys() -> list[str]:
 def _read_state_dict(path: Path) -> dict[str, torch.Tensor]:
     if not path.is_file():
         raise InputMissingError(f"released ViNT weights {path} do not exist (train.vint.init_weights)")
-    try:
-        if path.suffix == ".safetensors":
-            sd: Any = load_file(str(path))
-        else:
-            sd = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # torch / safetensors raise many types for foreign or broken files
-        raise CorruptArtifactError(
-            f"{path}: not a readable state dict ({type(e).__name__}: {str(e)[:200]}); the released vint.pth pickles "
-            "the whole module: convert it with the authors' code to a state dict first (see rl.baselines.vint)"
-        ) from None
+    from pretrain.checkpoint import read_weights  # lazy: torchvision (~3 s) only when weights are read
+
+    # unreadable / damaged / non-finite -> one error naming the file
+    sd: Any = read_weights(path, hint="the released vint.pth pickles the whole module: convert it with the authors' "
+                                      "code to a state dict first (see rl.baselines.vint)")
     for key in ("model", "state_dict"):
         if isinstance(sd, dict) and isinstance(sd.get(key), dict):
             sd = sd[key]

@@ -1,12 +1,14 @@
-"""The ViNT-style labels and context windows on constructed tracks."""
+"""The ViNT-style labels and context windows on constructed tracks; a damaged recorded dataset is named."""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+import pytest
 
-from rl.baselines.vint import context_indices, trajectory_labels
+from pipeline.core.errors import CorruptArtifactError, InputMissingError
+from rl.baselines.vint import check_dataset, context_indices, load_dataset, trajectory_labels
 
 
 def test_trajectory_labels_on_a_known_track() -> None:
@@ -33,3 +35,15 @@ def test_trajectory_labels_on_a_known_track() -> None:
 def test_context_indices_repeat_the_first_frame() -> None:
     ctx = context_indices(np.array([10, 13, 20]), np.array([10, 10, 10]), context=2, spacing=2)
     np.testing.assert_array_equal(ctx, [[10, 10, 10], [10, 11, 13], [16, 18, 20]])
+
+
+def test_damaged_dataset_is_named_before_lerobot_opens_it(dataset_copy) -> None:
+    """`train --variant vint` reads the recorded dataset: a deleted or truncated parquet is named by the doctor's
+    cheap checks (lerobot's own errors name no file)."""
+    p = dataset_copy / "data" / "chunk-000" / "file-000.parquet"
+    p.write_bytes(p.read_bytes()[:-300])
+    with pytest.raises(CorruptArtifactError, match=f"{p}: not a readable parquet file"):
+        load_dataset(dataset_copy, [32, 32], progress=False)
+    p.unlink()
+    with pytest.raises(InputMissingError, match=f"{p}: missing"):
+        check_dataset(dataset_copy)
