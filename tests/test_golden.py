@@ -18,6 +18,7 @@ def expected() -> dict:
     return json.loads(golden.GOLDEN.read_text())
 
 
+@pytest.mark.slow
 def test_expert_and_dwa_rows_are_unchanged(expected: dict) -> None:
     rows = golden.metric_rows()
     assert len(rows) == len(expected["rows"])

@@ -117,6 +117,7 @@ def test_unknown_method_and_missing_checkpoint_are_clear_errors(tmp_path):
     assert isinstance(resolve_methods(["expert"], tmp_path)[0], MethodSpec)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args,match", [
     (["--methods", "[expert, nosuch]"], "unknown method 'nosuch'"),
     (["--methods", "[full]"], "no finished policy checkpoint"),

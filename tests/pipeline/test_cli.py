@@ -170,6 +170,7 @@ def test_verb_help_lists_keys(capsys: pytest.CaptureFixture[str]) -> None:
     assert "default, smoke" in out  # profiles
 
 
+@pytest.mark.slow
 def test_top_level_help_lists_verbs(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["--help"]) == 0
     out = capsys.readouterr().out
@@ -205,6 +206,7 @@ def test_register_verb(monkeypatch: pytest.MonkeyPatch) -> None:
         cli.register_verb("bad", "no_colon")
 
 
+@pytest.mark.slow
 def test_python_dash_m_pipeline() -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "pipeline", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60

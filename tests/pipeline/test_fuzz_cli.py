@@ -143,6 +143,7 @@ def _numeric_keys(stage) -> list[tuple[str, str]]:
             if tname in ("float", "int", "float | None", "int | None")]
 
 
+@pytest.mark.slow
 def test_fuzz_bad_command_line_values_and_config_files(tmp_path, capsys, rng):
     from pipeline.cli import resolve_verb
 

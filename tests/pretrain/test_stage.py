@@ -139,6 +139,7 @@ def test_grid_that_does_not_fit_the_cameras(tmp_path: Path, tiny_dataset) -> Non
     assert not (data / "checkpoints" / "bev").exists()
 
 
+@pytest.mark.slow
 def test_cli_bad_grid_is_one_line_and_writes_nothing(tmp_path: Path, tiny_dataset) -> None:
     data = _data_dir(tmp_path, tiny_dataset.root)
     r = subprocess.run([sys.executable, "-m", "pipeline", "pretrain", "--profile", "smoke", "--data-dir", str(data),

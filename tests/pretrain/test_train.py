@@ -51,6 +51,7 @@ def test_store_matches_dataset(tiny_store, tiny_dataset) -> None:
     assert not store.valid[-1, 2:].any() and store.valid[0].all()
 
 
+@pytest.mark.slow
 def test_tiny_overfit_reaches_high_iou(tiny_store, tmp_path: Path) -> None:
     """40 steps on one episode (with people in view) take it from chance to a high IoU on that episode."""
     torch.set_num_threads(2)

@@ -133,6 +133,88 @@ def test_stock_lerobot_loads_export_and_frames_match_the_recording(tiny_dataset)
         assert bool(item["next.done"])  # the last frame of each episode ends it
 
 
+LEROBOT_INDEX_FEATURES = ("timestamp", "frame_index", "episode_index", "index", "task_index")
+
+
+def _documented_reward_terms() -> list[str]:
+    """The column order of ``next.reward_terms`` as the feature table in ``recorder.features``' docstring states it."""
+    import recorder.features
+
+    rows = [line for line in recorder.features.__doc__.splitlines() if line.startswith("next.reward_terms ")]
+    assert len(rows) == 1, rows
+    return [t.strip() for t in rows[0].split("float32", 1)[1].split(",")]
+
+
+def test_every_exported_feature_reads_back_as_in_the_source_mcap(tmp_path, tiny_mcap_dir, frame_with):
+    """Exports a re-logged tiny episode and compares every feature of ``meta/info.json``, read back through stock
+    lerobot, with the frames of the source MCAP: nothing exported may go unchecked (the key sets must match)."""
+    import torch
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from recorder.mcap.reader import read_episode
+    from recorder.mcap.writer import EpisodeWriter
+
+    terms_order = _documented_reward_terms()
+    assert terms_order == ["success", "collision", "near", "progress", "spin", "total"]
+    # the recorded episode 0 with a labeller's command on every frame (-> action.teacher) and every reward term
+    # distinct and non-zero: a real 2 s episode has success = collision = spin = 0 throughout, so a swap of two of
+    # those columns would go unseen. Frame 0 keeps only one term: the missing ones are exported as 0.
+    meta, occ, frames = read_episode(tiny_mcap_dir / "ep_000.mcap")
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    with EpisodeWriter(raw / "ep_000.mcap", meta, occ) as w:
+        for f, fr in enumerate(frames):
+            terms = {t: (j + 1) * (-1) ** j + f / 64 for j, t in enumerate(terms_order)} if f else {"near": -0.25}
+            w.add(frame_with(fr, reward_terms=terms, label=np.array([0.01 * f, -0.02 * f - 0.5], np.float32)))
+    out = tmp_path / "ds"
+    export_run(raw, out, "icrowdnav/every", progress=False)
+
+    info = json.loads((out / "meta/info.json").read_text())
+    features = info["features"]
+    assert features["next.reward_terms"]["names"] == terms_order
+    assert json.loads((out / ICROWDNAV_META).read_text())["spec"]["reward_terms"] == terms_order
+    meta, occ, frames = read_episode(raw / "ep_000.mcap")  # the source, as the export read it
+    frames = list(frames)
+    assert {tuple(fr.reward_terms) for fr in frames[1:]} == {tuple(terms_order)} and frames[0].reward_terms
+    spec = ExportSpec.from_meta(meta)
+    ds = LeRobotDataset("icrowdnav/every", root=out, video_backend="pyav")
+    assert len(ds) == len(frames) == 21
+    checked: set[str] = set()
+    for f, fr in enumerate(frames):
+        item = ds[f]
+        state, kp, intent = _expected_privileged(fr, spec.n_max)
+        want = {
+            "observation.state": fr.state, "observation.odom": fr.odom, "observation.goal": fr.goal_xy,
+            "observation.poses": fr.poses, "observation.pose_mask": fr.pose_mask,
+            "observation.pose_conf": fr.pose_conf, "privileged.pose_track": fr.pose_track,
+            "action": fr.action, "action.teacher": fr.label,
+            "next.reward": np.float32(fr.reward),
+            "next.reward_terms": np.array([fr.reward_terms.get(t, 0.0) for t in features["next.reward_terms"]["names"]],
+                                          np.float32),
+            "next.done": np.bool_(fr.done), "privileged.d_o": np.float32(fr.d_o),
+            "privileged.ped_state": state, "privileged.ped_keypoints": kp, "privileged.ped_intent": intent,
+            "privileged.local_occupancy": local_occupancy(occ, meta.occupancy_origin_xy, meta.occupancy_resolution_m,
+                                                          fr.odom, spec.local_map),
+            "timestamp": np.float32(f / 10), "frame_index": np.int64(f), "episode_index": np.int64(0),
+            "index": np.int64(f), "task_index": np.int64(0),
+        }
+        for key, value in want.items():
+            got = item[key].numpy()
+            value = np.asarray(value)
+            assert got.dtype == value.dtype, (key, got.dtype, value.dtype)
+            np.testing.assert_array_equal(got.reshape(value.shape), value, err_msg=f"{key} at frame {f}")
+        for cam in ("left", "right"):
+            depth = item[f"observation.depth.{cam}"].numpy()
+            assert depth.dtype == np.float32 and depth.shape == (48, 64)
+            np.testing.assert_allclose(depth, fr.depth[cam], rtol=0, atol=0.5e-3 + 1e-6)  # stored as whole mm
+            img = item[f"observation.images.{cam}"]
+            assert img.shape == (3, 48, 64) and img.dtype == torch.float32
+            mad = np.abs(img.numpy().transpose(1, 2, 0) * 255.0 - fr.rgb[cam].astype(np.float32)).mean()
+            assert mad < 8.0, f"{cam} frame {f}: mean abs diff {mad:.2f} of 255"  # lossy AV1
+        checked |= set(want) | {f"observation.{kind}.{cam}" for kind in ("depth", "images") for cam in ("left", "right")}
+    assert set(features) == checked, f"exported but never read back: {sorted(set(features) - checked)}"
+
+
 def test_dataloader_iterates_batches_of_four(tiny_dataset):
     import torch
     from lerobot.datasets.lerobot_dataset import LeRobotDataset

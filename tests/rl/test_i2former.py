@@ -61,6 +61,46 @@ def test_people_change_the_output():
     assert not torch.allclose(m(poses, mask, state), m(poses, empty, state), atol=1e-4)
 
 
+def test_absent_people_padded_and_masked_equal_removing_them():
+    torch.manual_seed(0)
+    m = I2Former(I2FormerConfig(dim=32, heads=4)).eval()
+    poses, mask, state = _batch(b=3, k=6, seed=5)
+    mask[:, -2:] = True  # everyone present, then a different set of people absent in each sample
+    mask[:, :, 0] = True
+    absent = [[1, 4], [0, 2, 5], []]
+    for i, gone in enumerate(absent):
+        mask[i, gone] = False
+    garbage = torch.randn(poses.shape, generator=torch.Generator().manual_seed(9)) * 50
+    padded = torch.where(mask.any(-1)[..., None, None], poses, garbage)  # absent slots hold garbage, not zeros
+    with torch.no_grad():
+        z = m(padded, mask, state)
+        z_zeros = m(poses * mask.any(-1)[..., None, None], mask, state)
+        for i, gone in enumerate(absent):
+            keep = [k for k in range(6) if k not in gone]
+            z_removed = m(poses[i:i + 1, keep], mask[i:i + 1, keep], state[i:i + 1])
+            assert torch.allclose(z[i:i + 1], z_removed, atol=1e-5), (i, (z[i] - z_removed[0]).abs().max())
+        assert torch.allclose(z, z_zeros, atol=1e-5)  # what sits in an absent slot does not matter
+        # ... because of the mask: the same garbage flagged as present does change the output
+        shown = mask.clone()
+        shown[0, 1] = True
+        assert (m(padded, shown, state)[0] - z[0]).abs().max() > 1e-3
+
+
+def test_joint_order_matters_through_the_joint_type_embedding():
+    torch.manual_seed(0)
+    m = I2Former(I2FormerConfig(dim=32, heads=4)).eval()
+    poses, mask, state = _batch(b=2, seed=7)
+    perm = torch.randperm(17, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        z = m(poses, mask, state)
+        z_perm = m(poses[:, :, perm], mask[:, :, perm], state)
+        # a wrist listed as a knee is a different pose: the output moves
+        assert (z - z_perm).abs().max() > 1e-3, (z - z_perm).abs().max()
+        # ... and only through the joint-type embedding: permuting it along with the joints gives z back
+        m.joint_embedding.copy_(m.joint_embedding[perm])
+        assert torch.allclose(m(poses[:, :, perm], mask[:, :, perm], state), z, atol=1e-5)
+
+
 def test_bad_sizes_are_config_errors():
     with pytest.raises(ConfigError, match="divisible"):
         I2Former(I2FormerConfig(dim=30, heads=4))

@@ -63,6 +63,7 @@ def _success_rate(policy, sim_cfg, seeds):
     return wins / len(seeds)
 
 
+@pytest.mark.slow
 def test_teacher_ppo_learns_a_trivial_scene(tmp_path):
     """PPO from scratch (no warm start) learns to reach a nearby goal in an empty room within 6k steps.
 
@@ -286,6 +287,7 @@ def test_encoder_camera_mismatch_is_one_clear_error(tmp_path, teacher_dir):
         run(_train_cfg(tmp_path, "full"))
 
 
+@pytest.mark.slow
 def test_unknown_variant_cli_is_one_line_and_writes_nothing(tmp_path):
     r = subprocess.run([sys.executable, "-m", "pipeline", "train", "--profile", "smoke", "--data-dir", str(tmp_path),
                         "--variant", "no_everything"], capture_output=True, text=True, cwd=ROOT)

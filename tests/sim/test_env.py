@@ -279,6 +279,18 @@ def test_expert_reaches_the_goal_and_the_episode_ends_in_success():
     assert total > 20.0
 
 
+def test_goal_radius_not_robot_radius_decides_success():
+    env = state_env(scene="hallway", density=0.0, config=SimConfig(goal_radius_m=0.6))
+    assert env.cfg.robot.radius_m == 0.3  # != the goal radius, so a swap of the two in the reward call shows
+    env.reset(seed=0)
+    toward_start = (env.start - env.goal) / np.linalg.norm(env.start - env.goal)
+    x, y = env.goal + 0.45 * toward_start  # within the goal radius, outside the robot's own radius
+    env.robot = np.array([x, y, math.atan2(-toward_start[1], -toward_start[0])])
+    obs, reward, terminated, truncated, info = env.step(env.encode_command(0.0, 0.0))
+    assert info["d_goal"] == pytest.approx(0.45, abs=1e-6)
+    assert terminated and info["outcome"] == "success" and info["reward_terms"]["success"] == 20.0
+
+
 def test_truncated_at_max_episode_s():
     env = state_env(density=0.0, max_episode_s=1.0)
     env.reset(seed=0)

@@ -84,3 +84,19 @@ def test_config_weights_are_used():
     assert terms(2.0, 2.1, 1.0, cfg=cfg)["near"] == pytest.approx(2.0 * (1.0 - 1.5))
     assert terms(2.0, 2.5, 1.6, cfg=cfg)["progress"] == pytest.approx(0.5)
     assert terms(2.0, 2.5, 1.6, 0.75, cfg=cfg)["spin"] == pytest.approx(-0.75)
+
+
+@pytest.mark.parametrize("robot_r,goal_r", [(0.3, 0.6), (0.6, 0.3)])
+def test_goal_radius_and_robot_radius_are_not_interchangeable(robot_r, goal_r):
+    """Every other test uses robot radius = goal radius; here they differ, and each must gate its own case."""
+    # 0.45 m from the goal: success only when the goal radius (not the robot's) reaches that far
+    t = reward_terms(CFG, 0.45, 0.6, 2.0, 0.0, robot_r, goal_r)
+    assert t["success"] == (20.0 if goal_r > 0.45 else 0.0), t
+    if goal_r < 0.45:
+        assert t["progress"] == pytest.approx(3.2 * 0.15) and t["total"] == pytest.approx(0.48)
+    # a surface 0.45 m from the robot centre: a collision only when the robot radius reaches that far
+    t = reward_terms(CFG, 3.0, 3.1, 0.45, 0.0, robot_r, goal_r)
+    if robot_r > 0.45:
+        assert t["collision"] == -20.0 and t["near"] == 0.0 and t["total"] == -20.0, t
+    else:
+        assert t["collision"] == 0.0 and t["near"] == pytest.approx(0.5 * (0.45 - 0.9)), t

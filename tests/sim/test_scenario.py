@@ -69,7 +69,7 @@ def _bad(name: str, edit) -> str:
     (lambda d: d.update(goal=[7.5, 8.0], start=[3.0, 7.0]), r"'start'.*free start"),
     (lambda d: d["pedestrians"][0]["trigger"].update(point=[7.5, 9.0], robot_within_m=1.0), r"could never fire"),
     (lambda d: d["pedestrians"][0].update(speed_mps=float("nan")), r"speed_mps.*finite"),
-    (lambda d: d.update(start=[float("inf"), 1.5]), r"'start'.*finite"),
+    (lambda d: d.update(start=[float("inf"), 1.5]), r"'start\[0\]'.*finite"),
     (lambda d: d["pedestrians"][0]["trigger"].update(time_s=2.0), r"exactly one of time_s / robot_within_m"),
     (lambda d: d.update(scene="corner"), r"exactly one of 'scene'.*both"),
     (lambda d: d.update(pedestrians=[]), r"pedestrians.*1 to 20"),

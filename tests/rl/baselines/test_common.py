@@ -154,6 +154,7 @@ def test_report_states_each_methods_training_budget(tmp_path):
     assert "| DRL-VO | expert_episodes 200, ppo_steps 50000 | 612 |" in md
 
 
+@pytest.mark.slow
 def test_train_cli_vint_without_a_dataset_is_one_clear_error(tmp_path):
     import subprocess
     import sys

@@ -13,6 +13,9 @@ from pipeline.core.errors import CorruptArtifactError
 from rl.baselines import drl_vo
 from tests.rl.baselines.drl_vo.helpers import ROOT, drive
 
+# every test here needs the package's `trained` fixture (a training run, 20-35 s on 2 cores)
+pytestmark = pytest.mark.slow
+
 _DRIVE_SCRIPT = """
 import json, sys
 import torch

@@ -1,6 +1,11 @@
 """Training DRL-VO: it learns a trivial scene (warm start + PPO) and reports its budget."""
 
+import pytest
+
 from tests.rl.baselines.drl_vo.helpers import success_rate
+
+# every test here needs the package's `trained` fixture (a training run, 20-35 s on 2 cores)
+pytestmark = pytest.mark.slow
 
 
 def test_learns_a_trivial_scene(trained):

@@ -13,6 +13,9 @@ from sim.env import CrowdNavEnv
 from sim.wrappers import with_privileges
 from tests.rl.baselines.sarl_om.helpers import ROOT
 
+# every test here needs the package's `trained` fixture (a training run, 20-35 s on 2 cores)
+pytestmark = pytest.mark.slow
+
 
 def test_driver_in_a_fresh_process_reproduces_the_actions(trained, tmp_path):
     ckpt, sim_cfg, _, _ = trained

@@ -4,10 +4,14 @@ import json
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from rl.baselines import sarl_om as S
 from tests.rl.baselines.sarl_om.helpers import make_scene, success_rate
+
+# every test here needs the package's `trained` fixture (a training run, 20-35 s on 2 cores)
+pytestmark = pytest.mark.slow
 
 
 def test_learns_a_trivial_scene(trained):

@@ -42,6 +42,7 @@ def test_vint_controller() -> None:
     assert vint_controller(np.array([-0.5, 0.0, 1, 0]), 0.2, 1.0, 2.0)[0] == 0.0  # never backwards
 
 
+@pytest.mark.slow
 def test_checkpoint_drives_the_same_episode_in_a_fresh_process(vint_ckpt: Path) -> None:
     here = np.array(rollout(str(vint_ckpt)))
     script = ("import json, sys; from tests.rl.baselines.vint.helpers import rollout; "
