@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from pipeline.core.errors import ConfigError
-from rl.i2former import mlp
+from pretrain.i2former import mlp
 from sim.robot import RobotConfig, action_grid
 
 LOOKAHEAD_HORIZON_S = 2.0  # rollout horizon of the lookahead layer

@@ -34,7 +34,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
 from pipeline.core.errors import ConfigError
-from rl.i2former import AttnPool, I2Former, I2FormerConfig, mlp, normalise_state
+from pretrain.i2former import AttnPool, I2Former, I2FormerConfig, mlp, normalise_state
 from rl.lookahead import LookaheadHead
 
 VARIANTS = ("full", "no_i2", "no_bev")

@@ -247,7 +247,7 @@ def _check_writable(directory: Path) -> None:
     while not existing.exists() and existing.parent != existing:
         existing = existing.parent
     if not existing.is_dir():
-        raise ConfigError(f"data directory not writable: cannot create {directory} ({existing} is not a directory)")
+        raise ConfigError(f"data directory not writable: cannot create {directory} (Not a directory: {existing})")
     directory = existing
     if not os.access(directory, os.W_OK | os.X_OK):
         raise ConfigError(f"directory not writable: {directory} (expected write permission for this user)")

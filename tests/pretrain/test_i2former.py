@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from pipeline.core.errors import ConfigError
-from rl.i2former import I2Former, I2FormerConfig
+from pretrain.i2former import I2Former, I2FormerConfig
 from rl.networks import StudentExtractor, TeacherExtractor, variant_keys
 from rl.policy import N_ACTIONS, build_policy
 
