@@ -315,6 +315,36 @@ def errors(pred: np.ndarray, s: Samples) -> dict[str, dict[str, float]]:
                 "fde_m": float(err[m, -1].mean()) if m.any() else float("nan")} for g, m in groups.items()}
 
 
+HEAD_JOINTS = (0, 1, 2, 3, 4)  # COCO-17: nose, eyes, ears
+NOSE, LEFT_EAR, RIGHT_EAR = 0, 3, 4
+
+
+def _head_yaw(kp: np.ndarray) -> np.ndarray:
+    """Facing direction of a head from its keypoints: the nose seen from the midpoint of the ears (rad)."""
+    v = kp[:, NOSE, :2] - (kp[:, LEFT_EAR, :2] + kp[:, RIGHT_EAR, :2]) / 2
+    return np.arctan2(v[:, 1], v[:, 0])
+
+
+def detection_stats(s: Samples) -> dict[str, float]:
+    """How much of the pose cue survives detection: the share of joints (and head joints) detected, the error of a
+    detected joint against the true one (m), and the error of the head's facing direction read from detected nose
+    and ears against the same from the true keypoints (degrees) — the cue a turn is announced with."""
+    m = s.kp_mask
+    err = np.linalg.norm(s.kp_det - s.kp_true, axis=-1)
+    head = np.array(HEAD_JOINTS)
+    ok = m[:, NOSE] & m[:, LEFT_EAR] & m[:, RIGHT_EAR]
+    yaw_err = np.degrees(np.abs(_wrap(_head_yaw(s.kp_det) - _head_yaw(s.kp_true))))[ok]
+
+    def q(a: np.ndarray, p: float) -> float:
+        return float(np.percentile(a, p)) if a.size else float("nan")
+
+    return {"joints_detected": float(m.mean()), "head_joints_detected": float(m[:, head].mean()),
+            "joint_error_m_median": q(err[m], 50), "joint_error_m_p90": q(err[m], 90),
+            "head_joint_error_m_median": q(err[:, head][m[:, head]], 50),
+            "nose_and_ears_detected": float(ok.mean()),
+            "head_yaw_error_deg_median": q(yaw_err, 50), "head_yaw_error_deg_p90": q(yaw_err, 90)}
+
+
 def run_probe(cfg: ProbeConfig) -> dict:
     """Collects the samples, trains the learned probes on the training episodes, evaluates every model on the
     validation episodes, and writes ``probe.json``, ``probe.md`` and ``probe.png`` into ``cfg.out``."""
@@ -348,7 +378,7 @@ def run_probe(cfg: ProbeConfig) -> dict:
               "episodes": {"train": len(train_eps), "val": len(val_eps)},
               "samples": {"train": len(train), "val": len(val), "val_turns": int(val.turn.sum()),
                           "val_detected_joint_fraction": float(val.kp_mask.mean())},
-              "results": results, "seconds": round(time.monotonic() - t0, 1)}
+              "detection": detection_stats(val), "results": results, "seconds": round(time.monotonic() - t0, 1)}
     cfg.out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(cfg.out / "probe.json", report)
     atomic_write_text(cfg.out / "probe.md", markdown(report))
@@ -364,6 +394,9 @@ def markdown(report: dict) -> str:
     lines = [head, "|" + "---|" * (len(groups) + 1)]
     for name, r in res.items():
         lines.append(f"| {name} | " + " | ".join(f"{r[g]['fde_m']:.3f} ({r[g]['ade_m']:.3f})" for g in groups) + " |")
+    if "detection" in report:
+        lines += ["", "detection (validation samples): " + ", ".join(f"{k} {v:.3g}" for k, v in
+                                                                  report["detection"].items())]
     return "\n".join(lines) + "\n"
 
 

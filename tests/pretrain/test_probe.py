@@ -125,6 +125,8 @@ def test_run_probe_writes_its_report(monkeypatch, tmp_path):
         assert r["all"]["n"] == rep["samples"]["val"] and math.isfinite(r["all"]["fde_m"])
     assert {p.name for p in cfg.out.iterdir()} == {"probe.json", "probe.md", "probe.png"}
     assert "pose_detected" in (cfg.out / "probe.md").read_text()
+    det = rep["detection"]  # detected = true keypoints here: no joint error, no head-yaw error
+    assert det["joints_detected"] == 1.0 and det["joint_error_m_median"] == 0.0 and det["head_yaw_error_deg_p90"] == 0.0
 
 
 def test_a_dataset_without_long_tracks_is_a_named_error(monkeypatch, tmp_path):
