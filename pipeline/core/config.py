@@ -594,27 +594,29 @@ def apply_dict(cfg: T, data: Mapping[str, Any], source: str) -> T:
     return _overlay(decoded, cfg, data, "")
 
 
-def _check_finite(value: Any, key: str) -> None:
-    """Every float of a config, a scene or a scenario file must be finite: NaN passes every range comparison
-    (``not lo <= nan <= hi`` is the only safe spelling) and inf silently switches limits off, so they are refused
-    here, once for every field, before any ``validate()`` compares them. Floats inside lists, tuples and dict
-    values are checked too; nested dataclasses are checked by their own visit."""
+def _visit(value: Any, key: str) -> None:
+    """One field value of a config, a scene or a scenario file: a float must be finite (NaN passes every range
+    comparison — ``not lo <= nan <= hi`` is the only safe spelling — and inf silently switches limits off, so they
+    are refused here, once for every field, before any ``validate()`` compares them); lists, tuples and dict values
+    are walked; a dataclass is validated (:func:`validate_tree`)."""
     if isinstance(value, float):
         if not math.isfinite(value):
             raise ConfigError(f"config key '{key}': expected a finite number, got {value!r}")
     elif isinstance(value, list | tuple):
         for i, item in enumerate(value):
-            _check_finite(item, f"{key}[{i}]")
+            _visit(item, f"{key}[{i}]")
     elif isinstance(value, dict):
         for k, item in value.items():
-            _check_finite(item, f"{key}.{k}")
+            _visit(item, f"{key}.{k}")
+    else:
+        validate_tree(value, key)
 
 
 def validate_tree(cfg: Any, prefix: str = "") -> None:
     """Calls ``validate()`` on every dataclass in ``cfg``, depth-first, children before their parent.
 
-    Every float field (and every float inside a list, tuple or dict field) is first checked finite
-    (:func:`_check_finite`), so a section's ``validate()`` only ever compares finite numbers.
+    Every float field (and every float inside a list, tuple or dict field) is checked finite (:func:`_visit`) before
+    the section's own ``validate()`` runs, so it only ever compares finite numbers.
 
     Dataclasses inside lists, tuples and dict values are visited too. A ``ValueError`` raised by a
     ``validate()`` is turned into a :class:`ConfigError` naming the section (a :class:`FieldValueError`: naming
@@ -630,17 +632,7 @@ def validate_tree(cfg: Any, prefix: str = "") -> None:
     if not dataclasses.is_dataclass(cfg) or isinstance(cfg, type):
         return
     for f in dataclasses.fields(cfg):
-        value = getattr(cfg, f.name)
-        key = _join(prefix, f.name)
-        _check_finite(value, key)
-        if isinstance(value, list | tuple):
-            for i, item in enumerate(value):
-                validate_tree(item, f"{key}[{i}]")
-        elif isinstance(value, dict):
-            for k, item in value.items():
-                validate_tree(item, f"{key}.{k}")
-        else:
-            validate_tree(value, key)
+        _visit(getattr(cfg, f.name), _join(prefix, f.name))
     validate = getattr(cfg, "validate", None)
     if callable(validate):
         try:
