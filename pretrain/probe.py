@@ -40,7 +40,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipeline.core.artifacts import atomic_write_json, atomic_write_text
+from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.errors import ConfigError, ICrowdNavError, InputMissingError
 from pipeline.core.keys import (
     OBS_ODOM,
@@ -94,7 +94,8 @@ class Samples:
 
     ``hist`` H x 2 past positions, ``target`` 2 x 2 displacements at :data:`HORIZONS_S`, ``kp_det`` / ``kp_true``
     17 x 3 keypoints (``kp_mask`` the detected joints) — all in the pedestrian's frame; ``speed`` m/s, ``head`` the
-    head yaw relative to the walking direction (rad), ``turn`` / ``lead_s`` the turn event and how long before it.
+    head yaw relative to the walking direction (rad), ``turn`` / ``lead_s`` the turn event and how long before it,
+    ``view`` 0 when the pedestrian faces the robot, π when it turns its back to it.
     """
 
     hist: np.ndarray
@@ -107,6 +108,7 @@ class Samples:
     turn: np.ndarray
     lead_s: np.ndarray
     episode: np.ndarray
+    view: np.ndarray  # angle between where the head faces and the robot, seen from the pedestrian (rad, 0..π)
 
     def take(self, idx: np.ndarray) -> Samples:
         return Samples(**{k: v[idx] for k, v in self.__dict__.items()})
@@ -213,6 +215,8 @@ def episode_samples(ep: dict[str, np.ndarray], fps: float, episode: int) -> Samp
     kp_det_l = np.where(mask[..., None], local_kp(det_world, kp_det[..., 2]), 0.0)
     kp_true_l = local_kp(kp_true[..., :2], kp_true[..., 2])
     head = _wrap(state[tt, nn_, 6] - heading)
+    to_robot = np.arctan2(odom[:, 1] - p0[:, 1], odom[:, 0] - p0[:, 0])
+    view = np.abs(_wrap(state[tt, nn_, 6] - to_robot))
     # turn events: the walking direction at +1.0 s differs by >= TURN_DEG; lead = until it crosses half the turn
     ang = np.arctan2(vel[:, now:, 1], vel[:, now:, 0])
     spd = np.hypot(vel[:, now:, 0], vel[:, now:, 1])
@@ -224,7 +228,7 @@ def episode_samples(ep: dict[str, np.ndarray], fps: float, episode: int) -> Samp
     lead = np.where(turn, first / fps, np.nan)
     return Samples(hist.astype(np.float32), target.astype(np.float32), kp_det_l, mask, kp_true_l,
                    speed.astype(np.float32), head.astype(np.float32), turn, lead.astype(np.float32),
-                   np.full(len(tt), episode))
+                   np.full(len(tt), episode), view.astype(np.float32))
 
 
 def collect(root: Path) -> tuple[Samples, float]:
@@ -333,16 +337,21 @@ def detection_stats(s: Samples) -> dict[str, float]:
     err = np.linalg.norm(s.kp_det - s.kp_true, axis=-1)
     head = np.array(HEAD_JOINTS)
     ok = m[:, NOSE] & m[:, LEFT_EAR] & m[:, RIGHT_EAR]
-    yaw_err = np.degrees(np.abs(_wrap(_head_yaw(s.kp_det) - _head_yaw(s.kp_true))))[ok]
+    yaw_err = np.degrees(np.abs(_wrap(_head_yaw(s.kp_det) - _head_yaw(s.kp_true))))
 
     def q(a: np.ndarray, p: float) -> float:
         return float(np.percentile(a, p)) if a.size else float("nan")
 
-    return {"joints_detected": float(m.mean()), "head_joints_detected": float(m[:, head].mean()),
-            "joint_error_m_median": q(err[m], 50), "joint_error_m_p90": q(err[m], 90),
-            "head_joint_error_m_median": q(err[:, head][m[:, head]], 50),
-            "nose_and_ears_detected": float(ok.mean()),
-            "head_yaw_error_deg_median": q(yaw_err, 50), "head_yaw_error_deg_p90": q(yaw_err, 90)}
+    out = {"joints_detected": float(m.mean()), "head_joints_detected": float(m[:, head].mean()),
+           "joint_error_m_median": q(err[m], 50), "joint_error_m_p90": q(err[m], 90),
+           "head_joint_error_m_median": q(err[:, head][m[:, head]], 50),
+           "nose_and_ears_detected": float(ok.mean()),
+           "head_yaw_error_deg_median": q(yaw_err[ok], 50), "head_yaw_error_deg_p90": q(yaw_err[ok], 90)}
+    view = np.degrees(s.view)  # by where the head faces: the robot (< 60°), sideways, away from it (> 120°)
+    for name, sel in (("facing", view < 60), ("sideways", (view >= 60) & (view <= 120)), ("away", view > 120)):
+        out[f"nose_and_ears_detected_{name}"] = float(ok[sel].mean()) if sel.any() else float("nan")
+        out[f"head_yaw_error_deg_median_{name}"] = q(yaw_err[ok & sel], 50)
+    return out
 
 
 def run_probe(cfg: ProbeConfig) -> dict:
@@ -380,7 +389,7 @@ def run_probe(cfg: ProbeConfig) -> dict:
                           "val_detected_joint_fraction": float(val.kp_mask.mean())},
               "detection": detection_stats(val), "results": results, "seconds": round(time.monotonic() - t0, 1)}
     cfg.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(cfg.out / "probe.json", report)
+    atomic_write_json(cfg.out / "probe.json", json_safe(report))  # NaN (an empty group) -> null
     atomic_write_text(cfg.out / "probe.md", markdown(report))
     figure(report, cfg.out / "probe.png")
     return report

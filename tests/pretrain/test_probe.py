@@ -58,6 +58,10 @@ def test_straight_walk_constant_velocity_is_exact_and_no_turn():
     err = errors(probe.predict(None, s), s)
     assert err["all"]["fde_m"] < 1e-4 and err["turns"]["n"] == 0
     np.testing.assert_allclose(s.hist[:, -1], [[-0.1 * speed, 0.0]] * len(s), atol=1e-4)
+    # the robot stands at (1, -2): the view angle is between the head's direction and the bearing to it
+    bearing = np.arctan2(-2.0 - xy[8:-10, 1], 1.0 - xy[8:-10, 0])
+    np.testing.assert_allclose(s.view, np.abs((math.atan2(0.5, 1.0) - bearing + np.pi) % (2 * np.pi) - np.pi),
+                               atol=1e-4)
 
 
 def test_detected_keypoints_are_moved_into_the_pedestrian_frame():
@@ -94,7 +98,8 @@ def cue_samples(n: int) -> Samples:
     kp[:, 0, 1] += 0.3 * side  # the "nose" points where the person will go
     return Samples(hist.astype(np.float32), target.astype(np.float32), kp, np.ones((n, 17), bool), kp, speed,
                    (0.6 * side).astype(np.float32), side != 0,
-                   np.where(side != 0, 0.5, np.nan).astype(np.float32), np.repeat(np.arange(30), n // 30))
+                   np.where(side != 0, 0.5, np.nan).astype(np.float32), np.repeat(np.arange(30), n // 30),
+                   np.zeros(n, np.float32))
 
 
 @pytest.mark.slow
