@@ -3,7 +3,8 @@
 The paper runs YOLO-pose on each RGB image and lifts the 2D keypoints to 3D with the aligned depth image. Our
 default :class:`OracleDetector` replaces only the 2D network: it projects the true COCO-17 keypoints into each
 camera, keeps those inside the image and not hidden (a depth-buffer test: the rendered surface at that pixel
-must not lie more than ``occlusion_tol_m`` in front of the joint), adds pixel noise, a confidence and random
+must not lie more than ``occlusion_tol_m`` in front of the joint — ``face_occlusion_tol_m`` for the nose and eyes,
+so a face turned away is hidden by its own head), adds pixel noise, a confidence and random
 misses, and then lifts the surviving 2D detections with the *measured* depth exactly like the paper's pipeline
 (median of the valid depths in a 3 × 3 window, back-projected with the intrinsics, moved to the robot frame
 with the extrinsics). The result is what the I²Former consumes: at most ``max_people`` people, nearest first,
@@ -24,6 +25,9 @@ from sim.cameras import CameraSpec, backproject, project, world_to_camera
 from sim.humans import N_KEYPOINTS
 
 
+FACE_JOINTS = (0, 1, 2)  # COCO-17 nose, left eye, right eye: on the head's front surface
+
+
 @dataclass
 class DetectorConfig:
     """Oracle detector parameters."""
@@ -31,6 +35,10 @@ class DetectorConfig:
     max_people: int = 6  # people kept, nearest first
     pixel_noise_px_at_640: float = 2.0  # keypoint pixel noise (std) at 640 px width, scaled with the width
     occlusion_tol_m: float = 0.25  # a joint is hidden if the depth image is this much nearer than the joint
+    face_occlusion_tol_m: float = 0.1  # the same for the front-face joints (nose, eyes), which lie on the head's
+    #   front surface: less than half a head's depth (2 × 0.062 × height ≈ 0.22 m), so a face turned away from the
+    #   camera is hidden by the back of its own head (with 0.25 m, 67 % of such noses passed; measured in
+    #   docs/notes/2026-11-intention-probe.md)
     min_joints: int = 4  # a person is detected when at least this many joints are
     conf_threshold: float = 0.3  # joints with a lower confidence are dropped
     miss_prob: float = 0.03  # probability that a visible joint is missed anyway
@@ -40,9 +48,9 @@ class DetectorConfig:
             raise ConfigError(f"detector.max_people: expected 1..32, got {self.max_people}")
         if not 1 <= self.min_joints <= N_KEYPOINTS:
             raise ConfigError(f"detector.min_joints: expected 1..17, got {self.min_joints}")
-        if self.pixel_noise_px_at_640 < 0 or self.occlusion_tol_m <= 0:
-            raise ConfigError("detector: pixel noise must be >= 0 and occlusion tolerance > 0, got "
-                              f"{self.pixel_noise_px_at_640}, {self.occlusion_tol_m}")
+        if self.pixel_noise_px_at_640 < 0 or self.occlusion_tol_m <= 0 or self.face_occlusion_tol_m <= 0:
+            raise ConfigError("detector: pixel noise must be >= 0 and occlusion tolerances > 0, got "
+                              f"{self.pixel_noise_px_at_640}, {self.occlusion_tol_m}, {self.face_occlusion_tol_m}")
 
 
 @dataclass
@@ -108,7 +116,9 @@ class OracleDetector:
         col = np.clip(uv[..., 0].astype(int), 0, spec.width_px - 1)
         row = np.clip(uv[..., 1].astype(int), 0, spec.height_px - 1)
         d = frame.depth[row, col]
-        visible = inside & (d > 0) & (z - d < self.cfg.occlusion_tol_m)
+        tol = np.full(N_KEYPOINTS, self.cfg.occlusion_tol_m)
+        tol[list(FACE_JOINTS)] = self.cfg.face_occlusion_tol_m
+        visible = inside & (d > 0) & (z - d < tol)
         return uv, z, visible
 
     def detect(self, frames: list[CameraFrame], privileged: dict[str, np.ndarray],

@@ -347,3 +347,21 @@ def test_lifted_keypoints_are_close_to_the_truth(crowded_detections):
     assert len(errors) > 100
     assert np.median(errors) < 0.15
     assert np.mean(errors < 0.25) > 0.9
+
+
+@pytest.mark.parametrize("facing", [True, False], ids=["facing-the-camera", "back-to-the-camera"])
+def test_a_face_turned_away_is_hidden_by_its_own_head(one_person_env, facing):
+    """Nose and eyes lie on the head's front surface: seen from behind, the back of the head is ~0.2 m in front of
+    them, within the body joints' 0.25 m tolerance; ``face_occlusion_tol_m`` hides them (and keeps them seen from
+    the front)."""
+    env = one_person_env
+    robot = np.array([2.0, 6.0, 0.0])
+    yaw_c = math.radians(35.0)
+    place(env, robot, robot[:2] + 3.0 * np.array([math.cos(yaw_c), math.sin(yaw_c)]),
+          yaw_c + math.pi if facing else yaw_c)
+    frames = frames_of(env, env.render_cameras())
+    face = [COCO_KEYPOINTS.index(n) for n in ("nose", "left_eye", "right_eye")]
+    _, _, vis = OracleDetector(DetectorConfig()).visible_2d(frames[0], env.keypoints_world())
+    assert vis[0, face].all() == facing and vis[0, face].any() == facing
+    _, _, loose = OracleDetector(DetectorConfig(face_occlusion_tol_m=0.25)).visible_2d(frames[0], env.keypoints_world())
+    assert loose[0, face].sum() >= 1  # with the body joints' tolerance the hidden face would pass
