@@ -24,7 +24,6 @@ from pipeline.core.errors import ConfigError
 from sim.cameras import CameraSpec, backproject, project, world_to_camera
 from sim.humans import N_KEYPOINTS
 
-
 FACE_JOINTS = (0, 1, 2)  # COCO-17 nose, left eye, right eye: on the head's front surface
 
 
