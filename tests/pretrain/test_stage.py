@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -139,15 +137,15 @@ def test_grid_that_does_not_fit_the_cameras(tmp_path: Path, tiny_dataset) -> Non
     assert not (data / "checkpoints" / "bev").exists()
 
 
-@pytest.mark.slow
-def test_cli_bad_grid_is_one_line_and_writes_nothing(tmp_path: Path, tiny_dataset) -> None:
+def test_cli_bad_grid_is_one_line_and_writes_nothing(tmp_path: Path, tiny_dataset, capsys) -> None:
+    from pipeline import cli
+
     data = _data_dir(tmp_path, tiny_dataset.root)
-    r = subprocess.run([sys.executable, "-m", "pipeline", "pretrain", "--profile", "smoke", "--data-dir", str(data),
-                        "--repo-id", REPO, "--encoder.x_bound", "0,12,0.1"], cwd=ROOT, capture_output=True,
-                       text=True, timeout=120)
-    assert r.returncode == 2, r.stderr
-    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
-    assert len(errors) == 1 and "max_depth_m" in errors[0], r.stderr
+    rc = cli.main(["pretrain", "--profile", "smoke", "--data-dir", str(data), "--repo-id", REPO,
+                   "--encoder.x_bound", "0,12,0.1"])
+    err = capsys.readouterr().err
+    errors = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    assert rc == 2 and len(errors) == 1 and "max_depth_m" in errors[0], err
     assert not (data / "checkpoints").exists() or not any((data / "checkpoints").iterdir())
 
 

@@ -2,8 +2,6 @@
 
 import json
 import shutil
-import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -287,13 +285,15 @@ def test_encoder_camera_mismatch_is_one_clear_error(tmp_path, teacher_dir):
         run(_train_cfg(tmp_path, "full"))
 
 
-@pytest.mark.slow
-def test_unknown_variant_cli_is_one_line_and_writes_nothing(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "pipeline", "train", "--profile", "smoke", "--data-dir", str(tmp_path),
-                        "--variant", "no_everything"], capture_output=True, text=True, cwd=ROOT)
-    assert r.returncode != 0
-    assert "train.variant" in r.stderr and "no_everything" in r.stderr
-    assert "Traceback" not in r.stderr
+def test_unknown_variant_cli_is_one_line_and_writes_nothing(tmp_path, capsys):
+    from pipeline import cli
+
+    rc = cli.main(["train", "--profile", "smoke", "--data-dir", str(tmp_path), "--variant", "no_everything"])
+    err = capsys.readouterr().err
+    errors = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    assert rc == 2 and len(errors) == 1, err
+    assert "train.variant" in errors[0] and "no_everything" in errors[0]
+    assert "Traceback" not in err
     assert not any(tmp_path.iterdir())
 
 

@@ -154,16 +154,14 @@ def test_report_states_each_methods_training_budget(tmp_path):
     assert "| DRL-VO | expert_episodes 200, ppo_steps 50000 | 612 |" in md
 
 
-@pytest.mark.slow
-def test_train_cli_vint_without_a_dataset_is_one_clear_error(tmp_path):
-    import subprocess
-    import sys
+def test_train_cli_vint_without_a_dataset_is_one_clear_error(tmp_path, capsys):
+    from pipeline import cli
 
-    r = subprocess.run([sys.executable, "-m", "pipeline", "train", "--profile", "smoke", "--data-dir", str(tmp_path),
-                        "--variant", "vint"], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 2, r.stderr
-    err = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
-    assert len(err) == 1 and "icrowdnav/smoke" in err[0] and "make record" in err[0], r.stderr
+    rc = cli.main(["train", "--profile", "smoke", "--data-dir", str(tmp_path), "--variant", "vint"])
+    stderr = capsys.readouterr().err
+    assert rc == 2, stderr
+    err = [ln for ln in stderr.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "icrowdnav/smoke" in err[0] and "make record" in err[0], stderr
     assert not (tmp_path / "checkpoints").exists()  # nothing written
 
 
