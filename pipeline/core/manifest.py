@@ -356,6 +356,23 @@ def _listed(path: Path) -> tuple[Path, Manifest, FileRecord] | None:
     return None if record is None else (mpath, manifest, record)
 
 
+def check_record(path: Path, record: FileRecord, size: int, sha256: str | None, manifest_path: Path,
+                 redo: str) -> None:
+    """Compares a file's size and sha256 (None: not computed yet) with the record a manifest holds of it.
+
+    Raises:
+        CorruptArtifactError: naming the file, the manifest, the expected and the found value, and ``redo``.
+    """
+    if size != record.bytes:
+        expected, found = f"{record.bytes} bytes", f"{size} bytes"
+    elif sha256 is not None and sha256 != record.sha256:
+        expected, found = f"sha256 {record.sha256[:16]}...", f"{sha256[:16]}... (same size: damaged bytes)"
+    else:
+        return
+    raise CorruptArtifactError(f"corrupt file {path}: expected {expected} (recorded in {manifest_path}), found {found}; "
+                               f"{redo}")
+
+
 def verify_output(path: Path) -> FileRecord | None:
     """Checks a file that a stage wrote against its stage's ``manifest.json`` before the file is used.
 
@@ -397,13 +414,8 @@ def verify_output(path: Path) -> FileRecord | None:
     if key in _VERIFIED:
         return record
     redo = "restore it from a good copy or redo its stage with --overwrite"
-    if st.st_size != record.bytes:
-        raise CorruptArtifactError(f"corrupt file {path}: expected {record.bytes} bytes (recorded in {mpath}), "
-                                   f"found {st.st_size} bytes; {redo}")
-    actual = hash_file(path)
-    if actual != record.sha256:
-        raise CorruptArtifactError(f"corrupt file {path}: expected sha256 {record.sha256[:16]}... (recorded in {mpath}), "
-                                   f"found {actual[:16]}... (same size: damaged bytes); {redo}")
+    check_record(path, record, st.st_size, None, mpath, redo)  # the size first: no hashing of a truncated file
+    check_record(path, record, st.st_size, hash_file(path), mpath, redo)
     _VERIFIED.add(key)
     return record
 

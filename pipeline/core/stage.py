@@ -28,7 +28,6 @@ from pipeline.core.artifacts import OutputDir, OutputMode, require_input
 from pipeline.core.config import config_hash, dump_yaml, to_dict, validate_tree
 from pipeline.core.errors import (
     ConfigError,
-    CorruptArtifactError,
     ICrowdNavError,
     InputMissingError,
     OutputExistsError,
@@ -39,6 +38,7 @@ from pipeline.core.manifest import (
     MANIFEST_NAME,
     FileRecord,
     Manifest,
+    check_record,
     code_hash,
     collect_versions,
     git_info,
@@ -169,11 +169,7 @@ def verify_inputs(paths: list[Path], records: list[FileRecord], data_dir: Path |
             got = by_path.get(f"{prefix}/{rec.path}" if prefix not in ("", ".") else rec.path)
             if got is None:
                 raise InputMissingError(f"missing file {p / rec.path}: listed in {mpath}; {redo}")
-            if (got.bytes, got.sha256) != (rec.bytes, rec.sha256):
-                found = f"{got.bytes} bytes" if got.bytes != rec.bytes else f"sha256 {got.sha256[:16]}..."
-                expected = f"{rec.bytes} bytes" if got.bytes != rec.bytes else f"sha256 {rec.sha256[:16]}..."
-                raise CorruptArtifactError(f"corrupt file {p / rec.path}: expected {expected} (recorded in {mpath}), "
-                                           f"found {found}; {redo}")
+            check_record(p / rec.path, rec, got.bytes, got.sha256, mpath, redo)
 
 
 def _clean_counts(stage: str, counts: Any) -> dict[str, float | int | str]:
