@@ -21,7 +21,6 @@ frames of one camera of the default dataset vs ~45 s episode by episode).
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import dataclass
@@ -33,7 +32,9 @@ import torch
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pipeline.core.keys import OBS_ODOM, PRIV_LOCAL_OCCUPANCY, PRIV_PED_STATE, depth_key, image_key
 from pretrain.geometry import BEVGrid, Camera, cameras_from_meta, sample_depth
+from recorder.dataset_info import read_dataset_info
 from recorder.doctor_dataset import require_sound_dataset
+from recorder.features import depth_from_features
 
 log = logging.getLogger("icrowdnav")
 
@@ -46,12 +47,14 @@ def camera_features(cameras: list[Camera]) -> list[str]:
 
 @dataclass
 class DatasetMeta:
-    """What pretraining reads from a dataset's metadata: lerobot's ``info.json``, our ``icrowdnav.json`` and the
-    cameras it lists."""
+    """What pretraining reads from a dataset's metadata (:class:`recorder.dataset_info.DatasetInfo`: lerobot's
+    ``info.json`` with our features' ``info``) and the cameras it uses."""
 
     info: dict
-    side: dict
     cameras: list[Camera]
+    local_map: dict
+    fps: float
+    repo_id: str
 
 
 def check_dataset(root: Path, cameras: list[Camera] | None = None) -> DatasetMeta:
@@ -68,19 +71,10 @@ def check_dataset(root: Path, cameras: list[Camera] | None = None) -> DatasetMet
             (:func:`recorder.doctor_dataset.require_sound_dataset`, ~25 ms) run before lerobot opens it.
     """
     root = Path(root)
-    info_path = root / "meta" / "info.json"
-    if not info_path.is_file():
-        raise InputMissingError(f"no LeRobot dataset at {root} (missing meta/info.json); make it with "
-                                "`make record` (icrowdnav record + export)")
-    side_path = root / "meta" / "icrowdnav.json"
-    try:
-        info = json.loads(info_path.read_text())
-        features = info["features"]
-        side = json.loads(side_path.read_text())
-    except (OSError, json.JSONDecodeError, KeyError) as e:
-        raise CorruptArtifactError(f"dataset {root}: unreadable metadata ({type(e).__name__}: {e})") from None
+    ds_info = read_dataset_info(root)
+    features = ds_info.features
     if cameras is None:
-        cameras = cameras_from_meta(side, str(side_path))
+        cameras = cameras_from_meta({"cameras": ds_info.cameras}, f"{root / 'meta' / 'info.json'}")
     need = list(REQUIRED_FEATURES) + camera_features(cameras)
     missing = [k for k in need if k not in features]
     if missing:
@@ -94,11 +88,11 @@ def check_dataset(root: Path, cameras: list[Camera] | None = None) -> DatasetMet
         if list(shape) != [c.height, c.width]:
             raise CorruptArtifactError(f"dataset {root}: observation.depth.{c.name}: expected shape "
                                        f"[{c.height}, {c.width}] (the camera's), got {shape}")
-    if "local_map" not in side.get("spec", {}):
-        raise CorruptArtifactError(f"dataset {root}: meta/icrowdnav.json has no spec.local_map (the geometry of "
-                                   "privileged.local_occupancy)")
+    if ds_info.local_map is None:
+        raise CorruptArtifactError(f"dataset {root}: meta/info.json field 'features.privileged.local_occupancy.info."
+                                   "layout': expected the crop's geometry, got nothing")
     require_sound_dataset(root)  # a deleted / truncated parquet or video: named here, not by lerobot's errors
-    return DatasetMeta(info, side, cameras)
+    return DatasetMeta(ds_info.info, cameras, ds_info.local_map, float(ds_info.fps), ds_info.repo_id)
 
 
 def check_grid_in_local_map(grid: BEVGrid, local_map: dict, where: str) -> None:
@@ -287,19 +281,18 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
     from tqdm import tqdm
 
     root = Path(root)
-    side = check_dataset(root, cameras).side
-    local_map = side["spec"]["local_map"]
+    meta = check_dataset(root, cameras)
+    local_map = meta.local_map
     check_grid_in_local_map(grid, local_map, str(root))
-    fps = float(side.get("fps", 10))
+    fps = meta.fps
     future_frames = []
     for s in future_s:
         f = s * fps
         if s <= 0 or abs(f - round(f)) > 1e-6:
             raise ConfigError(f"future_s: {s} s is not a positive whole number of frames at {fps:g} fps")
         future_frames.append(round(f))
-    repo_id = side.get("repo_id", f"{root.parent.name}/{root.name}")
     try:
-        ds = LeRobotDataset(repo_id, root=root, video_backend="pyav")
+        ds = LeRobotDataset(meta.repo_id, root=root, video_backend="pyav")
     except Exception as e:  # lerobot raises many types for broken datasets
         raise CorruptArtifactError(f"dataset {root}: LeRobotDataset cannot open it ({type(e).__name__}: {e})") from None
     eps = list(range(ds.meta.total_episodes)) if episodes is None else list(episodes)
@@ -331,7 +324,7 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
         rows = hf[a:b]
         sl = slice(pos, pos + length)
         for ci, c in enumerate(cameras):
-            store.depth[sl, ci] = sample_depth(torch.as_tensor(rows[depth_key(c.name)]),
+            store.depth[sl, ci] = sample_depth(torch.as_tensor(depth_from_features(rows[depth_key(c.name)])),
                                                lift_stride_px).numpy()
         store.pose[sl] = rows[OBS_ODOM]
         store.labels[sl], store.valid[sl] = episode_labels(

@@ -21,7 +21,6 @@ for a whole batch with one ``index_add_``; :func:`lift_splat_reference` is the o
 from __future__ import annotations
 
 import functools
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +30,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.errors import ConfigError, CorruptArtifactError
+from recorder.dataset_info import read_dataset_info
 
 
 @dataclass(frozen=True)
@@ -94,16 +94,9 @@ def cameras_from_meta(meta: dict[str, Any], where: str) -> list[Camera]:
 
 
 def cameras_from_dataset(root: Path) -> list[Camera]:
-    """The cameras of an exported dataset (``meta/icrowdnav.json``), in the file's order (left, right)."""
-    path = Path(root) / "meta" / "icrowdnav.json"
-    if not path.is_file():
-        raise InputMissingError(f"dataset {root} has no {path.name} (camera intrinsics/extrinsics); "
-                                "was it exported by `icrowdnav export`?")
-    try:
-        meta = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise CorruptArtifactError(f"{path}: cannot read the cameras ({type(e).__name__}: {e})") from None
-    return cameras_from_meta(meta, str(path))
+    """The cameras of an exported dataset (its features' ``info.camera`` in ``meta/info.json``: see
+    :mod:`recorder.dataset_info`), in the file's order (left, right)."""
+    return cameras_from_meta({"cameras": read_dataset_info(root).cameras}, str(Path(root) / "meta" / "info.json"))
 
 
 @dataclass(frozen=True)

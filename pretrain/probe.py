@@ -28,7 +28,6 @@ what the pose adds; the keypoints of ``pose_detected`` are what the robot saw. :
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import sys
@@ -52,6 +51,7 @@ from pipeline.core.keys import (
 )
 from pretrain.data import check_dataset, split_episodes
 from pretrain.i2former import N_JOINTS, I2Former, I2FormerConfig
+from recorder.dataset_info import read_dataset_info
 
 log = logging.getLogger("icrowdnav")
 
@@ -233,8 +233,7 @@ def episode_samples(ep: dict[str, np.ndarray], fps: float, episode: int) -> Samp
 
 def collect(root: Path) -> tuple[Samples, float]:
     """Every sample of a dataset, and its frame rate."""
-    side = json.loads((Path(root) / "meta" / "icrowdnav.json").read_text())
-    fps = float(side.get("fps", 10))
+    fps = float(read_dataset_info(root).fps)
     parts = [s for e, ep in enumerate(read_episodes(root)) if (s := episode_samples(ep, fps, e)) is not None]
     if not parts:
         raise InputMissingError(f"dataset {root}: no tracked pedestrian is seen for {HISTORY_S + HORIZONS_S[-1]:g} s "

@@ -97,7 +97,7 @@ def inputs(cfg: PretrainConfig) -> list[Path]:
     root = dataset_dir(cfg)
     meta = check_dataset(root)
     check_grid_fits_cameras(cfg.encoder.grid, meta.cameras, "pretrain.encoder")
-    check_grid_in_local_map(cfg.encoder.grid, meta.side["spec"]["local_map"], str(root))
+    check_grid_in_local_map(cfg.encoder.grid, meta.local_map, str(root))
     # only the dataset's files are inputs (not, e.g., a lock file lerobot may create)
     return [root / "meta", root / "data", root / "videos"]
 
@@ -155,7 +155,7 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
     write_encoder_checkpoint(out, encoder, heads, {
         "targets": list(TARGETS), "future_s": list(cfg.future_s),
         "dataset": {"repo_id": cfg.repo_id, "train_episodes": train_eps, "val_episodes": val_eps},
-        "trained_steps": result["step"], "fps": float(meta.side.get("fps", 10))})
+        "trained_steps": result["step"], "fps": meta.fps})
     atomic_write_json(out / METRICS_JSON, {
         "final": final, "history": history, "targets": list(TARGETS), "iou": "dataset-level IoU at p > 0.5 over "
         "validation frames, cells in the cameras' field of view only", "pos_weight": result["pos_weight"],

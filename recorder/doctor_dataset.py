@@ -22,8 +22,10 @@ checks, naming the file in every problem line:
   file the episodes name exists and is not empty);
 * ``meta/stats.json``: min, max and mean of every numeric non-video feature (and ``count``) match values
   recomputed from the data the way lerobot computes them (over every axis but the last);
-* ``meta/icrowdnav.json`` and ``meta/icrowdnav_episodes.jsonl`` (written by :mod:`recorder.export`) exist and
-  agree with the episode count, fps and episode lengths.
+* our annotations of ``meta/info.json`` (the dataset format, every camera's calibration:
+  :func:`recorder.dataset_info.read_dataset_info`); ``meta/icrowdnav.json`` and ``meta/icrowdnav_episodes.jsonl``
+  (optional extras written by :mod:`recorder.export`; lerobot's dataset tools drop them), where present, agree with
+  the episode count, fps and episode lengths.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
+from recorder.dataset_info import read_dataset_info
 
 INFO = "meta/info.json"
 STATS = "meta/stats.json"
@@ -476,10 +479,12 @@ def _check_tasks(root: Path, good: set[Path], info: dict, rep: _Report) -> int |
 
 
 def _check_icrowdnav(root: Path, info: dict, rows: list[dict], rep: _Report) -> None:
+    try:
+        read_dataset_info(root)
+    except CorruptArtifactError as e:
+        rep.add(INFO, str(e).split(": ", 1)[-1])
     p = root / ICROWDNAV_META
-    if not p.is_file():
-        rep.add(ICROWDNAV_META, "missing (the export writes it before publishing the dataset)")
-    else:
+    if p.is_file():
         try:
             meta = json.loads(p.read_text())
             if meta.get("total_episodes") != info["total_episodes"]:
@@ -494,7 +499,6 @@ def _check_icrowdnav(root: Path, info: dict, rows: list[dict], rep: _Report) -> 
             rep.add(ICROWDNAV_META, f"unreadable JSON object: {e}")
     p = root / ICROWDNAV_EPISODES
     if not p.is_file():
-        rep.add(ICROWDNAV_EPISODES, "missing (the export writes it before publishing the dataset)")
         return
     try:
         eps = [json.loads(line) for line in p.read_text().splitlines() if line.strip()]
@@ -522,7 +526,7 @@ def check_dataset(root: Path, *, videos: bool = True, stats: bool = True, icrowd
         videos: decode every video file and check every referenced timestamp (False: only check that every video
             file the episodes name exists and is not empty).
         stats: recompute min/max/mean of every numeric non-video feature and compare with ``meta/stats.json``.
-        icrowdnav: require and check ``meta/icrowdnav.json`` / ``meta/icrowdnav_episodes.jsonl``.
+        icrowdnav: check our ``info.json`` annotations and, where present, ``meta/icrowdnav*.json*``.
 
     Returns:
         One line per problem, each starting with the path of the file concerned; empty when the dataset is
@@ -570,9 +574,12 @@ def require_sound_dataset(root: Path) -> None:
     Raises:
         InputMissingError: a file the dataset needs is missing (named; the first such problem).
         CorruptArtifactError: a file is damaged or disagrees with the metadata (named; the first problem).
+        recorder.dataset_info.DatasetFormatError: the dataset was written by another version of the export.
         Each message ends with how many more problems ``icrowdnav doctor ROOT`` lists.
     """
     root = Path(root)
+    if (root / INFO).is_file():
+        read_dataset_info(root)  # a dataset of another format: DatasetFormatError, with the re-export command
     rep = _run(root, videos=False, stats=False, icrowdnav=True)
     if not rep.lines:
         return
@@ -590,7 +597,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("root", type=Path, help="the dataset directory (holds meta/info.json)")
     ap.add_argument("--no-videos", action="store_true", help="skip decoding the videos")
     ap.add_argument("--no-stats", action="store_true", help="skip recomputing stats")
-    ap.add_argument("--generic", action="store_true", help="do not require the iCrowdNav meta files")
+    ap.add_argument("--generic", action="store_true", help="skip the iCrowdNav checks (info.json annotations, meta/icrowdnav*)")
     args = ap.parse_args(argv)
     problems = check_dataset(args.root, videos=not args.no_videos, stats=not args.no_stats,
                              icrowdnav=not args.generic)

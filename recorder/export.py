@@ -60,7 +60,10 @@ from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavErr
 from pipeline.core.keys import NEXT_DONE, NEXT_REWARD
 from recorder.doctor_dataset import check_dataset
 from recorder.features import (
+    ACTION_CONVENTION,
     DEFAULT_MAX_PEOPLE,
+    FORMAT_KEY,
+    FORMAT_VERSION,
     N_MAX_PEDESTRIANS,
     ROBOT_TYPE,
     TASK,
@@ -69,8 +72,10 @@ from recorder.features import (
     LocalMapSpec,
     cameras_of,
     check_features,
-    frame_to_features,
+    feature_info,
     meta_facts,
+    observation_features,
+    step_features,
 )
 from recorder.mcap.reader import read_episode
 from recorder.schema import CAMERA_NAMES, EpisodeMeta, Frame
@@ -79,7 +84,6 @@ log = logging.getLogger("icrowdnav")
 
 ICROWDNAV_META = "meta/icrowdnav.json"
 ICROWDNAV_EPISODES = "meta/icrowdnav_episodes.jsonl"
-FORMAT_VERSION = 1
 PARTIAL_SUFFIX = ".partial"
 
 
@@ -90,6 +94,12 @@ class _Source:
     name: str
     open: Callable[[], tuple[EpisodeMeta, np.ndarray, Iterator[Frame]]]
     path: Path | None = None
+
+    @property
+    def label(self) -> str:
+        """What the dataset records as the episode's source: the MCAP file's name (no local directory), or the
+        in-memory episode's name."""
+        return self.path.name if self.path is not None else self.name
 
 
 def is_partial(path: Path) -> bool:
@@ -323,27 +333,31 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
             else:
                 _check_same_spec(meta, first_meta, spec, fps, src.name)
             length, ret, outcome, done = 0, 0.0, "", False
+            observed: dict[str, np.ndarray] | None = None  # observation t, waiting for the step it starts
             for i, fr in enumerate(_guarded(frames, src)):
-                values = frame_to_features(fr, meta, occ, spec, src.name, i)
-                check_features(values, features, src.name, i)
-                values["task"] = TASK
-                ds.add_frame(values)
-                for key in scalar_keys:  # lerobot 0.4.4 + numpy >= 2.3: float() of a (1,) array raises later
-                    ds.episode_buffer[key][-1] = ds.episode_buffer[key][-1].reshape(())
-                length += 1
-                ret += float(values[NEXT_REWARD][0])
+                if observed is not None:  # LeRobot's convention: frame t = observation t + the step t -> t + 1
+                    values = {**observed, **step_features(fr, src.name, i)}
+                    check_features(values, features, src.name, i - 1)
+                    values["task"] = TASK
+                    ds.add_frame(values)
+                    for key in scalar_keys:  # lerobot 0.4.4 + numpy >= 2.3: float() of a (1,) array raises later
+                        ds.episode_buffer[key][-1] = ds.episode_buffer[key][-1].reshape(())
+                    length += 1
+                    ret += float(values[NEXT_REWARD][0])
+                    done = bool(values[NEXT_DONE][0])
+                    bar.update(1)
+                observed = observation_features(fr, meta, occ, spec, src.name, i)
                 outcome = str(getattr(fr, "outcome", "") or outcome)
-                done = bool(values[NEXT_DONE][0])
-                bar.update(1)
             if length == 0:
-                raise FeatureError(f"{src.name}: frames: expected at least one frame, got none")
+                raise FeatureError(f"{src.name}: frames: expected at least two recorded frames (an observation and "
+                                   f"the step from it), got {0 if observed is None else 1}")
             with warnings.catch_warnings(), _quiet_datasets(), _no_image_embedding(features):
                 # lerobot's stats histogram of bool features warns (harmlessly) about a uint8 conversion
                 warnings.filterwarnings("ignore", "Converting input from bool", RuntimeWarning)
                 ds.save_episode(parallel_encoding=False)
             n_frames += length
             bar.set_postfix(episodes=ep_index + 1)
-            rows.append({"episode_index": ep_index, "source": src.name,
+            rows.append({"episode_index": ep_index, "source": src.label, "recorded_frames": length + 1,
                          "source_bytes": src.path.stat().st_size if src.path is not None else None,
                          "length": length, "duration_s": round(length / fps, 6), "outcome": outcome,
                          "done": done, "return": ret, "scene": meta.scene, "density": meta.density,
@@ -353,6 +367,7 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
             raise InputMissingError("no episodes to export: the input list is empty")
         ds.finalize()
         _sort_stats(root)
+        _annotate_info(root, feature_info(spec, cameras_of(first_meta)))
     except BaseException:
         if ds is not None:
             with contextlib.suppress(Exception):
@@ -368,8 +383,9 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
     seconds = time.monotonic() - t0
     assert spec is not None and first_meta is not None
     info = {
-        "format_version": FORMAT_VERSION, "repo_id": repo_id, "fps": fps, "dt_s": 1.0 / fps, "task": TASK,
+        "repo_id": repo_id, "fps": fps, "dt_s": 1.0 / fps, "task": TASK,
         "robot_type": ROBOT_TYPE, "total_episodes": len(rows), "total_frames": n_frames,
+        FORMAT_KEY: FORMAT_VERSION, "action_convention": ACTION_CONVENTION,
         "cameras": cameras_of(first_meta), "spec": spec.describe(),
         "sources": [r["source"] for r in rows],
         "episode_facts": f"{ICROWDNAV_EPISODES}: one JSON row per episode_index",
@@ -379,6 +395,17 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
     atomic_write_text(root / ICROWDNAV_EPISODES, "".join(json.dumps(_json_safe(r)) + "\n" for r in rows))
     return {"episodes": len(rows), "frames": n_frames, "seconds": round(seconds, 3),
             "frames_per_s": round(n_frames / seconds, 2) if seconds > 0 else 0.0}
+
+
+def _annotate_info(root: Path, infos: dict[str, dict[str, Any]]) -> None:
+    """Adds our ``info`` dict to each feature of lerobot's ``meta/info.json`` (merged into lerobot's own, e.g. the
+    videos' ``video.*`` keys), where lerobot's dataset tools keep it; same layout (indent 4)."""
+    path = root / "meta" / "info.json"
+    info = json.loads(path.read_text())
+    for name, extra in infos.items():
+        ft = info["features"][name]
+        ft["info"] = {**(ft.get("info") or {}), **extra}
+    atomic_write_text(path, json.dumps(info, indent=4, ensure_ascii=False))
 
 
 def _sort_stats(root: Path) -> None:

@@ -13,19 +13,20 @@ Features (``T`` frames; shapes per frame; frames: *world* = the scene's, *robot*
 feature                          shape           dtype    meaning
 ===============================  ==============  =======  =========================================================
 observation.images.{left,right}  H x W x 3       video    RGB camera image (AV1 mp4; decoded as 3 x H x W float)
-observation.depth.{left,right}   H x W           float32  z-depth along the optical axis, m, 0 = invalid
+observation.depth.{left,right}   H x W           uint16   z-depth along the optical axis, mm, 0 = invalid
 observation.state                5               float32  [g_x, g_y, d_g, v_x, v_y], robot frame
 observation.odom                 3               float32  robot pose [x, y, yaw], world frame
 observation.goal                 2               float32  goal [x, y], world frame
 observation.poses                K x 17 x 3      float32  detected COCO-17 joints [x, y, z], robot frame, m
-observation.pose_mask            K x 17          bool     detected joints (False rows/joints are zeros)
+observation.pose_mask            K x 17          float32  1 = detected joint, 0 = not (rows/joints of 0 are zeros)
 observation.pose_conf            K x 17          float32  detector confidence of each joint
-action                           2               float32  the command that led to this frame [v m/s, ω rad/s]
+action                           2               float32  the command [v m/s, ω rad/s] chosen from observation t
+                                                          and applied from frame t to frame t + 1
 action.teacher                   2               float32  only in labelled (DAgger) datasets: the teacher's
-                                                          command for this frame's observation [v m/s, ω rad/s]
-next.reward                      1               float32  the paper's reward for the step into this frame
+                                                          command for observation t [v m/s, ω rad/s]
+next.reward                      1               float32  the paper's reward of the step t → t + 1
 next.reward_terms                6               float32  success, collision, near, progress, spin, total
-next.done                        1               bool     the episode ended at this frame
+next.done                        1               bool     the step t → t + 1 ended the episode
 privileged.ped_state             N_MAX x 8       float32  x, y, vx, vy (world), radius, body yaw, head yaw
                                                           (world, rad), present (1/0); row n = pedestrian n
 privileged.ped_keypoints         N_MAX x 17 x 3  float32  true COCO-17 keypoints, world frame, m
@@ -37,12 +38,25 @@ privileged.local_occupancy       R x C           bool     static map around the 
 
 Rows of the ``privileged.ped_*`` arrays beyond the episode's crowd size are zeros (``present`` = 0).
 
-Why depth is float32 metres and not uint16 millimetres: lerobot 0.4.4 stores a uint16 array feature but its
-torch formatting hands it back as an **int64** tensor (4x the memory of the uint16, 2x float32), in the wrong
-unit for the policy, so every consumer would have to convert; float32 metres comes back as float32 metres, the
-env's own observation format. The MCAP log keeps millimetres, so a float32 value holds the millimetre value
-exactly up to float32 rounding. The cost is disk: about 2x the uint16 parquet size (depth compresses poorly).
-Masks and the occupancy crop are ``bool`` because that round-trips as ``torch.bool`` (uint8 comes back int64).
+**Action convention (dataset format 2).** LeRobot's (and ``lerobot-record``'s): frame ``t`` holds observation
+``t``, the command chosen from it (``action``), and what that command led to (``next.*``). The MCAP log keeps the
+simulator's own timing — its frame ``t`` carries the command that *led to* it and the reward of the step into
+it — so the export pairs observation ``t`` with the command/reward/done of MCAP frame ``t + 1``, and an episode's
+last (terminal) observation, from which no command was chosen, stays in the MCAP log only: a dataset episode has
+one frame fewer than its recording. Format 1 datasets (``action[t]`` = the command that led to frame ``t``) are
+refused by every reader with a named error (:mod:`recorder.dataset_info`); re-export them from their recording.
+
+**Types for stock LeRobot policies.** lerobot turns every non-video ``observation.*`` feature into a state input
+and normalises it, so those are numbers: ``observation.pose_mask`` is float32 0/1 (a bool mask made lerobot's
+normaliser fail: "Subtraction ... with two bool tensors"); depth is uint16 millimetres (half the float32 size,
+exact to the MCAP log's millimetres; lerobot's torch formatting returns it as an int64 tensor — divide by 1000 for
+metres). ``next.*`` and ``privileged.*`` features are ignored by lerobot's policies (neither ``observation.*`` nor
+``action*``), so ``next.done`` and ``privileged.local_occupancy`` stay ``bool``.
+
+**Calibration** lives in ``meta/info.json``, where lerobot's own tools keep it: every feature we write carries an
+``info`` dict (``description`` with units and frames; cameras' ``camera`` = intrinsics/extrinsics on the image and
+depth features; ``action``'s ``convention`` and ``icrowdnav_format``; the occupancy crop's ``layout``) —
+:meth:`ExportSpec.feature_info`. ``meta/icrowdnav*.json*`` are optional extras (episode facts, sources).
 """
 
 from __future__ import annotations
@@ -79,6 +93,12 @@ from pipeline.core.keys import (
 from recorder.schema import CAMERA_NAMES, EpisodeMeta, Frame
 
 TASK = "navigate to the goal through the crowd"
+FORMAT_VERSION = 2  # 2: LeRobot's action convention, uint16 mm depth, float32 pose mask, calibration in info.json
+FORMAT_KEY = "icrowdnav_format"  # in meta/info.json features["action"]["info"]
+ACTION_CONVENTION = ("action[t] is the command [v m/s, omega rad/s] chosen from observation t and applied from "
+                     "frame t to frame t + 1 (LeRobot's convention); next.reward / next.done[t] are the reward / end "
+                     "of that step; the episode's terminal observation is not a frame (it stays in the MCAP log)")
+DEPTH_SCALE_M = 0.001  # uint16 depth unit: millimetres
 ROBOT_TYPE = "icrowdnav_diffdrive"
 N_MAX_PEDESTRIANS = 64
 DEFAULT_MAX_PEOPLE = 6  # sim.detector.DetectorConfig.max_people
@@ -228,13 +248,13 @@ class ExportSpec:
             feats[image_key(cam)] = {"dtype": "video", "shape": (h, w, 3), "names": ["height", "width", "channels"]}
         for cam in CAMERA_NAMES:
             h, w = self.camera_sizes[cam]
-            feats[depth_key(cam)] = {"dtype": "float32", "shape": (h, w), "names": ["height", "width"]}
+            feats[depth_key(cam)] = {"dtype": "uint16", "shape": (h, w), "names": ["height", "width"]}
         feats.update({
             OBS_STATE: {"dtype": "float32", "shape": (5,), "names": ["g_x", "g_y", "d_g", "v_x", "v_y"]},
             OBS_ODOM: {"dtype": "float32", "shape": (3,), "names": ["x", "y", "yaw"]},
             OBS_GOAL: {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
             OBS_POSES: {"dtype": "float32", "shape": (k, N_JOINTS, 3), "names": ["person", "joint", "xyz"]},
-            OBS_POSE_MASK: {"dtype": "bool", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
+            OBS_POSE_MASK: {"dtype": "float32", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
             OBS_POSE_CONF: {"dtype": "float32", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
             ACTION: {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]},
             **({ACTION_TEACHER: {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]}} if self.labels else {}),
@@ -265,21 +285,22 @@ class ExportSpec:
                        "robot centre", "camera": "OpenCV: x right, y down, z forward"},
             "features": {
                 "observation.images.*": "RGB, video (AV1 mp4 via PyAV/SVT-AV1, yuv420p): lossy",
-                "observation.depth.*": "z-depth along the optical axis, m, 0 = invalid (float32)",
+                "observation.depth.*": "z-depth along the optical axis, mm, 0 = invalid (uint16)",
                 OBS_STATE: "[g_x, g_y, d_g, v_x, v_y]: goal in the robot frame (m), its distance (m), "
                                      "robot velocity in the robot frame (m/s)",
                 OBS_ODOM: "robot pose [x, y, yaw] in the world frame (m, rad)",
                 OBS_GOAL: "goal [x, y] in the world frame (m)",
                 OBS_POSES: f"{k} detected people x COCO-17 joints x [x, y, z], robot frame (m), "
                                      "nearest first, zeros where not detected",
-                OBS_POSE_MASK: "True where the joint was detected",
+                OBS_POSE_MASK: "1.0 where the joint was detected, 0.0 where not",
                 OBS_POSE_CONF: "detector confidence of each joint",
-                ACTION: "the physical command [v m/s, omega rad/s] that led to this frame (zeros at frame 0)",
+                ACTION: ACTION_CONVENTION,
                 **({ACTION_TEACHER: "the DAgger teacher's command [v m/s, omega rad/s] for this frame's "
                                       "observation (the behaviour-cloning label)"} if self.labels else {}),
-                NEXT_REWARD: "the paper's reward of the step that led to this frame (0 at frame 0)",
+                NEXT_REWARD: "the paper's reward of the step from this frame to the next",
                 NEXT_REWARD_TERMS: "the reward's terms in reward_terms order",
-                NEXT_DONE: "True at the episode's last frame (terminated or truncated)",
+                NEXT_DONE: "True when the step from this frame ended the episode (terminated or truncated): the "
+                           "episode's last dataset frame",
                 PRIV_PED_STATE: f"{n} rows (row n = pedestrian n, zeros beyond the crowd) of "
                                         "[x, y, vx, vy] world (m, m/s), radius (m), body yaw, head yaw "
                                         "(world, rad), present (1 = a real pedestrian)",
@@ -290,6 +311,31 @@ class ExportSpec:
                 PRIV_LOCAL_OCCUPANCY: "see local_map",
             },
         }
+
+
+def feature_info(spec: ExportSpec, cameras: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The ``info`` dict of each feature of ``spec`` for ``meta/info.json`` (see the module docstring).
+
+    Args:
+        spec: the dataset's sizes.
+        cameras: per camera name, its ``CameraSpec.to_dict()`` (intrinsics ``K``, extrinsics ``T_base_cam``, size).
+    """
+    desc = spec.describe()["features"]
+    out: dict[str, dict[str, Any]] = {}
+    for name in spec.features():
+        text = desc.get(name) or desc.get(name.rsplit(".", 1)[0] + ".*", "")
+        out[name] = {"description": text}
+    for cam in CAMERA_NAMES:
+        out[image_key(cam)]["camera"] = dict(cameras[cam])
+        depth_cam = {**cameras[cam], "depth_units": "mm in this feature (uint16), z along the optical axis, 0 = invalid"}
+        out[depth_key(cam)].update({"camera": depth_cam, "unit": "mm", "scale_to_m": DEPTH_SCALE_M, "invalid_value": 0})
+    out[ACTION].update({"convention": ACTION_CONVENTION, "units": ["m/s", "rad/s"], FORMAT_KEY: FORMAT_VERSION})
+    out[OBS_POSES]["joints"] = list(COCO_KEYPOINTS)
+    out[PRIV_PED_KEYPOINTS]["joints"] = list(COCO_KEYPOINTS)
+    out[PRIV_PED_STATE]["columns"] = list(PED_STATE_COLUMNS)
+    out[NEXT_REWARD_TERMS]["terms"] = list(REWARD_TERMS)
+    out[PRIV_LOCAL_OCCUPANCY]["layout"] = spec.local_map.to_dict()
+    return out
 
 
 def _describe(a: Any) -> str:
@@ -364,28 +410,72 @@ def _field(frame: Any, name: str, chk: _FrameChecker) -> Any:
     return value
 
 
-def frame_to_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray, spec: ExportSpec,
+def frame_to_features(frame: Frame, following: Frame, meta: EpisodeMeta, occupancy: np.ndarray, spec: ExportSpec,
                       source: str, frame_index: int) -> dict[str, np.ndarray]:
-    """Converts one recorded frame into the ``add_frame`` dict of :meth:`ExportSpec.features` (without ``task``).
+    """One dataset frame (the ``add_frame`` dict of :meth:`ExportSpec.features`, without ``task``): observation
+    ``frame_index`` from ``frame`` and the step it starts (``action``, ``next.*``) from ``following``, the recorded
+    frame that step led to (the MCAP log's frame carries the command that led to it: see the module docstring).
 
     Args:
-        frame: the recorded frame (:class:`recorder.schema.Frame` or anything with its attributes).
-        meta: its episode's metadata (crowd size, occupancy geometry).
+        frame: the recorded frame ``t`` (:class:`recorder.schema.Frame` or anything with its attributes).
+        following: the recorded frame ``t + 1``.
+        meta: their episode's metadata (crowd size, occupancy geometry).
         occupancy: the episode's static world grid (``H x W`` bool).
         spec: the dataset's sizes.
         source: the file (or in-memory episode) it came from, for error messages.
-        frame_index: the position of the frame in its episode; ``frame.step`` must equal it.
-
-    Returns:
-        feature name → array of exactly the feature's shape and dtype.
+        frame_index: ``t``, the position of ``frame`` in its episode (``frame.step`` must equal it).
 
     Raises:
         FeatureError: a field is missing, has the wrong shape or dtype, holds NaN/inf, or exceeds a max size.
     """
-    chk = _FrameChecker(source, getattr(frame, "step", f"#{frame_index}"))
+    out = observation_features(frame, meta, occupancy, spec, source, frame_index)
+    out.update(step_features(following, source, frame_index + 1))
+    return out
+
+
+def _check_step(frame: Frame, chk: _FrameChecker, frame_index: int) -> None:
     step = _field(frame, "step", chk)
     if isinstance(step, bool) or not isinstance(step, int | np.integer) or int(step) != frame_index:
         chk.fail("step", f"{frame_index} (frames numbered 0, 1, 2, ... without gaps)", repr(step))
+
+
+def step_features(frame: Frame, source: str, frame_index: int) -> dict[str, np.ndarray]:
+    """``action`` and ``next.*`` of the step that led to recorded frame ``frame_index`` (``frame``): what the
+    dataset stores at frame ``frame_index - 1``."""
+    chk = _FrameChecker(source, getattr(frame, "step", f"#{frame_index}"))
+    _check_step(frame, chk, frame_index)
+    out = {ACTION: chk.array(ACTION, _field(frame, ACTION, chk), (2,), "f", ACTION).astype(np.float32, copy=False)}
+    out[NEXT_REWARD] = np.array([chk.scalar("reward", _field(frame, "reward", chk), NEXT_REWARD)], np.float32)
+    terms = _field(frame, "reward_terms", chk)
+    if not isinstance(terms, dict) or set(terms) - set(REWARD_TERMS):
+        chk.fail("reward_terms", f"a dict with keys from {list(REWARD_TERMS)}",
+                 _describe(terms) if not isinstance(terms, dict) else f"keys {sorted(terms)}", NEXT_REWARD_TERMS)
+    out[NEXT_REWARD_TERMS] = np.array(
+        [chk.scalar(f"reward_terms[{t}]", terms.get(t, 0.0), NEXT_REWARD_TERMS) for t in REWARD_TERMS], np.float32)
+    done = _field(frame, "done", chk)
+    if not isinstance(done, bool | np.bool_):
+        chk.fail("done", "a bool", _describe(done), NEXT_DONE)
+    out[NEXT_DONE] = np.array([bool(done)], dtype=bool)
+    return out
+
+
+def depth_to_features(depth_m: np.ndarray) -> np.ndarray:
+    """float metres (0 = invalid) -> the dataset's uint16 millimetres (exact for depth read from the MCAP log,
+    which keeps millimetres)."""
+    return np.rint(np.asarray(depth_m, np.float64) / DEPTH_SCALE_M).astype(np.uint16)
+
+
+def depth_from_features(depth_mm: np.ndarray) -> np.ndarray:
+    """The dataset's uint16 millimetres (or their int64 tensor copy) -> float32 metres, 0 = invalid."""
+    return np.asarray(depth_mm, np.float32) * np.float32(DEPTH_SCALE_M)
+
+
+def observation_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray, spec: ExportSpec, source: str,
+                         frame_index: int) -> dict[str, np.ndarray]:
+    """The observation, label and privileged features of recorded frame ``frame_index`` (all but ``action`` and
+    ``next.*``; arguments as :func:`frame_to_features`)."""
+    chk = _FrameChecker(source, getattr(frame, "step", f"#{frame_index}"))
+    _check_step(frame, chk, frame_index)
     out: dict[str, np.ndarray] = {}
     rgb, depth = _field(frame, "rgb", chk), _field(frame, "depth", chk)
     for cam in CAMERA_NAMES:
@@ -394,7 +484,10 @@ def frame_to_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray, sp
                                         (h, w, 3), "u1", image_key(cam))
         d = chk.array(f"depth[{cam}]", depth.get(cam) if isinstance(depth, dict) else None, (h, w), "f",
                       depth_key(cam))
-        out[depth_key(cam)] = np.ascontiguousarray(d, dtype=np.float32)
+        if d.size and (float(d.min()) < 0.0 or float(d.max()) > 65535 * DEPTH_SCALE_M):
+            chk.fail(f"depth[{cam}]", f"depths in [0, {65535 * DEPTH_SCALE_M:g}] m (uint16 millimetres)",
+                     f"range [{float(d.min()):g}, {float(d.max()):g}] m", depth_key(cam))
+        out[depth_key(cam)] = depth_to_features(d)
 
     def f32(name: str, shape: tuple[int | None, ...], feature: str) -> np.ndarray:
         return chk.array(name, _field(frame, name, chk), shape, "f", feature).astype(np.float32, copy=False)
@@ -403,7 +496,6 @@ def frame_to_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray, sp
     odom = f32("odom", (3,), OBS_ODOM)
     out[OBS_ODOM] = odom
     out[OBS_GOAL] = f32("goal_xy", (2,), OBS_GOAL)
-    out[ACTION] = f32(ACTION, (2,), ACTION)
     if spec.labels:
         out[ACTION_TEACHER] = f32("label", (2,), ACTION_TEACHER)
 
@@ -416,7 +508,7 @@ def frame_to_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray, sp
     conf = chk.array("pose_conf", _field(frame, "pose_conf", chk), (kf, N_JOINTS), "f", OBS_POSE_CONF)
     track = chk.array("pose_track", _field(frame, "pose_track", chk), (kf,), "i", PRIV_POSE_TRACK)
     out[OBS_POSES] = _pad(poses.astype(np.float32, copy=False), k, 0.0)
-    out[OBS_POSE_MASK] = _pad(mask.astype(bool, copy=False), k, False)
+    out[OBS_POSE_MASK] = _pad(mask.astype(np.float32), k, 0.0)
     out[OBS_POSE_CONF] = _pad(conf.astype(np.float32, copy=False), k, 0.0)
     out[PRIV_POSE_TRACK] = _pad(track.astype(np.int64, copy=False), k, -1)
 
@@ -437,19 +529,6 @@ def frame_to_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray, sp
     out[PRIV_PED_KEYPOINTS] = _pad(kp, spec.n_max, 0.0)
     out[PRIV_PED_INTENT] = _pad(intent, spec.n_max, 0.0)
     out[PRIV_D_O] = np.array([chk.scalar("d_o", _field(frame, "d_o", chk), PRIV_D_O)], np.float32)
-
-    out[NEXT_REWARD] = np.array([chk.scalar("reward", _field(frame, "reward", chk), NEXT_REWARD)], np.float32)
-    terms = _field(frame, "reward_terms", chk)
-    if not isinstance(terms, dict) or set(terms) - set(REWARD_TERMS):
-        chk.fail("reward_terms", f"a dict with keys from {list(REWARD_TERMS)}",
-                 _describe(terms) if not isinstance(terms, dict) else f"keys {sorted(terms)}", NEXT_REWARD_TERMS)
-    out[NEXT_REWARD_TERMS] = np.array(
-        [chk.scalar(f"reward_terms[{t}]", terms.get(t, 0.0), NEXT_REWARD_TERMS) for t in REWARD_TERMS], np.float32)
-    done = _field(frame, "done", chk)
-    if not isinstance(done, bool | np.bool_):
-        chk.fail("done", "a bool", _describe(done), NEXT_DONE)
-    out[NEXT_DONE] = np.array([bool(done)], dtype=bool)
-
     out[PRIV_LOCAL_OCCUPANCY] = local_occupancy(
         occupancy, meta.occupancy_origin_xy, meta.occupancy_resolution_m, odom, spec.local_map)
     return out

@@ -22,6 +22,13 @@ are kept, ours are replaced) and prints every figure. Figures (single process, t
   MCAP written) on ``record_episodes`` episodes of the bench scene, and ``record_mcap_share``, the share of
   recording time spent writing MCAP; ``export_frames_per_s`` — the LeRobot export of that recording
   (reading MCAP, lerobot's writer incl. AV1 video and stats; the dataset doctor excluded);
+* ``chunk_load_ms_ours`` — stock lerobot reading one item with a 100-step action chunk (``chunk_load_steps``)
+  (``LeRobotDataset(..., video_backend="pyav", delta_timestamps={"action": 100 steps})[i]``) of that export,
+  median of 8 seeded items; ``chunk_load_ms_stock_shaped`` the same on a stock-shaped dataset of the same length
+  (same cameras, only ``observation.state``/``action``/``next.reward``/``next.done``) and ``chunk_load_ratio``
+  ours / stock-shaped; ``chunk_load_ms_policy_features`` and ``chunk_load_ratio_policy_features`` ours after
+  lerobot's ``remove_feature`` of every ``observation.depth.*``/``privileged.*`` feature; ``row_numbers_*`` the
+  numbers per parquet row of each, which the load time follows (see :mod:`recorder.bench`);
 * ``bev_*`` — the BEV encoder with the profile's ``pretrain.encoder`` architecture, one thread: lift vs its
   reference, streaming step vs recomputing the window (see :mod:`pretrain.bench`);
 * ``teacher_env_steps_per_s`` (vs one in-process env) and ``policy_inference_hz`` (streaming vs recomputing the
@@ -47,6 +54,7 @@ from pipeline.core.errors import ConfigError
 from pipeline.core.timing import throughput, time_call
 from pretrain.bench import measure_bev
 from pretrain.stage import PretrainConfig
+from recorder.bench import measure_chunk_loading
 from recorder.export import write_dataset
 from recorder.record import RecordConfig
 from recorder.record import body as record_body
@@ -188,6 +196,7 @@ def measure_recorder(cfg: BenchConfig) -> dict[str, float]:
         files = sorted((Path(tmp) / "raw1").glob("*.mcap"))
         counts = write_dataset(files, Path(tmp) / "dataset", "bench/export", progress=False)
         out["export_frames_per_s"] = counts["frames_per_s"]
+        out.update(measure_chunk_loading(Path(tmp) / "dataset", Path(tmp) / "chunk", seed=cfg.seed))
     return out
 
 

@@ -138,6 +138,6 @@ def test_a_dataset_without_long_tracks_is_a_named_error(monkeypatch, tmp_path):
     xy = np.stack([np.linspace(0, 1, 12), np.zeros(12)], -1)  # 1.2 s: shorter than history + horizon
     monkeypatch.setattr(probe, "read_episodes", lambda root: [episode(xy)])
     (tmp_path / "meta").mkdir()
-    (tmp_path / "meta" / "icrowdnav.json").write_text('{"fps": 10}')
+    (tmp_path / "meta" / "info.json").write_text('{"fps": 10, "features": {"action": {"info": {"icrowdnav_format": 2}}}}')
     with pytest.raises(InputMissingError, match="no tracked pedestrian"):
         probe.collect(tmp_path)

@@ -10,7 +10,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from recorder.doctor_dataset import check_dataset, main
+from recorder.dataset_info import DatasetFormatError, read_dataset_info
+from recorder.doctor_dataset import check_dataset, main, require_sound_dataset
+from recorder.mcap.codecs import depth_to_mm
 
 DATA = "data/chunk-000/file-000.parquet"
 EPISODES = "meta/episodes/chunk-000/file-000.parquet"
@@ -73,7 +75,7 @@ def test_removed_data_rows_are_found(dataset_copy, tiny_dataset):
     problems = check_dataset(dataset_copy)
     named = _lines_naming(problems, dataset_copy, DATA)
     assert any("episode 1: no rows" in line for line in named), problems
-    n0 = len(tiny_dataset.episodes[0].frame_list)
+    n0 = len(tiny_dataset.episodes[0].frame_list) - 1  # a dataset episode: its recording but the terminal frame
     assert any(f"data files hold {n0} rows" in line for line in problems), problems
 
 
@@ -81,7 +83,7 @@ def test_wrong_timestamps_are_found(dataset_copy, tiny_dataset):
     p = dataset_copy / DATA
     table = pq.read_table(p)
     ts = table["timestamp"].to_numpy().copy()
-    n0 = len(tiny_dataset.episodes[0].frame_list)
+    n0 = len(tiny_dataset.episodes[0].frame_list) - 1  # a dataset episode: its recording but the terminal frame
     ts[n0 + 4] += 0.05
     table = table.set_column(table.column_names.index("timestamp"), "timestamp", pa.array(ts, pa.float32()))
     pq.write_table(table, p)
@@ -127,21 +129,44 @@ def test_stats_that_do_not_match_are_named(dataset_copy):
 
 def test_recomputed_stats_follow_lerobots_axes(tiny_dataset):
     stats = json.loads((tiny_dataset.root / "meta/stats.json").read_text())
-    depth = np.stack([f.depth["left"] for e in tiny_dataset.episodes for f in e.frame_list])
+    # the dataset's frames: every recorded observation but each episode's terminal one, depth in uint16 mm
+    depth = np.stack([depth_to_mm(f.depth["left"]) for e in tiny_dataset.episodes for f in e.frame_list[:-1]])
     # lerobot reduces every axis but the last: one value per image column
     assert len(stats["observation.depth.left"]["min"]) == depth.shape[-1]
-    np.testing.assert_allclose(stats["observation.depth.left"]["max"], depth.reshape(-1, 64).max(0), atol=1e-3)
+    np.testing.assert_array_equal(stats["observation.depth.left"]["max"], depth.reshape(-1, 64).max(0))
 
 
 def test_icrowdnav_meta_files_are_checked(dataset_copy):
     p = dataset_copy / "meta/icrowdnav_episodes.jsonl"
     p.write_text(p.read_text().splitlines()[0] + "\n")
-    (dataset_copy / "meta/icrowdnav.json").unlink()
+    (dataset_copy / "meta/icrowdnav.json").unlink()  # an optional extra: lerobot's dataset tools drop it
+    info_path = dataset_copy / "meta/info.json"
+    info = json.loads(info_path.read_text())
+    del info["features"]["observation.images.right"]["info"]["camera"]  # the calibration is not optional
+    info_path.write_text(json.dumps(info, indent=4))
     problems = check_dataset(dataset_copy, videos=False, stats=False)
     assert any("1 row(s), expected 2" in line for line in
                _lines_naming(problems, dataset_copy, "meta/icrowdnav_episodes.jsonl")), problems
-    assert _lines_naming(problems, dataset_copy, "meta/icrowdnav.json"), problems
+    assert not _lines_naming(problems, dataset_copy, "meta/icrowdnav.json"), problems
+    assert any("features.observation.images.right.info.camera" in line
+               for line in _lines_naming(problems, dataset_copy, "meta/info.json")), problems
+    assert len(problems) == 2, problems
     assert check_dataset(dataset_copy, videos=False, stats=False, icrowdnav=False) == []
+
+
+def test_a_format_1_dataset_is_refused_by_name(dataset_copy):
+    info_path = dataset_copy / "meta/info.json"
+    info = json.loads(info_path.read_text())
+    del info["features"]["action"]["info"]  # as an export before format 2 wrote it
+    info_path.write_text(json.dumps(info, indent=4))
+    with pytest.raises(DatasetFormatError) as ei:
+        read_dataset_info(dataset_copy)
+    msg = str(ei.value)
+    for words in (str(info_path), "features.action.info.icrowdnav_format", "expected 2", "led to frame t",
+                  "--overwrite"):
+        assert words in msg, (words, msg)
+    with pytest.raises(DatasetFormatError):
+        require_sound_dataset(dataset_copy)
 
 
 def test_info_totals_must_match(dataset_copy, tiny_dataset):

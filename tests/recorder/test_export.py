@@ -23,9 +23,11 @@ from recorder.features import (
     ExportSpec,
     FeatureError,
     LocalMapSpec,
+    depth_from_features,
     frame_to_features,
     local_occupancy,
 )
+from recorder.mcap.codecs import depth_to_mm
 
 
 def _tree_digest(root: Path) -> dict[str, str]:
@@ -91,19 +93,21 @@ def test_stock_lerobot_loads_export_and_frames_match_the_recording(tiny_dataset)
     ds = LeRobotDataset(tiny_dataset.repo_id, root=tiny_dataset.root, video_backend="pyav")
     episodes = tiny_dataset.episodes
     assert ds.num_episodes == len(episodes) == tiny_dataset.counts["episodes"]
-    assert len(ds) == sum(len(e.frame_list) for e in episodes) == tiny_dataset.counts["frames"]
+    # LeRobot's convention: a dataset episode is its recording but the terminal observation
+    assert len(ds) == sum(len(e.frame_list) - 1 for e in episodes) == tiny_dataset.counts["frames"]
     assert ds.fps == 10
     spec = ExportSpec.from_meta(episodes[0].meta)
     i = 0
     for e, ep in enumerate(episodes):
-        for f, fr in enumerate(ep.frame_list):
+        for f, (fr, nxt) in enumerate(zip(ep.frame_list[:-1], ep.frame_list[1:], strict=True)):
             item = ds[i]
             i += 1
             assert int(item["episode_index"]) == e and int(item["frame_index"]) == f
             assert float(item["timestamp"]) == pytest.approx(f / 10, abs=1e-6)
             assert item["task"] == "navigate to the goal through the crowd"
             exact = {"observation.state": fr.state, "observation.odom": fr.odom, "observation.goal": fr.goal_xy,
-                     "action": fr.action, "observation.poses": fr.poses, "observation.pose_mask": fr.pose_mask,
+                     "action": nxt.action, "observation.poses": fr.poses,
+                     "observation.pose_mask": fr.pose_mask.astype(np.float32),
                      "observation.pose_conf": fr.pose_conf, "privileged.pose_track": fr.pose_track}
             for key, want in exact.items():
                 got = item[key].numpy()
@@ -113,18 +117,18 @@ def test_stock_lerobot_loads_export_and_frames_match_the_recording(tiny_dataset)
             np.testing.assert_array_equal(item["privileged.ped_state"].numpy(), state)
             np.testing.assert_array_equal(item["privileged.ped_keypoints"].numpy(), kp)
             np.testing.assert_array_equal(item["privileged.ped_intent"].numpy(), intent)
-            assert float(item["next.reward"]) == np.float32(fr.reward)
-            assert bool(item["next.done"]) == fr.done
+            assert float(item["next.reward"]) == np.float32(nxt.reward)
+            assert bool(item["next.done"]) == nxt.done
             assert float(item["privileged.d_o"]) == np.float32(fr.d_o)
             occ = local_occupancy(ep.occupancy, ep.meta.occupancy_origin_xy, ep.meta.occupancy_resolution_m,
                                   fr.odom, spec.local_map)
             np.testing.assert_array_equal(item["privileged.local_occupancy"].numpy(), occ)
             for cam in ("left", "right"):
-                depth = item[f"observation.depth.{cam}"].numpy()
-                assert depth.dtype == np.float32 and depth.shape == (48, 64)
+                depth = item[f"observation.depth.{cam}"].numpy()  # uint16 mm; lerobot's torch format: int64
+                assert depth.shape == (48, 64) and depth.dtype.kind in "iu"
                 # the MCAP log stores whole millimetres: the depth is exact up to that quantisation
-                np.testing.assert_allclose(depth, fr.depth[cam], rtol=0, atol=0.5e-3 + 1e-6)
-                np.testing.assert_array_equal(depth == 0, fr.depth[cam] == 0)
+                np.testing.assert_array_equal(depth, depth_to_mm(fr.depth[cam]))
+                np.testing.assert_allclose(depth_from_features(depth), fr.depth[cam], rtol=0, atol=0.5e-3 + 1e-6)
                 img = item[f"observation.images.{cam}"]
                 assert img.shape == (3, 48, 64) and img.dtype == torch.float32
                 rgb = img.numpy().transpose(1, 2, 0) * 255.0
@@ -178,20 +182,20 @@ def test_every_exported_feature_reads_back_as_in_the_source_mcap(tmp_path, tiny_
     assert {tuple(fr.reward_terms) for fr in frames[1:]} == {tuple(terms_order)} and frames[0].reward_terms
     spec = ExportSpec.from_meta(meta)
     ds = LeRobotDataset("icrowdnav/every", root=out, video_backend="pyav")
-    assert len(ds) == len(frames) == 21
+    assert len(ds) == len(frames) - 1 == 20  # the terminal observation is not a frame
     checked: set[str] = set()
-    for f, fr in enumerate(frames):
+    for f, (fr, nxt) in enumerate(zip(frames[:-1], frames[1:], strict=True)):
         item = ds[f]
         state, kp, intent = _expected_privileged(fr, spec.n_max)
         want = {
             "observation.state": fr.state, "observation.odom": fr.odom, "observation.goal": fr.goal_xy,
-            "observation.poses": fr.poses, "observation.pose_mask": fr.pose_mask,
+            "observation.poses": fr.poses, "observation.pose_mask": fr.pose_mask.astype(np.float32),
             "observation.pose_conf": fr.pose_conf, "privileged.pose_track": fr.pose_track,
-            "action": fr.action, "action.teacher": fr.label,
-            "next.reward": np.float32(fr.reward),
-            "next.reward_terms": np.array([fr.reward_terms.get(t, 0.0) for t in features["next.reward_terms"]["names"]],
+            "action": nxt.action, "action.teacher": fr.label,  # the command chosen from observation f
+            "next.reward": np.float32(nxt.reward),
+            "next.reward_terms": np.array([nxt.reward_terms.get(t, 0.0) for t in features["next.reward_terms"]["names"]],
                                           np.float32),
-            "next.done": np.bool_(fr.done), "privileged.d_o": np.float32(fr.d_o),
+            "next.done": np.bool_(nxt.done), "privileged.d_o": np.float32(fr.d_o),
             "privileged.ped_state": state, "privileged.ped_keypoints": kp, "privileged.ped_intent": intent,
             "privileged.local_occupancy": local_occupancy(occ, meta.occupancy_origin_xy, meta.occupancy_resolution_m,
                                                           fr.odom, spec.local_map),
@@ -204,9 +208,9 @@ def test_every_exported_feature_reads_back_as_in_the_source_mcap(tmp_path, tiny_
             assert got.dtype == value.dtype, (key, got.dtype, value.dtype)
             np.testing.assert_array_equal(got.reshape(value.shape), value, err_msg=f"{key} at frame {f}")
         for cam in ("left", "right"):
-            depth = item[f"observation.depth.{cam}"].numpy()
-            assert depth.dtype == np.float32 and depth.shape == (48, 64)
-            np.testing.assert_allclose(depth, fr.depth[cam], rtol=0, atol=0.5e-3 + 1e-6)  # stored as whole mm
+            depth = item[f"observation.depth.{cam}"].numpy()  # uint16 mm, as lerobot's int64 tensor
+            assert depth.dtype == np.int64 and depth.shape == (48, 64)
+            np.testing.assert_array_equal(depth, depth_to_mm(fr.depth[cam]))  # exact: the log keeps whole mm
             img = item[f"observation.images.{cam}"]
             assert img.shape == (3, 48, 64) and img.dtype == torch.float32
             mad = np.abs(img.numpy().transpose(1, 2, 0) * 255.0 - fr.rgb[cam].astype(np.float32)).mean()
@@ -226,9 +230,9 @@ def test_dataloader_iterates_batches_of_four(tiny_dataset):
         b = len(batch["index"])
         assert batch["observation.images.left"].shape == (b, 3, 48, 64)
         assert batch["observation.depth.right"].shape == (b, 48, 64)
-        assert batch["observation.depth.right"].dtype == torch.float32
+        assert batch["observation.depth.right"].dtype == torch.int64  # uint16 mm through lerobot's formatting
         assert batch["observation.poses"].shape == (b, 6, 17, 3)
-        assert batch["observation.pose_mask"].dtype == torch.bool
+        assert batch["observation.pose_mask"].dtype == torch.float32
         assert batch["privileged.ped_state"].shape == (b, 64, 8)
         assert batch["privileged.local_occupancy"].shape == (b, 100, 100)
         assert batch["privileged.local_occupancy"].dtype == torch.bool
@@ -248,13 +252,27 @@ def test_metadata_files_hold_cameras_and_episode_facts(tiny_dataset):
     assert meta["cameras"]["left"]["K"] == ep0.meta.cameras["left"]["K"]
     assert meta["cameras"]["right"]["T_base_cam"] == ep0.meta.cameras["right"]["T_base_cam"]
     assert meta["spec"]["local_map"]["shape"] == [100, 100]
+    # the calibration where lerobot's tools keep it: the features' info in meta/info.json
+    feats = info["features"]
+    for cam in ("left", "right"):
+        want = json.loads(json.dumps(ep0.meta.cameras[cam]))
+        assert feats[f"observation.images.{cam}"]["info"]["camera"] == want
+        depth_cam = feats[f"observation.depth.{cam}"]["info"]["camera"]
+        assert {**depth_cam, "depth_units": want["depth_units"]} == want and depth_cam["depth_units"].startswith("mm")
+    assert feats["observation.images.left"]["info"]["video.codec"]  # lerobot's own video info kept beside ours
+    assert feats["observation.depth.left"]["info"]["unit"] == "mm"
+    assert feats["action"]["info"]["icrowdnav_format"] == 2 and "observation t" in feats["action"]["info"]["convention"]
+    assert feats["privileged.local_occupancy"]["info"]["layout"]["shape"] == [100, 100]
+    assert all(ft.get("info", {}).get("description") for k, ft in feats.items() if k not in LEROBOT_INDEX_FEATURES)
     for k, (row, ep) in enumerate(zip(rows, tiny_dataset.episodes, strict=True)):
-        assert row["episode_index"] == k and row["length"] == len(ep.frame_list)
+        assert row["episode_index"] == k and row["length"] == len(ep.frame_list) - 1
+        assert row["recorded_frames"] == len(ep.frame_list)
         assert (row["scene"], row["seed"], row["density"]) == (ep.meta.scene, ep.meta.seed, ep.meta.density)
         assert row["outcome"] == ep.frame_list[-1].outcome != ""
-        assert row["source"].endswith(f"ep_{k:03d}.mcap")
+        assert row["source"] == f"ep_{k:03d}.mcap"  # the file's name: no local directory in a shared dataset
         assert row["meta"]["config_hash"] == ep.meta.config_hash
-        assert row["return"] == pytest.approx(sum(np.float32(f.reward) for f in ep.frame_list), rel=1e-5)
+        assert row["return"] == pytest.approx(sum(np.float32(f.reward) for f in ep.frame_list[1:]), rel=1e-5)
+    assert meta["sources"] == [r["source"] for r in rows]
     # every feature names its axes / elements
     for key, ft in info["features"].items():
         if key not in ("timestamp", "frame_index", "episode_index", "index", "task_index"):
@@ -293,7 +311,7 @@ def test_feature_errors_name_file_field_expected_actual(case, tiny_episodes, fra
         state[2] = np.nan
         bad, words = frame_with(fr, state=state), ["'state'", "finite", "NaN"]
     with pytest.raises(FeatureError) as ei:
-        frame_to_features(bad, ep.meta, ep.occupancy, spec, "runs/ep_007.mcap", 3)
+        frame_to_features(bad, ep.frame_list[4], ep.meta, ep.occupancy, spec, "runs/ep_007.mcap", 3)
     msg = str(ei.value)
     assert msg.startswith("runs/ep_007.mcap: frame "), msg
     for w in words:
@@ -305,7 +323,7 @@ def test_too_many_pedestrians_is_an_error_naming_n_max(tiny_episodes):
     ep = tiny_episodes[0]
     spec = ExportSpec(ExportSpec.from_meta(ep.meta).camera_sizes, n_max=2)
     with pytest.raises(FeatureError, match=r"ped_pos.*at most 2 pedestrians \(n_max"):
-        frame_to_features(ep.frame_list[0], ep.meta, ep.occupancy, spec, "x.mcap", 0)
+        frame_to_features(ep.frame_list[0], ep.frame_list[1], ep.meta, ep.occupancy, spec, "x.mcap", 0)
 
 
 def test_bad_frame_mid_export_publishes_nothing(tmp_path, tiny_episodes, frame_with):

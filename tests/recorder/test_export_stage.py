@@ -84,16 +84,16 @@ def test_export_is_a_stock_lerobot_dataset_with_provenance(exported, capsys):
 
     ds = LeRobotDataset(REPO_ID, root=root, video_backend="pyav")
     assert ds.num_episodes == 2
-    assert ds.num_frames == len(ds) == sum(lengths)
+    assert ds.num_frames == len(ds) == sum(lengths) - len(lengths)  # the terminal observations stay in the MCAP
     assert ds.fps == 10
-    for e, first in enumerate((0, lengths[0])):  # the first frame of each episode, videos decoded with pyav
+    for e, first in enumerate((0, lengths[0] - 1)):  # the first frame of each episode, videos decoded with pyav
         item = ds[first]
         assert int(item["episode_index"]) == e and int(item["frame_index"]) == 0
         for cam in ("left", "right"):
             img = item[f"observation.images.{cam}"]
             assert img.shape == (3, 48, 64) and img.dtype == torch.float32
     last = ds[len(ds) - 1]
-    assert int(last["episode_index"]) == 1 and int(last["frame_index"]) == lengths[1] - 1
+    assert int(last["episode_index"]) == 1 and int(last["frame_index"]) == lengths[1] - 2
     assert bool(last["next.done"])
 
     rc, stdout, _ = run_cli(capsys, ["doctor", str(root)])
@@ -102,7 +102,7 @@ def test_export_is_a_stock_lerobot_dataset_with_provenance(exported, capsys):
 
     manifest = json.loads((root / "manifest.json").read_text())
     assert manifest["stage"] == "export"
-    assert manifest["counts"]["episodes"] == 2 and manifest["counts"]["frames"] == sum(lengths)
+    assert manifest["counts"]["episodes"] == 2 and manifest["counts"]["frames"] == sum(lengths) - len(lengths)
     inputs = {r["path"]: r for r in manifest["inputs"]}
     for name in MCAPS:
         rec = inputs[f"raw/expert/{name}"]
@@ -160,7 +160,7 @@ def test_export_after_the_recording_changed_refuses_unless_overwrite(tmp_path, c
     assert sorted(os.listdir(data / "datasets" / "test")) == ["tiny"]
     ds = LeRobotDataset(REPO_ID, root=root, video_backend="pyav")
     assert ds.num_episodes == 3
-    assert ds.num_frames == sum(count_frames(p) for p in (data / "raw" / "expert").glob("*.mcap"))
+    assert ds.num_frames == sum(count_frames(p) - 1 for p in (data / "raw" / "expert").glob("*.mcap"))
     assert run_cli(capsys, ["doctor", str(root)])[0] == 0
     assert run_cli(capsys, export_argv(data))[1].startswith("export: up to date")
 

@@ -119,11 +119,16 @@ def test_dagger_iteration_writes_a_loadable_dataset_and_lowers_bc_loss(tmp_path,
     assert ds.meta.total_episodes == 2 and ds.meta.total_frames == counts["frames"]
     assert "action.teacher" in ds.features
     data = load_features([it])
-    assert len(data["action"]) == counts["frames"] == sum(r["frames"] for r in rows)
+    # the cache holds every labelled observation; the dataset every one but each episode's terminal observation
+    # (LeRobot's convention: a frame is an observation and the step from it)
+    lengths = [r["frames"] for r in rows]
+    assert len(data["action"]) == sum(lengths) and counts["frames"] == sum(lengths) - len(lengths)
+    starts = np.cumsum([0, *lengths[:-1]])
+    stepped = np.concatenate([s + np.arange(n - 1) for s, n in zip(starts, lengths, strict=True)])
     # the dataset's labels are the cached label indices, decoded to (v, omega)
     env = CrowdNavEnv(config=replace(TINY_SIM, action_type="discrete", obs_mode="state"))
     labels = np.stack([np.asarray(v, np.float32) for v in ds.hf_dataset.with_format(None)["action.teacher"]])
-    assert np.allclose(labels, np.stack([env.decode_action(a) for a in data["action"]]), atol=1e-6)
+    assert np.allclose(labels, np.stack([env.decode_action(a) for a in data["action"][stepped]]), atol=1e-6)
 
     env.reset(seed=0)
     space = StudentObserver("no_bev", env_cameras(env), None, TINY_SIM.detector.max_people).observation_space

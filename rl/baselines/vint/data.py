@@ -3,7 +3,6 @@ trajectory labels, and the recorded LeRobot dataset loaded into memory."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from pipeline.core import layout
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
 from pipeline.core.keys import OBS_GOAL, OBS_ODOM, image_key
 from pretrain.data import decode_video_file
+from recorder.dataset_info import read_dataset_info
 from recorder.doctor_dataset import require_sound_dataset
 from rl.baselines.vint.configuration import CAMERAS
 from sim.geometry import world_to_robot_each
@@ -131,14 +131,9 @@ def dataset_root(cfg) -> Path:
 
 
 def check_dataset(root: Path) -> dict:
-    info_path = root / "meta" / "info.json"
-    if not info_path.is_file():
-        raise InputMissingError(f"vint: no recorded dataset at {root} (missing meta/info.json); make it with "
-                                "`make record`")
-    try:
-        features = json.loads(info_path.read_text())["features"]
-    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
-        raise CorruptArtifactError(f"{info_path}: unreadable dataset metadata ({type(e).__name__}: {e})") from None
+    """The dataset's features, after checking its format (:func:`recorder.dataset_info.read_dataset_info`), the
+    features the baseline reads, and the doctor's cheap checks."""
+    features = read_dataset_info(root).features
     need = [image_key(c) for c in CAMERAS] + [OBS_ODOM, OBS_GOAL]
     missing = [k for k in need if k not in features]
     if missing:
@@ -159,8 +154,7 @@ def load_dataset(root: Path, hw: list[int], episodes: int = 0, progress: bool = 
     root = Path(root)
     check_dataset(root)
     try:
-        side = json.loads((root / "meta" / "icrowdnav.json").read_text())
-        ds = LeRobotDataset(side.get("repo_id", f"{root.parent.name}/{root.name}"), root=root, video_backend="pyav")
+        ds = LeRobotDataset(f"{root.parent.name}/{root.name}", root=root, video_backend="pyav")
     except Exception as e:  # lerobot raises many types for broken datasets
         raise CorruptArtifactError(f"dataset {root}: cannot open it ({type(e).__name__}: {e})") from None
     fps = float(ds.meta.fps)

@@ -153,7 +153,7 @@ def inputs(cfg) -> list[Path]:
     cfg.vint.validate()
     root = dataset_root(cfg)
     check_dataset(root)
-    files = [root / "meta" / "info.json", root / "meta" / "icrowdnav.json", *sorted(root.glob("data/**/*.parquet")),
+    files = [root / "meta" / "info.json", *sorted(root.glob("data/**/*.parquet")),
              *sorted(root.glob("videos/observation.images.*/**/*.mp4"))]
     if cfg.vint.init_weights:
         w = Path(cfg.vint.init_weights)
