@@ -52,6 +52,7 @@ EPISODES_DIR = "meta/episodes"
 ICROWDNAV_META = "meta/icrowdnav.json"
 ICROWDNAV_EPISODES = "meta/icrowdnav_episodes.jsonl"
 DEFAULT_KEYS = ("timestamp", "frame_index", "episode_index", "index", "task_index")
+RENUMBERED = ("index", "episode_index")  # lerobot's dataset tools renumber these columns
 TOLERANCE_S = 1e-4  # lerobot's default tolerance between a requested and a decoded video timestamp
 
 
@@ -397,7 +398,10 @@ def _check_stats(root: Path, good: set[Path], info: dict, rep: _Report) -> None:
         rep.add(STATS, f"unreadable JSON: {e}")
         return
     feats = info["features"]
-    numeric = [k for k, ft in feats.items() if ft.get("dtype") not in ("video", "image", "string")]
+    # not 'index' / 'episode_index': lerobot's delete_episodes renumbers them but keeps their recorded per-episode
+    # stats (bookkeeping columns, never normalised)
+    numeric = [k for k, ft in feats.items()
+               if ft.get("dtype") not in ("video", "image", "string") and k not in RENUMBERED]
     for k in [k for k, ft in feats.items() if ft.get("dtype") == "video"]:
         s = stats.get(k)
         if s is None:

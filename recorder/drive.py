@@ -10,7 +10,7 @@ import numpy as np
 from pipeline.core.errors import ConfigError
 from recorder.schema import EpisodeMeta, Frame, episode_meta_from_env, frame_from_env
 from sim.env import CrowdNavEnv, SimConfig
-from sim.episode import episode_steps
+from sim.episode import Driver, episode_steps
 from sim.expert import ExpertDriver
 from sim.wrappers import PrivilegedWorld
 
@@ -30,18 +30,20 @@ class Episode:
     frames: Iterator[Frame]
 
 
-def drive_episode(sim_cfg: SimConfig, seed: int, driver: str = "expert") -> Episode:
+def drive_episode(sim_cfg: SimConfig, seed: int, driver: str | Driver = "expert") -> Episode:
     """Reset a visual-mode env with ``seed`` and return the :class:`Episode` (frames are produced lazily).
 
     The iterator yields the reset frame (step 0) and one frame per step until the episode ends; the env is
-    closed when it is exhausted. Only the privileged ``expert`` driver exists so far (policies come with train).
+    closed when it is exhausted. ``driver``: ``"expert"`` (the privileged expert; policies are recorded by their
+    own stages) or any :class:`sim.episode.Driver` object (recorded under its class name; it sees the privileged
+    world like the expert).
     """
-    if driver not in DRIVERS:
-        raise ConfigError(f"driver: expected one of {list(DRIVERS)}, got {driver!r}")
+    if isinstance(driver, str) and driver not in DRIVERS:
+        raise ConfigError(f"driver: expected one of {list(DRIVERS)} or a Driver object, got {driver!r}")
     env = CrowdNavEnv(config=replace(sim_cfg, obs_mode="visual", info_level="full"))
-    steps = episode_steps(PrivilegedWorld(env), ExpertDriver(), seed)
+    steps = episode_steps(PrivilegedWorld(env), ExpertDriver() if isinstance(driver, str) else driver, seed)
     first = next(steps)  # the reset
-    meta = episode_meta_from_env(env, seed, driver)
+    meta = episode_meta_from_env(env, seed, driver if isinstance(driver, str) else type(driver).__name__)
 
     def frames() -> Iterator[Frame]:
         try:

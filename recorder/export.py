@@ -85,6 +85,11 @@ log = logging.getLogger("icrowdnav")
 ICROWDNAV_META = "meta/icrowdnav.json"
 ICROWDNAV_EPISODES = "meta/icrowdnav_episodes.jsonl"
 PARTIAL_SUFFIX = ".partial"
+# One parquet data file per episode (lerobot starts a new file once the current one reaches this size). lerobot
+# 0.4.4's ``delete_episodes`` must filter rows out of a data file that holds a deleted and a kept episode, and that
+# fails on multi-dimensional features (``datasets``' PandasArrayExtensionDtype compares a string ``_metadata`` letter
+# by letter: "AttributeError: ... has no attribute 'v'"); with one episode per file it copies or skips whole files.
+DATA_FILE_MB = 1e-6
 
 
 @dataclass
@@ -330,6 +335,7 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
                 first_meta = meta
                 ds = LeRobotDataset.create(repo_id, fps, features, root=root, robot_type=ROBOT_TYPE,
                                            use_videos=True, vcodec=vcodec)
+                ds.meta.update_chunk_settings(data_files_size_in_mb=DATA_FILE_MB)
             else:
                 _check_same_spec(meta, first_meta, spec, fps, src.name)
             length, ret, outcome, done = 0, 0.0, "", False

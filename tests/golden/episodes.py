@@ -38,8 +38,9 @@ def golden_rows(scenes, seeds, methods, keys) -> list[dict]:
     return out
 
 
-def golden_artifacts(tmp: Path) -> tuple[Path, Path]:
-    """One tiny MCAP episode and the parquet file exported from two of them (the test fixtures' world)."""
+def golden_artifacts(tmp: Path) -> tuple[Path, list[Path]]:
+    """One tiny MCAP episode and the parquet data files exported from two of them (the test fixtures' world; one
+    file per episode)."""
     from recorder.drive import drive_episode
     from recorder.export import export_run
     from recorder.mcap.writer import EpisodeWriter
@@ -55,5 +56,5 @@ def golden_artifacts(tmp: Path) -> tuple[Path, Path]:
     out = tmp / "dataset"
     export_run(raw, out, "icrowdnav/golden", progress=False)
     parquets = sorted(out.glob("data/*/*.parquet"))
-    assert len(parquets) == 1, parquets
-    return raw / "ep_000.mcap", parquets[0]
+    assert len(parquets) == len(TINY_SEEDS), parquets
+    return raw / "ep_000.mcap", parquets

@@ -43,8 +43,9 @@ def metric_rows() -> list[dict]:
 def artifact_hashes(tmp: Path) -> dict[str, str]:
     from tests.golden.episodes import golden_artifacts
 
-    mcap, parquet = golden_artifacts(tmp)
-    return {"mcap_sha256": sha256(mcap), "parquet_sha256": sha256(parquet)}
+    mcap, parquets = golden_artifacts(tmp)
+    listing = "".join(f"{p.relative_to(p.parents[2]).as_posix()} {sha256(p)}\n" for p in parquets)
+    return {"mcap_sha256": sha256(mcap), "parquet_sha256": hashlib.sha256(listing.encode()).hexdigest()}
 
 
 def main() -> int:

@@ -14,7 +14,8 @@ from recorder.dataset_info import DatasetFormatError, read_dataset_info
 from recorder.doctor_dataset import check_dataset, main, require_sound_dataset
 from recorder.mcap.codecs import depth_to_mm
 
-DATA = "data/chunk-000/file-000.parquet"
+DATA = "data/chunk-000/file-000.parquet"  # episode 0 (the export writes one data file per episode)
+DATA1 = "data/chunk-000/file-001.parquet"  # episode 1
 EPISODES = "meta/episodes/chunk-000/file-000.parquet"
 VIDEO = "videos/observation.images.right/chunk-000/file-000.mp4"
 
@@ -64,32 +65,31 @@ def test_removed_episode_metadata_row_is_found(dataset_copy):
     assert any("total_episodes 2 but meta/episodes holds 1" in line for line in
                _lines_naming(problems, dataset_copy, "meta/info.json")), problems
     assert any("rows of episode 1, which meta/episodes does not list" in line for line in
-               _lines_naming(problems, dataset_copy, DATA)), problems
+               _lines_naming(problems, dataset_copy, DATA1)), problems
 
 
 def test_removed_data_rows_are_found(dataset_copy, tiny_dataset):
-    p = dataset_copy / DATA
+    p = dataset_copy / DATA1
     table = pq.read_table(p)
     ep = table["episode_index"].to_numpy()
     pq.write_table(table.filter(pa.array(ep == 0)), p)  # the rows of episode 1 are gone
     problems = check_dataset(dataset_copy)
-    named = _lines_naming(problems, dataset_copy, DATA)
+    named = _lines_naming(problems, dataset_copy, DATA1)
     assert any("episode 1: no rows" in line for line in named), problems
     n0 = len(tiny_dataset.episodes[0].frame_list) - 1  # a dataset episode: its recording but the terminal frame
     assert any(f"data files hold {n0} rows" in line for line in problems), problems
 
 
 def test_wrong_timestamps_are_found(dataset_copy, tiny_dataset):
-    p = dataset_copy / DATA
+    p = dataset_copy / DATA1
     table = pq.read_table(p)
     ts = table["timestamp"].to_numpy().copy()
-    n0 = len(tiny_dataset.episodes[0].frame_list) - 1  # a dataset episode: its recording but the terminal frame
-    ts[n0 + 4] += 0.05
+    ts[4] += 0.05  # episode 1, frame 4
     table = table.set_column(table.column_names.index("timestamp"), "timestamp", pa.array(ts, pa.float32()))
     pq.write_table(table, p)
     problems = check_dataset(dataset_copy, videos=False, stats=False)
     assert any("timestamp" in line and "frame_index 4" in line for line in
-               _lines_naming(problems, dataset_copy, DATA)), problems
+               _lines_naming(problems, dataset_copy, DATA1)), problems
 
 
 def test_truncated_video_is_named(dataset_copy):
@@ -183,7 +183,7 @@ def test_deleted_data_file_is_named_as_missing(dataset_copy):
     (dataset_copy / DATA).unlink()
     problems = check_dataset(dataset_copy, videos=False, stats=False)
     named = _lines_naming(problems, dataset_copy, DATA)
-    assert named and "missing: meta/episodes places episodes 0..1 in this data file" in named[0], problems
+    assert named and "missing: meta/episodes places episode 0 in this data file" in named[0], problems
 
 
 def test_missing_video_is_named_without_decoding(dataset_copy):
