@@ -138,7 +138,7 @@ def read_episodes(root: Path) -> list[dict[str, np.ndarray]]:
     for key in (OBS_POSES, OBS_POSE_MASK, PRIV_PED_KEYPOINTS, PRIV_POSE_TRACK, OBS_ODOM):
         if key not in feats:
             raise InputMissingError(f"dataset {root} lacks {key}, which the intention probe reads")
-    k, n = feats[OBS_POSES]["shape"][0], feats[PRIV_PED_STATE]["shape"][0]
+    k, n = feats[OBS_POSES]["shape"][0] // (N_JOINTS * 3), feats[PRIV_PED_STATE]["shape"][0]  # poses are flat
     files = sorted((root / "data").rglob("*.parquet"))
     cols = ["episode_index", "frame_index", OBS_ODOM, OBS_POSES, OBS_POSE_MASK, PRIV_PED_STATE, PRIV_PED_KEYPOINTS,
             PRIV_POSE_TRACK]

@@ -144,7 +144,8 @@ def write_stock_shaped(root: Path, out: Path, *, seed: int = 0, repo_id: str = "
         NEXT_DONE: {"dtype": "bool", "shape": (1,), "names": ["done"]},
     })
     scalar_keys = [k for k, ft in features.items() if tuple(ft["shape"]) == (1,)]
-    ds = LeRobotDataset.create(repo_id, fps, features, root=out, robot_type="bench", use_videos=True, vcodec=vcodec)
+    ds = LeRobotDataset.create(repo_id, fps, features, root=out, robot_type="bench", use_videos=True, vcodec=vcodec,
+                               video_backend="pyav")
     try:
         for ep, length in enumerate(episode_lengths(root)):
             rng = np.random.default_rng([seed, ep])

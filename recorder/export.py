@@ -14,23 +14,25 @@ leave a dataset with footer-less parquet files or an episode-index gap. Hence th
 
 1. writes into a staging directory ``.<name>.staging-<pid>`` next to ``out_dir``
    (:class:`pipeline.core.artifacts.OutputDir`; staging dirs of dead processes are removed by the next export);
-2. ``LeRobotDataset.create`` → ``add_frame`` per frame (task :data:`recorder.features.TASK`) →
-   ``save_episode`` per episode → ``finalize()``;
-3. writes ``meta/icrowdnav.json`` (cameras' intrinsics/extrinsics, feature docs, the local-map layout,
-   sources) and ``meta/icrowdnav_episodes.jsonl`` (one row per episode: the episode's metadata, source file,
-   outcome, length, return);
+2. ``LeRobotDataset.create`` → ``add_frame`` per frame (task :data:`recorder.features.TASK`; observation ``t``
+   with the step from it, LeRobot's action convention: :mod:`recorder.features`) → ``save_episode`` per episode
+   (one parquet data file each) → ``finalize()``;
+3. adds our ``info`` to every feature of lerobot's ``meta/info.json`` (descriptions, the cameras' intrinsics /
+   extrinsics, the dataset format, the local-map layout: :func:`recorder.features.feature_info`) and writes the
+   optional extras ``meta/icrowdnav.json`` (feature docs, sources) and ``meta/icrowdnav_episodes.jsonl`` (one row
+   per episode: the episode's metadata, source file name, outcome, length, return);
 4. runs the dataset doctor (:func:`recorder.doctor_dataset.check_dataset`) on the staging directory — any
    problem is an error and the staging directory is removed;
 5. renames the staging directory into place (with ``overwrite``, the old dataset stays until the new one is
    complete).
 
-Why the episode facts are in a side file: lerobot 0.4.4 keeps its ``meta/info.json`` (rewritten on every
-``save_episode``) and its ``meta/episodes`` parquet (written from an internal dict; ``LeRobotDataset.save_episode``
-takes no extra per-episode columns) to itself, so our facts live in ``meta/icrowdnav*.json*``, which stock
-lerobot ignores and copies along.
+Why the per-episode facts are in a side file: lerobot 0.4.4's ``meta/episodes`` parquet is written from an internal
+dict (``LeRobotDataset.save_episode`` takes no extra per-episode columns), so they live in
+``meta/icrowdnav_episodes.jsonl``, which stock lerobot ignores and its dataset tools drop; what our readers need
+(format, calibration) is in ``meta/info.json``, which they keep.
 
-Reading the dataset back with stock lerobot needs ``video_backend="pyav"`` on these machines (torchcodec is
-installed but cannot load without system FFmpeg libraries)::
+Reading the dataset back with stock lerobot: ``video_backend="pyav"`` (lerobot's default torchcodec needs system
+FFmpeg libraries; our lock leaves torchcodec out, so lerobot falls back to pyav by itself)::
 
     LeRobotDataset("icrowdnav/run", root="data/datasets/run", video_backend="pyav")
 """
@@ -334,7 +336,7 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
                 scalar_keys = [k for k, ft in features.items() if tuple(ft["shape"]) == (1,)]
                 first_meta = meta
                 ds = LeRobotDataset.create(repo_id, fps, features, root=root, robot_type=ROBOT_TYPE,
-                                           use_videos=True, vcodec=vcodec)
+                                           use_videos=True, vcodec=vcodec, video_backend="pyav")
                 ds.meta.update_chunk_settings(data_files_size_in_mb=DATA_FILE_MB)
             else:
                 _check_same_spec(meta, first_meta, spec, fps, src.name)

@@ -17,9 +17,9 @@ observation.depth.{left,right}   H x W           uint16   z-depth along the opti
 observation.state                5               float32  [g_x, g_y, d_g, v_x, v_y], robot frame
 observation.odom                 3               float32  robot pose [x, y, yaw], world frame
 observation.goal                 2               float32  goal [x, y], world frame
-observation.poses                K x 17 x 3      float32  detected COCO-17 joints [x, y, z], robot frame, m
-observation.pose_mask            K x 17          float32  1 = detected joint, 0 = not (rows/joints of 0 are zeros)
-observation.pose_conf            K x 17          float32  detector confidence of each joint
+observation.poses                K * 17 * 3      float32  detected COCO-17 joints [x, y, z], robot frame, m (flat)
+observation.pose_mask            K * 17          float32  1 = detected joint, 0 = not (rows/joints of 0 are zeros)
+observation.pose_conf            K * 17          float32  detector confidence of each joint (flat)
 action                           2               float32  the command [v m/s, ω rad/s] chosen from observation t
                                                           and applied from frame t to frame t + 1
 action.teacher                   2               float32  only in labelled (DAgger) datasets: the teacher's
@@ -51,7 +51,13 @@ and normalises it, so those are numbers: ``observation.pose_mask`` is float32 0/
 normaliser fail: "Subtraction ... with two bool tensors"); depth is uint16 millimetres (half the float32 size,
 exact to the MCAP log's millimetres; lerobot's torch formatting returns it as an int64 tensor — divide by 1000 for
 metres). ``next.*`` and ``privileged.*`` features are ignored by lerobot's policies (neither ``observation.*`` nor
-``action*``), so ``next.done`` and ``privileged.local_occupancy`` stay ``bool``.
+``action*``), so ``next.done`` and ``privileged.local_occupancy`` stay ``bool``. The three detection features are flat vectors
+(C order: person, joint, xyz; ``names`` spell every element, e.g. ``p0.nose.x``; :func:`unflatten_poses`):
+lerobot formats every column of every row it reads, and a multi-dimensional ``datasets`` array costs ~10x a flat
+vector of the same numbers (306 pose numbers: 61 ms vs 6 ms per 100 rows) — the difference between a 100-step
+action chunk loading at ~5x and ~2x a stock-shaped dataset once depth and ``privileged.*`` are removed
+(``make bench``). Depth and the privileged arrays keep their shapes: flat, lerobot's per-element statistics would
+be ~1.4 MB per episode for each depth map.
 
 **Calibration** lives in ``meta/info.json``, where lerobot's own tools keep it: every feature we write carries an
 ``info`` dict (``description`` with units and frames; cameras' ``camera`` = intrinsics/extrinsics on the image and
@@ -253,9 +259,9 @@ class ExportSpec:
             OBS_STATE: {"dtype": "float32", "shape": (5,), "names": ["g_x", "g_y", "d_g", "v_x", "v_y"]},
             OBS_ODOM: {"dtype": "float32", "shape": (3,), "names": ["x", "y", "yaw"]},
             OBS_GOAL: {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
-            OBS_POSES: {"dtype": "float32", "shape": (k, N_JOINTS, 3), "names": ["person", "joint", "xyz"]},
-            OBS_POSE_MASK: {"dtype": "float32", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
-            OBS_POSE_CONF: {"dtype": "float32", "shape": (k, N_JOINTS), "names": ["person", "joint"]},
+            OBS_POSES: {"dtype": "float32", "shape": (k * N_JOINTS * 3,), "names": _joint_names(k, "xyz")},
+            OBS_POSE_MASK: {"dtype": "float32", "shape": (k * N_JOINTS,), "names": _joint_names(k)},
+            OBS_POSE_CONF: {"dtype": "float32", "shape": (k * N_JOINTS,), "names": _joint_names(k)},
             ACTION: {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]},
             **({ACTION_TEACHER: {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]}} if self.labels else {}),
             NEXT_REWARD: {"dtype": "float32", "shape": (1,), "names": ["reward"]},
@@ -291,9 +297,9 @@ class ExportSpec:
                 OBS_ODOM: "robot pose [x, y, yaw] in the world frame (m, rad)",
                 OBS_GOAL: "goal [x, y] in the world frame (m)",
                 OBS_POSES: f"{k} detected people x COCO-17 joints x [x, y, z], robot frame (m), "
-                                     "nearest first, zeros where not detected",
-                OBS_POSE_MASK: "1.0 where the joint was detected, 0.0 where not",
-                OBS_POSE_CONF: "detector confidence of each joint",
+                                     "nearest first, zeros where not detected; flat, C order (person, joint, xyz)",
+                OBS_POSE_MASK: "1.0 where the joint was detected, 0.0 where not; flat (person, joint)",
+                OBS_POSE_CONF: "detector confidence of each joint; flat (person, joint)",
                 ACTION: ACTION_CONVENTION,
                 **({ACTION_TEACHER: "the DAgger teacher's command [v m/s, omega rad/s] for this frame's "
                                       "observation (the behaviour-cloning label)"} if self.labels else {}),
@@ -313,6 +319,18 @@ class ExportSpec:
         }
 
 
+def _joint_names(people: int, axes: str = "") -> list[str]:
+    """Element names of a flat detection feature: ``p0.nose.x``, ... (or ``p0.nose``, ... without axes)."""
+    return [f"p{p}.{j}" + (f".{a}" if a else "") for p in range(people) for j in COCO_KEYPOINTS for a in (axes or [""])]
+
+
+def unflatten_poses(poses: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The flat ``observation.poses`` (``... x K*51``) and ``observation.pose_mask`` (``... x K*17``) as
+    ``... x K x 17 x 3`` and ``... x K x 17`` (any leading axes, numpy or torch)."""
+    p = poses.reshape(*poses.shape[:-1], -1, N_JOINTS, 3)
+    return p, None if mask is None else mask.reshape(*mask.shape[:-1], -1, N_JOINTS)
+
+
 def feature_info(spec: ExportSpec, cameras: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
     """The ``info`` dict of each feature of ``spec`` for ``meta/info.json`` (see the module docstring).
 
@@ -330,7 +348,9 @@ def feature_info(spec: ExportSpec, cameras: dict[str, dict[str, Any]]) -> dict[s
         depth_cam = {**cameras[cam], "depth_units": "mm in this feature (uint16), z along the optical axis, 0 = invalid"}
         out[depth_key(cam)].update({"camera": depth_cam, "unit": "mm", "scale_to_m": DEPTH_SCALE_M, "invalid_value": 0})
     out[ACTION].update({"convention": ACTION_CONVENTION, "units": ["m/s", "rad/s"], FORMAT_KEY: FORMAT_VERSION})
-    out[OBS_POSES]["joints"] = list(COCO_KEYPOINTS)
+    for key, shape in ((OBS_POSES, [spec.max_people, N_JOINTS, 3]), (OBS_POSE_MASK, [spec.max_people, N_JOINTS]),
+                       (OBS_POSE_CONF, [spec.max_people, N_JOINTS])):
+        out[key].update({"joints": list(COCO_KEYPOINTS), "unflattened_shape": shape, "order": "C"})
     out[PRIV_PED_KEYPOINTS]["joints"] = list(COCO_KEYPOINTS)
     out[PRIV_PED_STATE]["columns"] = list(PED_STATE_COLUMNS)
     out[NEXT_REWARD_TERMS]["terms"] = list(REWARD_TERMS)
@@ -507,9 +527,9 @@ def observation_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray,
     mask = chk.array("pose_mask", _field(frame, "pose_mask", chk), (kf, N_JOINTS), "b", OBS_POSE_MASK)
     conf = chk.array("pose_conf", _field(frame, "pose_conf", chk), (kf, N_JOINTS), "f", OBS_POSE_CONF)
     track = chk.array("pose_track", _field(frame, "pose_track", chk), (kf,), "i", PRIV_POSE_TRACK)
-    out[OBS_POSES] = _pad(poses.astype(np.float32, copy=False), k, 0.0)
-    out[OBS_POSE_MASK] = _pad(mask.astype(np.float32), k, 0.0)
-    out[OBS_POSE_CONF] = _pad(conf.astype(np.float32, copy=False), k, 0.0)
+    out[OBS_POSES] = _pad(poses.astype(np.float32, copy=False), k, 0.0).reshape(-1)
+    out[OBS_POSE_MASK] = _pad(mask.astype(np.float32), k, 0.0).reshape(-1)
+    out[OBS_POSE_CONF] = _pad(conf.astype(np.float32, copy=False), k, 0.0).reshape(-1)
     out[PRIV_POSE_TRACK] = _pad(track.astype(np.int64, copy=False), k, -1)
 
     n = int(meta.n_pedestrians)

@@ -25,6 +25,7 @@ from recorder.features import (
     LocalMapSpec,
     depth_from_features,
     frame_to_features,
+    unflatten_poses,
     local_occupancy,
 )
 from recorder.mcap.codecs import depth_to_mm
@@ -106,9 +107,9 @@ def test_stock_lerobot_loads_export_and_frames_match_the_recording(tiny_dataset)
             assert float(item["timestamp"]) == pytest.approx(f / 10, abs=1e-6)
             assert item["task"] == "navigate to the goal through the crowd"
             exact = {"observation.state": fr.state, "observation.odom": fr.odom, "observation.goal": fr.goal_xy,
-                     "action": nxt.action, "observation.poses": fr.poses,
-                     "observation.pose_mask": fr.pose_mask.astype(np.float32),
-                     "observation.pose_conf": fr.pose_conf, "privileged.pose_track": fr.pose_track}
+                     "action": nxt.action, "observation.poses": fr.poses.reshape(-1),
+                     "observation.pose_mask": fr.pose_mask.astype(np.float32).reshape(-1),
+                     "observation.pose_conf": fr.pose_conf.reshape(-1), "privileged.pose_track": fr.pose_track}
             for key, want in exact.items():
                 got = item[key].numpy()
                 assert got.dtype == np.asarray(want).dtype, key
@@ -189,8 +190,8 @@ def test_every_exported_feature_reads_back_as_in_the_source_mcap(tmp_path, tiny_
         state, kp, intent = _expected_privileged(fr, spec.n_max)
         want = {
             "observation.state": fr.state, "observation.odom": fr.odom, "observation.goal": fr.goal_xy,
-            "observation.poses": fr.poses, "observation.pose_mask": fr.pose_mask.astype(np.float32),
-            "observation.pose_conf": fr.pose_conf, "privileged.pose_track": fr.pose_track,
+            "observation.poses": fr.poses.reshape(-1), "observation.pose_mask": fr.pose_mask.astype(np.float32).ravel(),
+            "observation.pose_conf": fr.pose_conf.reshape(-1), "privileged.pose_track": fr.pose_track,
             "action": nxt.action, "action.teacher": fr.label,  # the command chosen from observation f
             "next.reward": np.float32(nxt.reward),
             "next.reward_terms": np.array([nxt.reward_terms.get(t, 0.0) for t in features["next.reward_terms"]["names"]],
@@ -231,7 +232,8 @@ def test_dataloader_iterates_batches_of_four(tiny_dataset):
         assert batch["observation.images.left"].shape == (b, 3, 48, 64)
         assert batch["observation.depth.right"].shape == (b, 48, 64)
         assert batch["observation.depth.right"].dtype == torch.int64  # uint16 mm through lerobot's formatting
-        assert batch["observation.poses"].shape == (b, 6, 17, 3)
+        assert batch["observation.poses"].shape == (b, 6 * 17 * 3)  # flat: unflatten_poses
+        assert unflatten_poses(batch["observation.poses"])[0].shape == (b, 6, 17, 3)
         assert batch["observation.pose_mask"].dtype == torch.float32
         assert batch["privileged.ped_state"].shape == (b, 64, 8)
         assert batch["privileged.local_occupancy"].shape == (b, 100, 100)
@@ -261,6 +263,11 @@ def test_metadata_files_hold_cameras_and_episode_facts(tiny_dataset):
         assert {**depth_cam, "depth_units": want["depth_units"]} == want and depth_cam["depth_units"].startswith("mm")
     assert feats["observation.images.left"]["info"]["video.codec"]  # lerobot's own video info kept beside ours
     assert feats["observation.depth.left"]["info"]["unit"] == "mm"
+    # the detections are flat vectors whose names spell the C-order layout (person, joint, xyz)
+    assert feats["observation.poses"]["shape"] == [306] and len(feats["observation.poses"]["names"]) == 306
+    assert feats["observation.poses"]["names"][:4] == ["p0.nose.x", "p0.nose.y", "p0.nose.z", "p0.left_eye.x"]
+    assert feats["observation.pose_mask"]["names"][17] == "p1.nose"
+    assert feats["observation.poses"]["info"]["unflattened_shape"] == [6, 17, 3]
     assert feats["action"]["info"]["icrowdnav_format"] == 2 and "observation t" in feats["action"]["info"]["convention"]
     assert feats["privileged.local_occupancy"]["info"]["layout"]["shape"] == [100, 100]
     assert all(ft.get("info", {}).get("description") for k, ft in feats.items() if k not in LEROBOT_INDEX_FEATURES)
