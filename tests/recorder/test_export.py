@@ -25,8 +25,8 @@ from recorder.features import (
     LocalMapSpec,
     depth_from_features,
     frame_to_features,
-    unflatten_poses,
     local_occupancy,
+    unflatten_poses,
 )
 from recorder.mcap.codecs import depth_to_mm
 
