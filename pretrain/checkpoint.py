@@ -43,14 +43,15 @@ FORMAT_VERSION = 1
 def save_safetensors(module: torch.nn.Module, path: Path, metadata: dict[str, str] | None = None) -> None:
     """Saves a module's state dict atomically (temporary name, then rename).
 
-    The same weights and metadata give the same bytes: safetensors writes its metadata from a Rust hash map
+    The tensors are written from CPU copies (a module trained on a GPU loads on any machine). The same weights and
+    metadata give the same bytes: safetensors writes its metadata from a Rust hash map
     (random order per call), so the metadata travels as one key, ``icrowdnav``, holding sorted JSON. Rewriting a
     file that a finished output's manifest lists (a ``--resume`` run writing in place) first drops that manifest
     (:func:`pipeline.core.manifest.release_output`): the directory is unfinished until its stage writes a new one.
     """
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
-    state = {k: v.detach().contiguous().clone() for k, v in module.state_dict().items()}
+    state = {k: v.detach().cpu().contiguous().clone() for k, v in module.state_dict().items()}  # from any device
     meta = {"icrowdnav": json.dumps(metadata, sort_keys=True)} if metadata else None
     save_file(state, str(tmp), metadata=meta)
     release_output(path)

@@ -246,6 +246,17 @@ class LiftGeometry:
         self.origins = torch.as_tensor(np.stack(origins), dtype=torch.float32)
         self.min_depth = torch.tensor([c.min_depth_m for c in cameras], dtype=torch.float32)
         self.max_depth = torch.tensor([c.max_depth_m for c in cameras], dtype=torch.float32)
+        self._on: dict[torch.device, tuple[torch.Tensor, ...]] = {}
+
+    def on(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(origins, rays, min_depth, max_depth)`` on ``device`` (copied there once, then cached; the CPU
+        tensors themselves on the CPU)."""
+        device = torch.device(device)
+        if device.type == "cpu":
+            return self.origins, self.rays, self.min_depth, self.max_depth
+        if device not in self._on:
+            self._on[device] = tuple(t.to(device) for t in (self.origins, self.rays, self.min_depth, self.max_depth))
+        return self._on[device]
 
 
 def lift_splat(features: torch.Tensor, depth: torch.Tensor, geom: LiftGeometry, grid: BEVGrid) -> torch.Tensor:
@@ -262,14 +273,15 @@ def lift_splat(features: torch.Tensor, depth: torch.Tensor, geom: LiftGeometry, 
     """
     b, n, c, h, w = features.shape
     nx, ny = grid.shape
+    origins, rays, min_depth, max_depth = geom.on(depth.device)
     d = depth.unsqueeze(-1)  # B N h w 1
-    pts = geom.origins.view(1, n, 1, 1, 3) + d * geom.rays.unsqueeze(0)  # B N h w 3
+    pts = origins.view(1, n, 1, 1, 3) + d * rays.unsqueeze(0)  # B N h w 3
     ix = torch.floor((pts[..., 0] - grid.x_bound[0]) / grid.x_bound[2]).long()
     iy = torch.floor((pts[..., 1] - grid.y_bound[0]) / grid.y_bound[2]).long()
-    keep = ((depth > 0) & (depth >= geom.min_depth.view(1, n, 1, 1)) & (depth <= geom.max_depth.view(1, n, 1, 1))
+    keep = ((depth > 0) & (depth >= min_depth.view(1, n, 1, 1)) & (depth <= max_depth.view(1, n, 1, 1))
             & (pts[..., 2] >= grid.z_bound[0]) & (pts[..., 2] <= grid.z_bound[1])
             & (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny))
-    batch = torch.arange(b).view(b, 1, 1, 1).expand_as(ix)
+    batch = torch.arange(b, device=ix.device).view(b, 1, 1, 1).expand_as(ix)
     flat = (batch * nx + ix) * ny + iy
     feats = features.permute(0, 1, 3, 4, 2)[keep]  # P x C
     out = features.new_zeros(b * nx * ny, c)
@@ -318,9 +330,9 @@ def relative_pose(pose_from: torch.Tensor, pose_to: torch.Tensor) -> torch.Tenso
 
 
 @functools.lru_cache(maxsize=8)
-def _centres(grid: BEVGrid, dtype: torch.dtype) -> torch.Tensor:
-    """Cached ``X x Y x 2`` cell centres (read-only use)."""
-    return torch.as_tensor(grid.cell_centres(), dtype=dtype)
+def _centres(grid: BEVGrid, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """Cached ``X x Y x 2`` cell centres on ``device`` (read-only use)."""
+    return torch.as_tensor(grid.cell_centres(), dtype=dtype, device=device)
 
 
 def warp_bev(maps: torch.Tensor, current_in_past: torch.Tensor, grid: BEVGrid, mode: str = "bilinear") -> torch.Tensor:
@@ -337,7 +349,7 @@ def warp_bev(maps: torch.Tensor, current_in_past: torch.Tensor, grid: BEVGrid, m
         ``B x C x X x Y`` maps in the current frame; cells that were outside the past map are 0.
     """
     b = maps.shape[0]
-    centres = _centres(grid, maps.dtype).to(maps.device)  # X Y 2
+    centres = _centres(grid, maps.dtype, maps.device)  # X Y 2
     tx, ty, yaw = (current_in_past[:, k].to(maps.dtype).view(b, 1, 1) for k in range(3))
     c, s = torch.cos(yaw), torch.sin(yaw)
     px = tx + c * centres[..., 0] - s * centres[..., 1]  # B X Y: the cell centres in the past frame

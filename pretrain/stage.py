@@ -5,6 +5,7 @@
     icrowdnav pretrain --profile default                     # make pretrain; reads DATA_DIR/datasets/icrowdnav/expert
     icrowdnav pretrain --resume                              # continue a killed run from its last saved step
     icrowdnav pretrain --epochs 1 --encoder.bev_channels 16 --name bev_small
+    icrowdnav pretrain --device cuda                         # on the GPU (default auto: CUDA when present)
 
 Input: a dataset exported by ``icrowdnav export`` (RGB videos, depth, odometry and the privileged labels
 ``privileged.ped_state`` / ``privileged.local_occupancy``). Output: ``DATA_DIR/checkpoints/<name>/`` (tree in
@@ -28,6 +29,7 @@ import torch
 from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.config import BaseStageConfig, check_run_name, config_hash
+from pipeline.core.device import device_counts, resolve_device
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.checkpoint import METRICS_JSON, read_weights, write_encoder_checkpoint
 from pretrain.data import Batch, check_dataset, check_grid_in_local_map, load_frames, split_episodes
@@ -58,6 +60,9 @@ class PretrainConfig(BaseStageConfig):
     checkpoint_every_steps: int = 100  # save the training state this often (and at every epoch end)
     log_every_steps: int = 10  # write a train_log.csv / TensorBoard row this often
     threads: int = 0  # torch CPU threads (0 = every core)
+    # where the encoder trains: auto (CUDA when this machine has it, else the CPU) | cpu | cuda | cuda:N (--device
+    # cuda); not in the config hash: a run resumes on another device, and the manifest's counts record the one used
+    device: str = "auto"
     figures: int = 4  # validation samples drawn as figures
     max_ram_gb: float = 16.0  # refuse to load more frames than this (GB, estimated before reading)
     progress: bool = True  # progress bars
@@ -81,6 +86,7 @@ class PretrainConfig(BaseStageConfig):
                               f"{TARGETS[2:]}, got {self.future_s}")
         if self.encoder.backbone_weights and not Path(self.encoder.backbone_weights).is_file():
             raise ConfigError(f"pretrain.encoder.backbone_weights: no file {self.encoder.backbone_weights}")
+        resolve_device(self.device, "pretrain.device")  # cuda without CUDA: one error, before anything is written
 
 
 def dataset_dir(cfg: PretrainConfig) -> Path:
@@ -121,6 +127,7 @@ def load_backbone_weights(encoder, path: str) -> None:
 
 def body(cfg: PretrainConfig, out: Path) -> dict:
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
+    device = resolve_device(cfg.device, "pretrain.device")
     root = dataset_dir(cfg)
     meta = check_dataset(root)
     cameras = meta.cameras
@@ -140,6 +147,9 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
     if cfg.encoder.backbone_weights:
         load_backbone_weights(encoder, cfg.encoder.backbone_weights)
     heads = PretextHeads(cfg.encoder.bev_channels)
+    encoder.to(device)  # the frames stay in host memory; fit copies each batch over
+    heads.to(device)
+    log.info("pretrain: training on %s", device)
     fc = FitConfig(epochs=cfg.epochs, clip_frames=cfg.clip_frames, clips_per_batch=cfg.clips_per_batch, lr=cfg.lr,
                    weight_decay=cfg.weight_decay, warmup_frac=cfg.warmup_frac,
                    checkpoint_every_steps=cfg.checkpoint_every_steps, log_every_steps=cfg.log_every_steps,
@@ -152,7 +162,7 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
     encoder.eval()
     heads.eval()
     n_train = sum(b - a for a, b in train_slices)
-    write_encoder_checkpoint(out, encoder, heads, {
+    write_encoder_checkpoint(out, encoder, heads, {  # saved from CPU copies: loads on any machine
         "targets": list(TARGETS), "future_s": list(cfg.future_s),
         "dataset": {"repo_id": cfg.repo_id, "train_episodes": train_eps, "val_episodes": val_eps},
         "trained_steps": result["step"], "fps": meta.fps})
@@ -160,7 +170,7 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
         "final": final, "history": history, "targets": list(TARGETS), "iou": "dataset-level IoU at p > 0.5 over "
         "validation frames, cells in the cameras' field of view only", "pos_weight": result["pos_weight"],
         "train_frames": n_train, "val_frames": sum(b - a for a, b in val_slices), "steps": result["step"],
-        "fov_fraction": float(fov.mean())})
+        "fov_fraction": float(fov.mean()), **device_counts(device)})
 
     # figures: evenly spaced validation frames
     fig_dir = out / "figures"
@@ -178,10 +188,11 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
             logits, labels, valid = forward_batch(encoder, heads, store, batch)
             ep = int(np.searchsorted([a for a, _ in sl], t, side="right") - 1)
             plot_sample(fig_dir / f"sample_{k}.png", grid, [c.name for c in cameras], store.rgb[t],
-                        store.depth[t], labels[0].numpy(), torch.sigmoid(logits[0]).numpy(), valid[0].numpy(), fov,
+                        store.depth[t], labels[0].cpu().numpy(), torch.sigmoid(logits[0]).cpu().numpy(),
+                        valid[0].cpu().numpy(), fov,
                         f"validation episode {ep}, frame {t - start} — step {result['step']}")
     counts = {"steps": result["step"], "train_frames": n_train, "val_frames": int(len(val_idx)),
-              "episodes": n_eps}
+              "episodes": n_eps, **device_counts(device)}
     for key, v in final.items():
         if key.startswith(("iou_", "val_loss")) and not (isinstance(v, float) and math.isnan(v)):
             counts[key] = round(float(v), 4)

@@ -9,6 +9,12 @@ targets, to frames whose future lies inside the episode).
 Resume: the state (weights, optimizer, scheduler, torch RNG, step) is saved atomically every
 ``checkpoint_every_steps`` steps and at every epoch end; the batch order of epoch ``e`` depends only on
 ``(seed, e)``, so a resumed run skips the batches it already did and continues exactly where it stopped.
+
+Device: everything runs where the encoder's parameters are (the caller moves encoder and heads there, e.g.
+``pretrain.device``); the frames stay in host memory (:class:`pretrain.data.FrameStore`) and each batch is copied
+over as it is used (uint8 images: converted to float on the device). The saved state holds CPU tensors, so a run
+started on a GPU resumes on a CPU (and back): :func:`load_state` maps to the CPU and ``load_state_dict`` copies
+into the modules and the optimizer wherever they are.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from pipeline.core.artifacts import fsync_dir
+from pipeline.core.device import cpu_state
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.data import FrameStore, make_batches, make_clips
 from pretrain.model import TARGETS, BEVEncoder, PretextHeads
@@ -68,20 +75,41 @@ def positive_weights(store: FrameStore, slices: list[tuple[int, int]], fov: np.n
     return torch.tensor(out)
 
 
-def batch_tensors(store: FrameStore, batch) -> tuple[torch.Tensor, ...]:
-    rgb = torch.from_numpy(store.rgb[batch.frames])
-    depth = torch.from_numpy(store.depth[batch.frames])
-    poses = torch.from_numpy(store.pose[batch.frames])
-    labels = torch.from_numpy(store.labels[batch.targets]).float()
-    valid = torch.from_numpy(store.valid[batch.targets])
+def device_of(module: torch.nn.Module) -> torch.device:
+    """The device of a module's parameters (where :func:`fit` and :func:`evaluate` compute)."""
+    return next(module.parameters()).device
+
+
+def to_device(t: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """A host tensor on ``device``: itself on the CPU; for CUDA copied through pinned memory without blocking the
+    host (the copy overlaps with gathering the next array of the batch)."""
+    if device.type == "cpu":
+        return t
+    return (t.pin_memory() if device.type == "cuda" else t).to(device, non_blocking=True)
+
+
+def batch_tensors(store: FrameStore, batch, device: torch.device | None = None) -> tuple[torch.Tensor, ...]:
+    """The arrays of a batch gathered from the store, on ``device`` (default: the CPU).
+
+    Returns:
+        ``rgb`` ``M x N x 3 x H x W`` uint8, ``depth`` ``M x N x h x w`` (lift pixels), ``poses`` ``M x 3`` of the
+        batch's M frames; ``labels`` ``P x K x X x Y`` float and ``valid`` ``P x K`` bool of its P targets.
+    """
+    device = torch.device("cpu") if device is None else torch.device(device)
+    rgb = to_device(torch.from_numpy(store.rgb[batch.frames]), device)
+    depth = to_device(torch.from_numpy(store.depth[batch.frames]), device)
+    poses = to_device(torch.from_numpy(store.pose[batch.frames]), device)
+    labels = to_device(torch.from_numpy(store.labels[batch.targets]), device).float()
+    valid = to_device(torch.from_numpy(store.valid[batch.targets]), device)
     return rgb, depth, poses, labels, valid
 
 
 def forward_batch(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, batch) -> tuple[torch.Tensor, ...]:
-    """Logits ``P x K x X x Y`` of a batch's targets, with their labels and validity."""
-    rgb, depth, poses, labels, valid = batch_tensors(store, batch)
+    """Logits ``P x K x X x Y`` of a batch's targets, with their labels and validity (on the encoder's device)."""
+    device = device_of(encoder)
+    rgb, depth, poses, labels, valid = batch_tensors(store, batch, device)
     maps = encoder.encode_frames(rgb, depth)  # M x C x X x Y, each in its own frame
-    win = torch.from_numpy(batch.windows)
+    win = to_device(torch.from_numpy(batch.windows), device)
     s_bev = encoder.fuse(maps[win], poses[win])  # P x C x X x Y in each target's frame
     return heads(s_bev), labels, valid
 
@@ -112,25 +140,29 @@ def iou_counts(logits: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor, 
 @torch.no_grad()
 def evaluate(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, slices: list[tuple[int, int]],
              fov: np.ndarray, pos_weight: torch.Tensor, clip_frames: int, clips_per_batch: int) -> dict[str, float]:
-    """Validation: loss and IoU (threshold 0.5, dataset-level, field of view only) per target."""
+    """Validation: loss and IoU (threshold 0.5, dataset-level, field of view only) per target (on the encoder's
+    device)."""
     was = encoder.training, heads.training
     encoder.eval()
     heads.eval()
-    fov_t = torch.from_numpy(fov)
-    inter = torch.zeros(len(TARGETS), dtype=torch.float64)
-    union = torch.zeros(len(TARGETS), dtype=torch.float64)
-    losses, weights = torch.zeros(len(TARGETS), dtype=torch.float64), 0
+    device = device_of(encoder)
+    fov_t = torch.from_numpy(fov).to(device)
+    pos_weight = pos_weight.to(device)
+    inter = torch.zeros(len(TARGETS), dtype=torch.float64, device=device)
+    union = torch.zeros(len(TARGETS), dtype=torch.float64, device=device)
+    losses, weights = torch.zeros(len(TARGETS), dtype=torch.float64, device=device), 0
     batches = make_batches(make_clips(store, slices, clip_frames, encoder.frames, None), clips_per_batch,
                            encoder.frames)
     for batch in batches:
         logits, labels, valid = forward_batch(encoder, heads, store, batch)
         losses += masked_bce(logits, labels, valid, fov_t, pos_weight).double() * len(batch.targets)
         weights += len(batch.targets)
-        i, u = iou_counts(logits, labels, valid, fov_t, torch.full((1, len(TARGETS)), 0.5))
+        i, u = iou_counts(logits, labels, valid, fov_t, torch.full((1, len(TARGETS)), 0.5, device=device))
         inter += i[0]
         union += u[0]
     encoder.train(was[0])
     heads.train(was[1])
+    inter, union = inter.cpu(), union.cpu()
     out = {"val_loss": float((losses / max(weights, 1)).mean())}
     for k, t in enumerate(TARGETS):
         out[f"iou_{t}"] = float(inter[k] / union[k]) if union[k] > 0 else float("nan")
@@ -139,11 +171,12 @@ def evaluate(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, slices
 
 
 def save_state(path: Path, state: dict[str, Any]) -> None:
-    """Atomic ``torch.save`` (temporary file, fsync, rename)."""
+    """Atomic ``torch.save`` (temporary file, fsync, rename) of the state with every tensor on the CPU (a state saved
+    during a GPU run loads anywhere)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
-        torch.save(state, f)
+        torch.save(cpu_state(state), f)
         f.flush()
         os.fsync(f.fileno())
     tmp.replace(path)
@@ -181,7 +214,7 @@ def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slice
     """Trains encoder + heads on the pretext targets; returns ``{"step", "history", "pos_weight", ...}``.
 
     Args:
-        encoder, heads: the modules (trained in place).
+        encoder, heads: the modules (trained in place, on the device they are on; move both there first).
         store: all frames; ``train_slices`` / ``val_slices``: store ranges of the train / validation episodes.
         fov: ``X x Y`` bool field-of-view mask (loss and IoU are restricted to it).
         fc: optimisation settings.
@@ -195,8 +228,10 @@ def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slice
     from tqdm import tqdm
 
     torch.manual_seed(fc.seed)
-    fov_t = torch.from_numpy(fov)
+    device = device_of(encoder)
+    fov_t = torch.from_numpy(fov).to(device)
     pos_weight = positive_weights(store, train_slices, fov)
+    pos_weight_d = pos_weight.to(device)
     params = list(encoder.parameters()) + list(heads.parameters())
     optim = torch.optim.AdamW(params, lr=fc.lr, weight_decay=fc.weight_decay)
     # exact number of steps (the clips of epoch e depend only on (seed, e)), so the schedule ends where training does
@@ -253,7 +288,7 @@ def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slice
             for bi in range(start, len(batches)):
                 t0 = time.perf_counter()
                 logits, labels, valid = forward_batch(encoder, heads, store, batches[bi])
-                losses = masked_bce(logits, labels, valid, fov_t, pos_weight)
+                losses = masked_bce(logits, labels, valid, fov_t, pos_weight_d)
                 loss = losses.mean()
                 optim.zero_grad(set_to_none=True)
                 loss.backward()
@@ -262,11 +297,12 @@ def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slice
                 if sched.last_epoch + 1 < total:
                     sched.step()
                 step += 1
+                loss_value = loss.item()  # waits for the device: the step's time below is its real time
                 fps = len(batches[bi].targets) / (time.perf_counter() - t0)
                 bar.update(1)
-                bar.set_postfix(loss=f"{loss.item():.3f}")
+                bar.set_postfix(loss=f"{loss_value:.3f}")
                 if step % fc.log_every_steps == 0 or bi == len(batches) - 1:
-                    row = {"step": step, "epoch": epoch, "lr": optim.param_groups[0]["lr"], "loss": loss.item(),
+                    row = {"step": step, "epoch": epoch, "lr": optim.param_groups[0]["lr"], "loss": loss_value,
                            "frames_per_s": round(fps, 2)}
                     row.update({f"loss_{t}": float(losses[k].detach()) for k, t in enumerate(TARGETS)})
                     csv_w.writerow(row)

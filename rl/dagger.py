@@ -15,12 +15,16 @@ Iteration ``k`` (β_k = ``beta0 · beta_decay^k``; β_0 = 1 means the teacher dr
 
 Everything an iteration writes is in ``dagger/iter_<k>/``; a finished iteration has ``done.json``. A killed run
 resumes at the first unfinished episode of the first unfinished iteration.
+
+The students' frozen encoder runs on a job's ``device`` (``train.device``; the teacher and the student act on the
+CPU); workers that encode on CUDA are spawned, not forked (:func:`pipeline.core.device.start_method`).
 """
 
 from __future__ import annotations
 
 import itertools
 import json
+import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
@@ -32,6 +36,7 @@ import torch
 from tqdm import tqdm
 
 from pipeline.core.artifacts import atomic_write_json
+from pipeline.core.device import start_method
 from pipeline.core.errors import InputMissingError
 from recorder.export import export_run
 from recorder.mcap.writer import EpisodeWriter
@@ -79,7 +84,7 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     env = CrowdNavEnv(config=replace(sim_cfg, scene=args["scene"], density=args["density"], obs_mode="visual",
                                      info_level="full", action_type="discrete"))
-    encoder = cached_student_encoder(args["variant"], args["encoder"])
+    encoder = cached_student_encoder(args["variant"], args["encoder"], args.get("device", "cpu"))
     teacher = cached_policy(args["teacher"])
     driver = _DaggerDriver(cached_policy(args["student"]), args["beta"], np.random.default_rng(args["seed"] + 7919))
     observer = observer_for_env(env, args["variant"], encoder, args.get("head", "mlp"), mirror=args.get("mirror", False))
@@ -119,7 +124,8 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, progress: bool = True) -> list[dict]:
-    """Runs the iteration's episodes that have no ``features/<name>.npz`` yet (process pool); returns all rows."""
+    """Runs the iteration's episodes that have no ``features/<name>.npz`` yet (process pool; spawned workers when the
+    jobs encode on CUDA); returns all rows."""
     iter_dir = Path(iter_dir)
     for sub in ("raw", "features"):
         (iter_dir / sub).mkdir(parents=True, exist_ok=True)
@@ -137,7 +143,8 @@ def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, prog
         if workers <= 1:
             results = map(dagger_episode, todo)
         else:
-            pool = ProcessPoolExecutor(workers)
+            method = start_method(todo[0].get("device", "cpu") if todo else "cpu")
+            pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method))
             results = pool.map(dagger_episode, todo)
         for r in results:
             done_rows[r["episode"]] = r

@@ -37,9 +37,11 @@ def cached_policy(path: Path | None):
                           lambda: load_policy(path)[0])
 
 
-def cached_student_encoder(variant: str, encoder_ckpt: Path | str | None):
-    """The frozen encoder of a student variant (:func:`rl.observe.load_student_encoder`), once per process."""
-    return process_cached(f"enc:{variant}:{encoder_ckpt}", lambda: load_student_encoder(variant, encoder_ckpt))
+def cached_student_encoder(variant: str, encoder_ckpt: Path | str | None, device: str = "cpu"):
+    """The frozen encoder of a student variant (:func:`rl.observe.load_student_encoder`) on ``device``, once per
+    process."""
+    return process_cached(f"enc:{variant}:{encoder_ckpt}:{device}",
+                          lambda: load_student_encoder(variant, encoder_ckpt, device))
 
 
 class PolicyDriver:

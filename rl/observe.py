@@ -27,6 +27,9 @@ image centre), so this is the map the robot would see in the mirrored world — 
 augmentation while cloning (:func:`rl.teacher.mirror_batch`). The encoder's latent is not mirror-equivariant, so
 flipping ``s_bev`` itself would not be. Costs one more encoder pass per step (batched with the first).
 
+The frozen encoder runs on the device it is on (:func:`load_student_encoder` ``device``, ``train.device`` in DAgger
+rollouts and PPO fine-tuning); the frames go there each step and the observation comes back as numpy arrays.
+
 The privileged teacher's observation of a visual-mode env (its DAgger labels) comes from the env side:
 :class:`sim.wrappers.PrivilegedObservation`.
 """
@@ -104,6 +107,8 @@ class StudentObserver:
                 raise ConfigError("the lookahead head's observer needs the perception parameters of the env")
             self.perception = Perception([CameraView.of(c) for c in cameras], perception["dt_s"], perception["k"],
                                          perception["rays"], perception["range_m"], people="poses" in self.keys)
+        # where the frames are encoded (and the occupancy map lifted): the encoder's device
+        self.device = next(encoder.parameters()).device if encoder is not None else torch.device("cpu")
         if "bev" in self.keys:
             if encoder is None:
                 raise ConfigError(f"variant {variant!r} needs the pretrained encoder")
@@ -155,12 +160,13 @@ class StudentObserver:
     def __call__(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         out: dict[str, np.ndarray] = {"state": np.asarray(obs["state"], np.float32)}
         names = [c.name for c in self.cameras]
+        dev = self.device
         if "bev" in self.keys or "occ" in self.keys:
-            depth = torch.from_numpy(np.stack([obs[f"depth_{n}"] for n in names])).unsqueeze(0)  # 1 N H W
+            depth = torch.from_numpy(np.stack([obs[f"depth_{n}"] for n in names])).unsqueeze(0).to(dev)  # 1 N H W
         if "bev" in self.keys:
-            rgb = torch.from_numpy(np.stack([obs[f"rgb_{n}"] for n in names])).permute(0, 3, 1, 2).unsqueeze(0)
-            pose = torch.as_tensor(np.asarray(obs["odom"], np.float64)).unsqueeze(0)
-            first = None if not self._first else torch.ones(1, dtype=torch.bool)
+            rgb = torch.from_numpy(np.stack([obs[f"rgb_{n}"] for n in names])).permute(0, 3, 1, 2).unsqueeze(0).to(dev)
+            pose = torch.as_tensor(np.asarray(obs["odom"], np.float64)).unsqueeze(0).to(dev)
+            first = None if not self._first else torch.ones(1, dtype=torch.bool, device=dev)
             if self._first:
                 self.stream.reset()
             if self.mirror:  # stream 1: the mirrored world (flipped images, cameras swapped, reflected odometry)
@@ -170,12 +176,12 @@ class StudentObserver:
                 first = None if first is None else first.expand(2)
             else:
                 depth_in = depth
-            s_bev = F.avg_pool2d(self.stream.step(rgb, depth_in, pose, first), BEV_POOL).numpy()
+            s_bev = F.avg_pool2d(self.stream.step(rgb, depth_in, pose, first), BEV_POOL).cpu().numpy()
             out["bev"] = s_bev[0]
             if self.mirror:
                 out["bev_mirror"] = s_bev[1]
         if "occ" in self.keys:
-            out["occ"] = self.occupancy(depth)[0].numpy()
+            out["occ"] = self.occupancy(depth)[0].cpu().numpy()
         if "poses" in self.keys:
             out["poses"] = np.asarray(obs["poses"], np.float32)
             out["pose_mask"] = np.asarray(obs["pose_mask"], np.float32)
@@ -232,17 +238,18 @@ class StudentEnv(gym.Wrapper):
     """A visual-mode env whose observations are the student's (for PPO fine-tuning and evaluation).
 
     The encoder is loaded in the process that builds the env (each subprocess of a vectorised env has its own,
-    running on one thread).
+    running on one thread, on ``device``: a CUDA one needs subprocesses that were not forked from a process that
+    used CUDA, :func:`pipeline.core.device.start_method`).
     """
 
     def __init__(self, env: gym.Env, variant: str, encoder_ckpt: Path | None, threads: int = 1,
-                 head: str = "mlp") -> None:
+                 head: str = "mlp", device: torch.device | str = "cpu") -> None:
         super().__init__(env)
         torch.set_num_threads(threads)
         u = env.unwrapped
         if u.cfg.obs_mode != "visual":
             raise ConfigError(f"StudentEnv needs obs_mode='visual', got {u.cfg.obs_mode!r}")
-        encoder = load_student_encoder(variant, encoder_ckpt)
+        encoder = load_student_encoder(variant, encoder_ckpt, device)
         self.observer = observer_for_env(u, variant, encoder, head)
         self.observation_space = self.observer.observation_space
 
@@ -256,13 +263,15 @@ class StudentEnv(gym.Wrapper):
         return self.observer(obs), r, term, trunc, info
 
 
-def load_student_encoder(variant: str, encoder_ckpt: Path | None) -> BEVEncoder | None:
-    """The frozen encoder a variant needs (None for ``no_bev``, whose occupancy map needs no network)."""
+def load_student_encoder(variant: str, encoder_ckpt: Path | None,
+                         device: torch.device | str = "cpu") -> BEVEncoder | None:
+    """The frozen encoder a variant needs on ``device`` (None for ``no_bev``, whose occupancy map needs no
+    network)."""
     if "bev" not in variant_keys(variant):
         return None
     if encoder_ckpt is None:
         raise ConfigError(f"variant {variant!r} needs a pretrained encoder checkpoint (encoder_ckpt)")
     from pretrain.checkpoint import load_encoder  # lazy: torchvision (~3 s) only when an encoder is loaded
 
-    return load_encoder(Path(encoder_ckpt), frozen=True)
+    return load_encoder(Path(encoder_ckpt), frozen=True).to(device)
 

@@ -7,6 +7,7 @@
     icrowdnav train --variant no_i2 --resume     # continue a killed run
     icrowdnav train --variant drl_vo             # a learned baseline: drl_vo | sarl_om | vint (rl.baselines)
     make train                                   # teacher, full, no_i2, no_bev, the baselines (TRAIN_VARIANTS)
+    icrowdnav train --variant full --device cuda # updates and the frozen encoder on the GPU (default auto)
 
 Inputs: the teacher, DRL-VO and SARL*-OM need nothing but the simulator; ViNT-style needs the recorded dataset
 (``DATA_DIR/datasets/<vint.repo_id>``); a student needs ``DATA_DIR/checkpoints/policy/teacher`` and,
@@ -28,6 +29,12 @@ for ``full`` and ``no_i2``, the pretrained encoder ``DATA_DIR/checkpoints/<encod
 
 Every policy.json states which steps produced it (``produced_by``). Runs write in place (resumable, like
 ``record``/``pretrain``); ``manifest.json`` comes last.
+
+Device (``--device``, default ``auto``: CUDA when present): the cloning updates (teacher and students), SB3 PPO
+(teacher, student fine-tuning, DRL-VO) and the students' frozen encoder in the DAgger rollouts and the fine-tuning
+envs run there; the rollout workers' policies act on the CPU. Everything saved is written from CPU tensors (SB3
+zips load with ``map_location``), so a policy trained on a GPU loads anywhere; metrics.json and the manifest's
+counts record the device.
 """
 
 from __future__ import annotations
@@ -47,6 +54,7 @@ import torch
 from pipeline.core import layout
 from pipeline.core.artifacts import atomic_save_npz, atomic_write_json
 from pipeline.core.config import BaseStageConfig, dump_yaml
+from pipeline.core.device import device_counts, resolve_device, start_method
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pretrain.checkpoint import read_encoder_json
 from rl.baselines import BASELINES, baseline_module
@@ -182,6 +190,10 @@ class TrainConfig(BaseStageConfig):
     vint: ViNTConfig = field(default_factory=ViNTConfig)
     workers: int = 2  # processes for rollouts and evaluation
     threads: int = 0  # torch threads for cloning / PPO updates (0 = every core)
+    # where cloning, PPO updates and the students' frozen encoder run: auto (CUDA when this machine has it, else the
+    # CPU) | cpu | cuda | cuda:N (--device cuda); not in the config hash (a run resumes on another device); the
+    # manifest's counts record the one used
+    device: str = "auto"
     progress: bool = True
 
     def validate(self) -> None:
@@ -220,6 +232,7 @@ class TrainConfig(BaseStageConfig):
 
         for s in {*d.scenes, *self.acceptance.scenes, *(x for st in t.curriculum for x in st.scenes)}:
             load_scene(s)  # unknown scene -> ConfigError naming it
+        resolve_device(self.device, "train.device")  # cuda without CUDA: one error, before anything is written
 
 
 def policy_root(cfg: TrainConfig) -> Path:
@@ -296,6 +309,7 @@ def _acceptance(cfg: TrainConfig, policy_dir: Path, method: str) -> dict[str, An
 def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     from stable_baselines3 import PPO
 
+    device = resolve_device(cfg.device, "train.device")
     t = cfg.teacher
     logger = _Log(out)
     pairs = stage_pairs_all(t.curriculum)
@@ -313,6 +327,7 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             continue
         if k > 0 and policy is None:  # resuming: the previous stage's policy and aggregate
             policy, _ = load_policy(out / "imitation" / f"{k - 1:02d}")
+            policy.to(device)
         if data is None and k > 0:
             data = _load_aggregate(out, k)
         t0 = time.perf_counter()
@@ -328,7 +343,7 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         data = new if data is None else {key: np.concatenate([data[key], new[key]]) for key in data}
         if k == 0:
             torch.manual_seed(cfg.seed)
-            policy = build_policy("teacher", None, probe.observation_space, net)
+            policy = build_policy("teacher", None, probe.observation_space, net).to(device)
         linear_fit, cache = None, None
         if has_lookahead(policy):  # convex fit of the linear cost, then the MLP learns the rest
             cache = lookahead_feature_cache(policy, data, t.mirror)  # shared by the fit and the cloning
@@ -366,10 +381,10 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         venv = make_vec_env(cfg.sim, pairs, t.n_envs, cfg.seed, t.subprocess)
         last = out / "ppo" / "last.zip"
         if last.exists():
-            model = PPO.load(last, env=venv, device="cpu")
+            model = PPO.load(last, env=venv, device=device)
         else:
             model = PPO(policy_class("teacher", net), venv, policy_kwargs=policy_kwargs("teacher", None, net), seed=cfg.seed,
-                        device="cpu", verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(t.ppo))
+                        device=device, verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(t.ppo))
             model.policy.load_state_dict(policy.state_dict())
         attach_lookahead_cache(model)
         done = model.num_timesteps
@@ -428,8 +443,9 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     pairs = [(s, float(x)) for s in d.scenes for x in d.densities]
     n_rot = cfg.sim.robot.n_rotations  # yaw rates of the action grid (mirroring reverses them)
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
+    device = resolve_device(cfg.device, "train.device")
     torch.manual_seed(cfg.seed)
-    policy = build_policy("student", cfg.variant, space, net)
+    policy = build_policy("student", cfg.variant, space, net).to(device)
     inherited = has_lookahead(policy) and d.linear_cost == "teacher"
     if inherited:
         inherit_linear_cost(policy, teacher_dir)
@@ -442,13 +458,14 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             iters.append(info)
             frames_total = info["aggregate_frames"]
             policy, _ = load_policy(it / "policy")
+            policy.to(device)
             continue
         beta = d.beta0 * d.beta_decay ** k
         student_dir = out / "dagger" / f"iter_{k - 1}" / "policy" if k > 0 else None
         jobs = [{"sim": cfg.sim, "scene": pairs[e % len(pairs)][0], "density": pairs[e % len(pairs)][1],
                  "seed": cfg.seed + 1000 * k + e, "variant": cfg.variant, "encoder": str(enc_dir) if enc_dir else None,
                  "teacher": str(teacher_dir), "student": str(student_dir) if student_dir else None, "beta": beta,
-                 "iteration": k, "iter_dir": str(it), "mirror": d.mirror, "head": cfg.head}
+                 "iteration": k, "iter_dir": str(it), "mirror": d.mirror, "head": cfg.head, "device": str(device)}
                 for e in range(d.episodes_per_iter)]
         rows = run_iteration(it, jobs, cfg.workers, cfg.progress)
         counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress)
@@ -502,7 +519,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 "ppo_finetune_steps": 0}
     summary: dict[str, Any] = {"dagger": iters}
     if cfg.finetune.ppo_steps > 0:
-        policy, steps, rate = _finetune(cfg, out, policy, pairs, enc_dir)
+        policy, steps, rate = _finetune(cfg, out, policy, pairs, enc_dir, device)
         produced["ppo_finetune_steps"] = steps
         summary["finetune"] = {"steps": steps, "steps_per_s": rate}
     save_policy(out, policy, describe("student", cfg.variant, space, net, **extra, produced_by=produced))
@@ -547,25 +564,28 @@ def teacher_heading(teacher_dir: Path) -> str:
     return str(read_policy_json(teacher_dir)["net"].get("heading", "end"))
 
 
-def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir):
-    """PPO on the student (rendered envs, the paper's reward), starting from the distilled policy."""
+def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir, device: torch.device):
+    """PPO on the student (rendered envs, the paper's reward), starting from the distilled policy; the updates and
+    each env's frozen encoder on ``device`` (env subprocesses spawned for CUDA)."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     f = cfg.finetune
+    sim, variant, head, dev = cfg.sim, cfg.variant, cfg.head, str(device)
 
-    def make():
-        return StudentEnv(SceneMixEnv(cfg.sim, pairs, obs_mode="visual"), cfg.variant, enc_dir, head=cfg.head)
+    def make():  # captures plain values only: pickled into spawned subprocesses
+        return StudentEnv(SceneMixEnv(sim, pairs, obs_mode="visual"), variant, enc_dir, head=head, device=dev)
 
-    venv = (SubprocVecEnv([make] * f.n_envs, start_method="fork") if f.n_envs > 1 else DummyVecEnv([make]))
+    venv = (SubprocVecEnv([make] * f.n_envs, start_method=start_method(device)) if f.n_envs > 1
+            else DummyVecEnv([make]))
     venv.seed(cfg.seed + 77)
     last = out / "ppo" / "last.zip"
     if last.exists():
-        model = PPO.load(last, env=venv, device="cpu")
+        model = PPO.load(last, env=venv, device=device)
     else:
         net = student_net(cfg)
         model = PPO(policy_class("student", net), venv, policy_kwargs=policy_kwargs("student", cfg.variant, net),
-                    seed=cfg.seed, device="cpu", verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(f.ppo))
+                    seed=cfg.seed, device=device, verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(f.ppo))
         model.policy.load_state_dict(policy.state_dict())
     done = model.num_timesteps
     t0 = time.perf_counter()
@@ -593,7 +613,8 @@ def body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     train_s = time.perf_counter() - t0
     method = "teacher" if cfg.variant == "teacher" else cfg.variant
     acc = _acceptance(cfg, out, method)
-    metrics = {"variant": cfg.variant, "train_seconds": round(train_s, 1), **summary,
+    used = device_counts(resolve_device(cfg.device, "train.device"))
+    metrics = {"variant": cfg.variant, "train_seconds": round(train_s, 1), **used, **summary,
                "acceptance": {k: v for k, v in acc.items() if k != "episodes"}}
     if cfg.variant == "teacher" and summary.get("ppo_steps", 0) > 0:
         # the same episodes for the imitation policy before PPO: does PPO help? (reported, never hidden)
@@ -605,7 +626,7 @@ def body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             fh.write(json.dumps({k: (None if isinstance(v, float) and not np.isfinite(v) else v)
                                  for k, v in r.items()}) + "\n")
     plot_training(out / "train_log.csv", out / "curves.png", cfg.variant)
-    counts: dict[str, Any] = {"train_seconds": round(train_s, 1)}
+    counts: dict[str, Any] = {"train_seconds": round(train_s, 1), **used}
     for cell, row in acc["table"].items():
         counts[f"sr_{cell}"] = round(row["sr"], 3)
     return counts

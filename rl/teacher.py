@@ -235,7 +235,7 @@ def collect_dagger(policy, net: dict[str, Any], sim_cfg: SimConfig, pairs: list[
     visited state labelled by the expert; concatenated like :func:`collect_expert` plus ``success_rate``."""
     from tqdm import tqdm
 
-    state = {k: v.detach().clone() for k, v in policy.state_dict().items()}
+    state = {k: v.detach().to("cpu", copy=True) for k, v in policy.state_dict().items()}  # the workers act on CPU
     jobs = [(sim_cfg, *pairs[k % len(pairs)], seed + k, beta, gamma) for k in range(episodes)]
     init = ("teacher", policy.observation_space, net, state)
     parts = []
@@ -260,13 +260,15 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     left-right symmetric, so this doubles the data for free). ``n_rot`` is the number of yaw rates of the grid.
     Parameters whose names start with one of ``frozen`` are not updated (the lookahead teacher's linear path, fitted
     by :func:`fit_lookahead_linear`). ``cache``: the lookahead teacher's :func:`lookahead_feature_cache` of ``data``
-    when the caller has it already (computed here otherwise).
+    when the caller has it already (computed here otherwise). The updates run on the policy's device (``policy.to``
+    first); ``data`` stays in host memory and each batch is copied over.
 
     Returns one row per epoch: ``{"epoch", "bc_loss", "accuracy", "value_loss"}`` (means over the epoch).
     """
     from tqdm import tqdm
 
     keys = keys or tuple(policy.observation_space.spaces)
+    dev = policy.device
     n = len(data["action"])
     g = torch.Generator().manual_seed(seed)
     opt = torch.optim.Adam([p for name, p in policy.named_parameters() if not name.startswith(frozen)], lr=lr)
@@ -279,7 +281,7 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
         keys = (*keys, "bev_mirror")
 
     def take(idx: np.ndarray) -> dict[str, torch.Tensor]:  # per batch: the cache stays float16 numpy
-        return {k: torch.as_tensor(data[k][idx], dtype=torch.float32) for k in keys}
+        return {k: torch.as_tensor(data[k][idx], dtype=torch.float32).to(dev, non_blocking=True) for k in keys}
 
     mirror_rng = np.random.default_rng(seed + 1)
     # the lookahead teacher's rollout features depend on the observation alone: computed once, not every epoch
@@ -294,15 +296,15 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
         for s in range(0, n, batch):
             idx = np.sort(perm[s:s + batch])
             obs = take(idx)
-            act_t = torch.as_tensor(data["action"][idx], dtype=torch.long)
-            cost = torch.as_tensor(data["costs"][idx], dtype=torch.float32) if "costs" in data else None
-            afeat = None if cache is None else torch.as_tensor(cache[0][idx], dtype=torch.float32)
+            act_t = torch.as_tensor(data["action"][idx], dtype=torch.long).to(dev)
+            cost = torch.as_tensor(data["costs"][idx], dtype=torch.float32).to(dev) if "costs" in data else None
+            afeat = None if cache is None else torch.as_tensor(cache[0][idx], dtype=torch.float32).to(dev)
             if mirror:
-                flip = torch.as_tensor(mirror_rng.random(len(idx)) < 0.5)
+                flip = torch.as_tensor(mirror_rng.random(len(idx)) < 0.5).to(dev)
                 obs, act_t, cost = mirror_batch(obs, act_t, cost, flip, n_rot)
                 if cache is not None:
-                    afeat = torch.where(flip.view(-1, 1, 1), torch.as_tensor(cache[1][idx], dtype=torch.float32),
-                                        afeat)
+                    afeat = torch.where(flip.view(-1, 1, 1),
+                                        torch.as_tensor(cache[1][idx], dtype=torch.float32).to(dev), afeat)
             logits, values = policy_logits_values(policy, obs, afeat)
             logp_all = torch.log_softmax(logits, -1)
             if soft_tau > 0 and cost is not None:  # cross-entropy to the expert's softmin over the whole grid
@@ -313,7 +315,7 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
             loss = loss_bc
             if "return" in data:
                 loss_v = torch.nn.functional.mse_loss(values.flatten(),
-                                                      torch.as_tensor(data["return"][idx], dtype=torch.float32))
+                                                      torch.as_tensor(data["return"][idx], dtype=torch.float32).to(dev))
                 loss = loss + value_coef * loss_v
                 tot["value_loss"] += loss_v.item() * len(idx)
             opt.zero_grad()
@@ -337,8 +339,9 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
     thousands of steps to grow weights to the tens of nats the expert's costs span). With ``mirror`` the fit also
     sees every frame reflected. ``cache``: :func:`lookahead_feature_cache` of all of ``data`` (with the same
     ``mirror``) when the caller has it; otherwise only the subsample's features are computed. Returns the
-    cross-entropy to the targets before and after."""
+    cross-entropy to the targets before and after. Runs on the policy's device."""
     head = policy.features_extractor.lookahead  # rl.lookahead.LookaheadHead
+    dev = policy.device
     rng = np.random.default_rng(seed)
     n = len(data["action"])
     idx = np.sort(rng.choice(n, min(n, max_frames), replace=False))
@@ -347,13 +350,13 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
         cache = lookahead_feature_cache(policy, sub, mirror, n_rot)
     else:
         cache = (cache[0][idx], None if cache[1] is None else cache[1][idx])
-    cost = torch.as_tensor(data["costs"][idx], dtype=torch.float32)
-    feats = torch.as_tensor(cache[0], dtype=torch.float32)
+    cost = torch.as_tensor(data["costs"][idx], dtype=torch.float32).to(dev)
+    feats = torch.as_tensor(cache[0], dtype=torch.float32).to(dev)
     if mirror:
-        flip = torch.ones(len(cost), dtype=torch.bool)
-        _, _, mcost = mirror_batch({}, torch.zeros(len(cost), dtype=torch.long), cost, flip, n_rot)
+        flip = torch.ones(len(cost), dtype=torch.bool, device=dev)
+        _, _, mcost = mirror_batch({}, torch.zeros(len(cost), dtype=torch.long, device=dev), cost, flip, n_rot)
         cost = torch.cat([cost, mcost])
-        feats = torch.cat([feats, torch.as_tensor(cache[1], dtype=torch.float32)])
+        feats = torch.cat([feats, torch.as_tensor(cache[1], dtype=torch.float32).to(dev)])
     tau = soft_tau if soft_tau > 0 else 0.1
     target = torch.softmax(-(cost - cost.min(1, keepdim=True).values) / tau, -1)
 
@@ -385,18 +388,20 @@ def has_lookahead(policy) -> bool:
 def lookahead_feature_cache(policy, data: dict[str, np.ndarray], mirror: bool, n_rot: int = 21,
                             keys: tuple[str, ...] | None = None, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray | None]:
     """The lookahead teacher's rollout features of every frame of ``data`` (``N x A x F``, float16) and, with
-    ``mirror``, of every frame reflected (what :func:`mirror_batch` makes of it)."""
+    ``mirror``, of every frame reflected (what :func:`mirror_batch` makes of it). Computed on the policy's device,
+    kept in host memory."""
     ext = policy.features_extractor
+    dev = policy.device
     keys = keys or tuple(policy.observation_space.spaces)
     n = len(data["action"])
     out = [np.empty((n, ext.lookahead.n_actions, ext.lookahead.n_feat), np.float16) for _ in range(1 + mirror)]
     for s in range(0, n, chunk):
-        obs = {k: torch.as_tensor(data[k][s:s + chunk], dtype=torch.float32) for k in keys}
-        out[0][s:s + chunk] = ext.action_features(obs).numpy()
+        obs = {k: torch.as_tensor(data[k][s:s + chunk], dtype=torch.float32).to(dev) for k in keys}
+        out[0][s:s + chunk] = ext.action_features(obs).cpu().numpy()
         if mirror:
-            flip = torch.ones(len(obs[keys[0]]), dtype=torch.bool)
-            mobs, _, _ = mirror_batch(obs, torch.zeros(len(flip), dtype=torch.long), None, flip, n_rot)
-            out[1][s:s + chunk] = ext.action_features(mobs).numpy()
+            flip = torch.ones(len(obs[keys[0]]), dtype=torch.bool, device=dev)
+            mobs, _, _ = mirror_batch(obs, torch.zeros(len(flip), dtype=torch.long, device=dev), None, flip, n_rot)
+            out[1][s:s + chunk] = ext.action_features(mobs).cpu().numpy()
     return out[0], (out[1] if mirror else None)
 
 
@@ -441,7 +446,7 @@ def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch
         out["bev"] = torch.where(f.view(-1, 1, 1, 1), obs["bev_mirror"], obs["bev"])
     out.pop("bev_mirror", None)
     if "poses" in obs:  # K x 17 x [x, y, z], robot frame: y changes sign, left and right joints swap
-        perm = torch.as_tensor(COCO_MIRROR)
+        perm = torch.as_tensor(COCO_MIRROR, device=obs["poses"].device)
         sign = obs["poses"].new_tensor([1.0, -1.0, 1.0])
         out["poses"] = torch.where(f.view(-1, 1, 1, 1), obs["poses"][:, :, perm] * sign, obs["poses"])
         out["pose_mask"] = torch.where(f.view(-1, 1, 1), obs["pose_mask"][:, :, perm], obs["pose_mask"])
@@ -459,19 +464,21 @@ def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch
 @torch.no_grad()
 def bc_loss(policy, data: dict[str, np.ndarray], batch: int = 1024, soft_tau: float = 0.0) -> float:
     """Mean negative log-likelihood of ``data["action"]`` under ``policy`` (no gradient); with ``soft_tau > 0`` and
-    ``data["costs"]``, the cross-entropy to the softmin of the costs instead (the cloning objective)."""
+    ``data["costs"]``, the cross-entropy to the softmin of the costs instead (the cloning objective). On the policy's
+    device."""
     keys = tuple(policy.observation_space.spaces)
+    dev = policy.device
     n = len(data["action"])
     tot = 0.0
     for s in range(0, n, batch):
-        obs = {k: torch.as_tensor(data[k][s:s + batch], dtype=torch.float32) for k in keys}
+        obs = {k: torch.as_tensor(data[k][s:s + batch], dtype=torch.float32).to(dev) for k in keys}
         if soft_tau > 0 and "costs" in data:
             logits, _ = policy_logits_values(policy, obs)
-            cost = torch.as_tensor(data["costs"][s:s + batch], dtype=torch.float32)
+            cost = torch.as_tensor(data["costs"][s:s + batch], dtype=torch.float32).to(dev)
             target = torch.softmax(-(cost - cost.min(1, keepdim=True).values) / soft_tau, -1)
             tot += float(-(target * torch.log_softmax(logits, -1)).sum())
         else:
-            _, logp, _ = policy.evaluate_actions(obs, torch.as_tensor(data["action"][s:s + batch]))
+            _, logp, _ = policy.evaluate_actions(obs, torch.as_tensor(data["action"][s:s + batch]).to(dev))
             tot += float(-logp.sum())
     return tot / max(n, 1)
 
@@ -503,8 +510,9 @@ def _lookahead_buffer_class():
         def _features(self) -> torch.Tensor:
             n = len(next(iter(self.observations.values())))
             parts = []
-            for s in range(0, n, 2048):
-                obs = {k: torch.as_tensor(v[s:s + 2048], dtype=torch.float32) for k, v in self.observations.items()}
+            for s in range(0, n, 2048):  # on the model's device (the buffer's)
+                obs = {k: torch.as_tensor(v[s:s + 2048], dtype=torch.float32).to(self.device)
+                       for k, v in self.observations.items()}
                 parts.append(self.features_fn(obs))
             return torch.cat(parts)
 
@@ -513,7 +521,8 @@ def _lookahead_buffer_class():
             if self.features_fn is not None:  # called after get() flattened the observations
                 if self._lookahead is None:
                     self._lookahead = self._features()
-                samples.observations[LOOKAHEAD_KEY] = self._lookahead[torch.as_tensor(batch_inds)]
+                samples.observations[LOOKAHEAD_KEY] = self._lookahead[torch.as_tensor(batch_inds,
+                                                                                      device=self._lookahead.device)]
             return samples
 
     return _Buffer

@@ -82,7 +82,7 @@ T = TypeVar("T")
 PROFILES_ENV = "ICROWDNAV_PROFILES_DIR"
 COMMON_SECTION = "common"
 CLI_SOURCE = "command line"
-HASH_EXCLUDED_FIELDS: frozenset[str] = frozenset({"overwrite", "resume", "data_dir", "profile"})
+HASH_EXCLUDED_FIELDS: frozenset[str] = frozenset({"overwrite", "resume", "data_dir", "profile", "device"})
 
 _TRUE_WORDS = frozenset({"true", "1", "yes", "y", "on"})
 _FALSE_WORDS = frozenset({"false", "0", "no", "n", "off"})
@@ -880,8 +880,9 @@ def config_hash(cfg: Any) -> str:
     """Returns the sha256 hex of the canonical JSON of ``to_dict(cfg)``.
 
     The top-level fields ``overwrite`` and ``resume`` (how to treat an existing output), ``data_dir`` (where
-    it lives: manifests record paths relative to it, so a moved data directory stays up to date) and ``profile``
-    (a name; the values it set are in the hash) are left out.
+    it lives: manifests record paths relative to it, so a moved data directory stays up to date), ``profile``
+    (a name; the values it set are in the hash) and ``device`` (where it is computed, :mod:`pipeline.core.device`:
+    a run resumes on another device; the counts of the manifest record the one used) are left out.
 
     Args:
         cfg: A config dataclass instance.

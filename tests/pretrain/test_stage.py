@@ -149,6 +149,36 @@ def test_cli_bad_grid_is_one_line_and_writes_nothing(tmp_path: Path, tiny_datase
     assert not (data / "checkpoints").exists() or not any((data / "checkpoints").iterdir())
 
 
+def test_cli_device_cuda_without_cuda_is_one_line_and_writes_nothing(tmp_path: Path, tiny_dataset, capsys,
+                                                                     monkeypatch) -> None:
+    """``--device cuda`` on a machine without CUDA: exit 2, one ``error:`` line naming pretrain.device, no output."""
+    from pipeline import cli
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    data = _data_dir(tmp_path, tiny_dataset.root)
+    rc = cli.main(["pretrain", "--profile", "smoke", "--data-dir", str(data), "--repo-id", REPO, "--device", "cuda"])
+    err = capsys.readouterr().err
+    errors = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    assert rc == 2 and len(errors) == 1, err
+    assert "pretrain.device" in errors[0] and "CUDA is not available" in errors[0] and "'cuda'" in errors[0], err
+    assert not (data / "checkpoints").exists() or not any((data / "checkpoints").iterdir())
+    with pytest.raises(ConfigError, match="pretrain.device: expected one of auto, cpu, cuda, cuda:N, got 'gpu'"):
+        load_config(PretrainConfig, "pretrain", "smoke", overrides={"device": "gpu"})
+
+
+def test_manifest_records_the_device(trained) -> None:
+    """The counts say which hardware trained it (here the default, auto); the device is not in the config hash."""
+    from pipeline.core.device import resolve_device
+
+    cfg, out = trained
+    manifest = json.loads((out / "manifest.json").read_text())
+    used = str(resolve_device("auto", "pretrain.device"))
+    assert manifest["counts"]["device"] == used and manifest["params"]["device"] == "auto"
+    assert json.loads((out / "metrics.json").read_text())["device"] == used
+    _, ran = run_stage_ex(STAGE, _cfg(out.parents[1], device=used), ["test"])
+    assert not ran  # the same run named with its concrete device is up to date
+
+
 def test_config_errors() -> None:
     with pytest.raises(ConfigError, match="future_s"):
         load_config(PretrainConfig, "pretrain", "smoke", overrides={"future_s": "0.5"})

@@ -113,3 +113,51 @@ def test_resume_refuses_other_config_and_corrupt_state(tiny_store, tmp_path: Pat
     state.write_bytes(state.read_bytes()[: state.stat().st_size // 2])
     with pytest.raises(CorruptArtifactError, match=str(state)):
         fit(enc, heads, store, sl[:1], sl[1:], fov, _fit_config(epochs=1), tmp_path, resume=True, progress=False)
+
+
+def _tensors(obj) -> list[torch.Tensor]:
+    if isinstance(obj, torch.Tensor):
+        return [obj]
+    if isinstance(obj, dict):
+        return [t for v in obj.values() for t in _tensors(v)]
+    if isinstance(obj, list | tuple):
+        return [t for v in obj for t in _tensors(v)]
+    return []
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_fit_on_cuda_saves_a_device_free_state_that_resumes_on_cpu(tiny_store, tmp_path: Path) -> None:
+    """Two steps on the GPU: the first loss matches the CPU's, the saved state holds only CPU tensors (it loads
+    without ``map_location``), and the CPU finishes the run from it; the encoder checkpoint loads on the CPU."""
+    from safetensors.torch import load_file
+
+    from pretrain.checkpoint import write_encoder_checkpoint
+
+    store, fov, cams = tiny_store
+    sl = store.episode_slices
+    fc = _fit_config(epochs=2)  # 2 steps per epoch on the tiny episode
+    enc, heads = _models(cams)
+    fit(enc, heads, store, sl[:1], sl[1:], fov, fc, tmp_path / "cpu", resume=False, progress=False, stop_at_step=2)
+    enc, heads = _models(cams)
+    enc.cuda()
+    heads.cuda()
+    part = fit(enc, heads, store, sl[:1], sl[1:], fov, fc, tmp_path / "gpu", resume=False, progress=False,
+               stop_at_step=2)
+    assert part["step"] == 2 and all(p.is_cuda for p in enc.parameters())
+    state = torch.load(tmp_path / "gpu" / "state" / "last.pt", weights_only=True)  # no map_location on purpose
+    assert {t.device.type for t in _tensors(state)} == {"cpu"}
+
+    def first_loss(run: str) -> float:
+        with open(tmp_path / run / "train_log.csv", newline="") as f:
+            return float(next(csv.DictReader(f))["loss"])
+
+    assert first_loss("gpu") == pytest.approx(first_loss("cpu"), rel=1e-2)
+    history = evaluate(enc, heads, store, sl[1:], fov, torch.tensor(part["pos_weight"]), 8, 2)
+    assert np.isfinite(history["val_loss"])
+
+    write_encoder_checkpoint(tmp_path / "gpu", enc, heads, {})
+    assert {t.device.type for t in load_file(str(tmp_path / "gpu" / "encoder.safetensors")).values()} == {"cpu"}
+
+    enc_c, heads_c = _models(cams, seed=123)  # resumed on the CPU
+    rest = fit(enc_c, heads_c, store, sl[:1], sl[1:], fov, fc, tmp_path / "gpu", resume=True, progress=False)
+    assert rest["step"] == 4 and not rest["stopped"] and np.isfinite(rest["history"][-1]["val_loss"])

@@ -22,6 +22,7 @@ from torch import nn
 from tqdm import tqdm
 
 from pipeline.core.artifacts import atomic_save_npz
+from pipeline.core.device import resolve_device
 from rl.baselines.common import collect_expert_episodes, load_baseline, save_baseline, training_pairs
 from rl.baselines.drl_vo.configuration import NAME, Config, RewardConfig
 from rl.baselines.drl_vo.model import build_policy, describe_inputs, policy_kwargs
@@ -109,9 +110,10 @@ def _clone(policy: ActorCriticPolicy, data: dict[str, np.ndarray], epochs: int, 
            progress: bool) -> list[dict[str, float]]:
     """Behaviour cloning: Gaussian negative log-likelihood of the expert's actions (mean and log-std) + 0.5 · MSE of
     the value on the DRL-VO returns divided by their variance (returns span ±20 and more: unscaled, the value's
-    gradient would drown the policy's in the shared extractor). One row per epoch: ``{"epoch", "nll",
-    "action_mae", "value_loss"}`` (value_loss: the unscaled MSE)."""
+    gradient would drown the policy's in the shared extractor). On the policy's device. One row per epoch:
+    ``{"epoch", "nll", "action_mae", "value_loss"}`` (value_loss: the unscaled MSE)."""
     keys = tuple(policy.observation_space.spaces)
+    dev = policy.device
     n = len(data["action"])
     g = torch.Generator().manual_seed(seed)
     opt = torch.optim.Adam(policy.parameters(), lr=lr)
@@ -123,12 +125,13 @@ def _clone(policy: ActorCriticPolicy, data: dict[str, np.ndarray], epochs: int, 
         tot = {"nll": 0.0, "action_mae": 0.0, "value_loss": 0.0}
         for idx in torch.randperm(n, generator=g).split(batch):
             idx = np.sort(idx.numpy())
-            obs = {k: torch.as_tensor(data[k][idx]) for k in keys}
-            act = torch.as_tensor(data["action"][idx], dtype=torch.float32)
+            obs = {k: torch.as_tensor(data[k][idx]).to(dev) for k in keys}
+            act = torch.as_tensor(data["action"][idx], dtype=torch.float32).to(dev)
             latent_pi, latent_vf = policy.mlp_extractor(policy.extract_features(obs))
             mean = policy.action_net(latent_pi)
             nll = -policy.action_dist.proba_distribution(mean, policy.log_std).log_prob(act).mean()
-            v_loss = nn.functional.mse_loss(policy.value_net(latent_vf).flatten(), torch.as_tensor(data["return"][idx]))
+            v_loss = nn.functional.mse_loss(policy.value_net(latent_vf).flatten(),
+                                            torch.as_tensor(data["return"][idx]).to(dev))
             opt.zero_grad()
             (nll + 0.5 * v_scale * v_loss).backward()
             nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
@@ -172,17 +175,19 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
     ppo = ppo_kwargs(c.ppo)
     episodes = cfg.teacher.bc_episodes if c.bc_episodes is None else c.bc_episodes
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
+    device = resolve_device(cfg.device, "train.device")  # cloning and PPO updates (the envs step on the CPU)
     wall: dict[str, float] = {}
     summary: dict[str, Any] = {}
     bc_dir = out / "bc"
     frames = 0
     if episodes and (bc_dir / "policy.json").is_file():  # resuming: the warm start is done
         policy, desc = load_baseline(bc_dir, NAME, build_policy)
+        policy.to(device)
         summary["bc"] = desc["bc"]
         frames = int(desc["bc"]["frames"])
     else:
         torch.manual_seed(cfg.seed)
-        policy = build_policy(net)
+        policy = build_policy(net).to(device)
     if episodes and "bc" not in summary:
         t0 = time.perf_counter()
         data = collect_expert_episodes(cfg.sim, pairs, episodes, cfg.seed,
@@ -215,9 +220,9 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
         venv.seed(cfg.seed + 1)
         last = out / "ppo" / "last.zip"
         if last.exists():
-            model = PPO.load(last, env=venv, device="cpu")
+            model = PPO.load(last, env=venv, device=device)
         else:
-            model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs(net), seed=cfg.seed, device="cpu",
+            model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs(net), seed=cfg.seed, device=device,
                         verbose=0, **ppo)
             model.policy.load_state_dict(policy.state_dict())
         done = model.num_timesteps
