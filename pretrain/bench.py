@@ -7,6 +7,11 @@
   temporal model; ``bev_recompute_ms_per_step`` — :meth:`BEVEncoder.forward` on the whole window of T frames (what
   a policy without the cache would do each step); ``bev_stream_speedup_vs_recompute`` their ratio;
 * ``bev_stream_hz`` — streaming steps per second; ``bev_backbone_ms`` — the image backbone alone on one frame pair.
+* ``pretrain_step_ms_<device>`` — one optimisation step of :func:`pretrain.train.fit` (forward, masked BCE,
+  backward, AdamW; the profile's ``clips_per_batch`` x ``clip_frames``) on a synthetic frame store of the cameras'
+  size, every thread the machine has, median of the steps after the first two (:func:`measure_fit_step`); with a
+  GPU, ``pretrain_step_speedup_cuda_vs_cpu`` from the same run. ``python -m pretrain.bench --dataset ROOT --devices
+  cpu,cuda`` measures it alone (it reads only ``ROOT/meta/info.json``: the cameras), e.g. on a GPU machine.
 
 The encoder has the profile's ``pretrain.encoder`` architecture with random weights (speed does not depend on
 the weights); the frames come from the bench scene rendered at the profile's camera resolution.
@@ -21,7 +26,6 @@ from typing import Any
 import numpy as np
 import torch
 
-import sim  # noqa: F401
 from pipeline.core.timing import time_call
 from pretrain.geometry import Camera, lift_splat, lift_splat_reference
 from pretrain.model import BEVEncoder, BEVStream
@@ -36,6 +40,8 @@ def _ms(fn, seconds: float) -> float:
 def measure_bev(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg: Any, seconds: float) -> dict:
     """The figures of this module (see its docstring)."""
     import gymnasium as gym
+
+    import sim  # noqa: F401  (registers the env)
 
     env = gym.make("icrowdnav/CrowdNav-v0", config=replace(sim_cfg, scene=scene, density=density, obs_mode="visual",
                                                            info_level="basic"))
@@ -96,4 +102,102 @@ def measure_bev(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg
         out["bev_channels"] = float(encoder_cfg.bev_channels)
     finally:
         torch.set_num_threads(prev)
+    devices = ["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"]
+    out.update(measure_fit_steps(cameras, encoder_cfg, devices, steps=6))  # every thread: training's setting
     return out
+
+
+def measure_fit_step(cameras: list[Camera], encoder_cfg: Any, device: str, *, steps: int = 12, clips_per_batch: int = 4,
+                     clip_frames: int = 8, future_targets: int = 2, seed: int = 0) -> float:
+    """Median milliseconds of one :func:`pretrain.train.fit` step on ``device`` (see the module docstring).
+
+    The frames are random (speed does not depend on their content): RGB and depth at the cameras' size, random
+    pose, labels and validity; one training episode long enough for ``steps + 2`` batches, the run stopped after
+    them (no validation pass).
+    """
+    import csv
+    import tempfile
+    from pathlib import Path
+
+    from pipeline.core.device import resolve_device
+    from pretrain.data import FrameStore
+    from pretrain.geometry import check_grid_fits_cameras
+    from pretrain.model import PretextHeads
+    from pretrain.train import FitConfig, fit
+
+    dev = resolve_device(device, "device")
+    rng = np.random.default_rng(seed)
+    torch.manual_seed(seed)
+    encoder = BEVEncoder(encoder_cfg, cameras)
+    heads = PretextHeads(encoder_cfg.bev_channels)
+    grid = encoder_cfg.grid
+    fov = check_grid_fits_cameras(grid, cameras, "encoder")
+    n_train = (steps + 3) * clips_per_batch * clip_frames + encoder.frames
+    n = n_train + 2 * encoder.frames + 4
+    c0, stride = cameras[0], encoder_cfg.lift_stride_px
+    store = FrameStore(
+        rgb=rng.integers(0, 256, (n, len(cameras), 3, c0.height, c0.width), dtype=np.uint8),
+        depth=rng.uniform(0.3, 8.0, (n, len(cameras), c0.height // stride, c0.width // stride)).astype(np.float32),
+        pose=np.cumsum(rng.normal(0.0, 0.05, (n, 3)), 0),
+        labels=(rng.random((n, 2 + future_targets, *grid.shape)) < 0.05).astype(np.uint8),
+        valid=np.ones((n, 2 + future_targets), bool), episode_start=np.zeros(n, np.int64),
+        episode_end=np.full(n, n, np.int64), episodes=[0], episode_slices=[(0, n)])
+    store.episode_start[n_train:], store.episode_end[:n_train] = n_train, n_train
+    encoder.to(dev)
+    heads.to(dev)
+    fc = FitConfig(epochs=1, clip_frames=clip_frames, clips_per_batch=clips_per_batch, lr=1e-3, weight_decay=1e-4,
+                   warmup_frac=0.3, checkpoint_every_steps=10_000, log_every_steps=1, seed=seed, config_hash="bench")
+    with tempfile.TemporaryDirectory() as tmp:
+        fit(encoder, heads, store, [(0, n_train)], [(n_train, n)], fov, fc, Path(tmp), resume=False,
+            stop_at_step=steps + 2, progress=False)
+        with open(Path(tmp) / "train_log.csv") as f:
+            rows = list(csv.DictReader(f))
+    targets = clips_per_batch * clip_frames
+    return float(np.median([1000.0 * targets / float(r["frames_per_s"]) for r in rows[2:]]))
+
+
+def measure_fit_steps(cameras: list[Camera], encoder_cfg: Any, devices: list[str], **kwargs: Any) -> dict[str, float]:
+    """``pretrain_step_ms_<device>`` for each device (and the CUDA / CPU speed-up when both are measured)."""
+    out = {f"pretrain_step_ms_{d.split(':')[0]}": round(measure_fit_step(cameras, encoder_cfg, d, **kwargs), 2)
+           for d in devices}
+    if "pretrain_step_ms_cpu" in out and "pretrain_step_ms_cuda" in out:
+        out["pretrain_step_speedup_cuda_vs_cpu"] = round(out["pretrain_step_ms_cpu"] / out["pretrain_step_ms_cuda"], 2)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m pretrain.bench --dataset ROOT [--devices cpu,cuda] [--steps 12]``: the fit-step figures as JSON."""
+    import argparse
+    import json
+    import os
+    import platform
+    import sys
+    from pathlib import Path
+
+    from pipeline.core.errors import ICrowdNavError
+    from pretrain.geometry import cameras_from_dataset
+    from pretrain.model import EncoderConfig
+
+    ap = argparse.ArgumentParser(prog="python -m pretrain.bench", description=main.__doc__)
+    ap.add_argument("--dataset", type=Path, required=True, help="a dataset root (only meta/info.json is read)")
+    ap.add_argument("--devices", default="cpu,cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--steps", type=int, default=12)
+    ap.add_argument("--clips-per-batch", type=int, default=4)
+    ap.add_argument("--clip-frames", type=int, default=8)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(os.cpu_count() or 1)
+    try:
+        out = measure_fit_steps(cameras_from_dataset(args.dataset), EncoderConfig(), args.devices.split(","),
+                                steps=args.steps, clips_per_batch=args.clips_per_batch, clip_frames=args.clip_frames)
+    except ICrowdNavError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    out.update({"cpu_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
+                **({"gpu": torch.cuda.get_device_name()} if torch.cuda.is_available() else {}),
+                "torch": torch.__version__})
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
