@@ -26,9 +26,19 @@ from typing import Any
 import numpy as np
 import torch
 
+from pipeline.core.device import resolve_device
+from pipeline.core.errors import ICrowdNavError
 from pipeline.core.timing import time_call
-from pretrain.geometry import Camera, lift_splat, lift_splat_reference
-from pretrain.model import BEVEncoder, BEVStream
+from pretrain.data import FrameStore
+from pretrain.geometry import (
+    Camera,
+    cameras_from_dataset,
+    check_grid_fits_cameras,
+    lift_splat,
+    lift_splat_reference,
+)
+from pretrain.model import BEVEncoder, BEVStream, EncoderConfig, PretextHeads
+from pretrain.train import FitConfig, fit
 
 
 def _ms(fn, seconds: float) -> float:
@@ -41,7 +51,7 @@ def measure_bev(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg
     """The figures of this module (see its docstring)."""
     import gymnasium as gym
 
-    import sim  # noqa: F401  (registers the env)
+    import sim  # noqa: F401  # lazy: registers the env; the fit-step bench runs on GPU machines without the sim
 
     env = gym.make("icrowdnav/CrowdNav-v0", config=replace(sim_cfg, scene=scene, density=density, obs_mode="visual",
                                                            info_level="basic"))
@@ -119,11 +129,6 @@ def measure_fit_step(cameras: list[Camera], encoder_cfg: Any, device: str, *, st
     import tempfile
     from pathlib import Path
 
-    from pipeline.core.device import resolve_device
-    from pretrain.data import FrameStore
-    from pretrain.geometry import check_grid_fits_cameras
-    from pretrain.model import PretextHeads
-    from pretrain.train import FitConfig, fit
 
     dev = resolve_device(device, "device")
     rng = np.random.default_rng(seed)
@@ -174,9 +179,6 @@ def main(argv: list[str] | None = None) -> int:
     import sys
     from pathlib import Path
 
-    from pipeline.core.errors import ICrowdNavError
-    from pretrain.geometry import cameras_from_dataset
-    from pretrain.model import EncoderConfig
 
     ap = argparse.ArgumentParser(prog="python -m pretrain.bench", description=main.__doc__)
     ap.add_argument("--dataset", type=Path, required=True, help="a dataset root (only meta/info.json is read)")
