@@ -34,7 +34,7 @@ from pipeline.core.keys import OBS_ODOM, PRIV_LOCAL_OCCUPANCY, PRIV_PED_STATE, d
 from pretrain.geometry import BEVGrid, Camera, cameras_from_meta, sample_depth
 from recorder.dataset_info import read_dataset_info
 from recorder.doctor_dataset import require_sound_dataset
-from recorder.features import depth_from_features
+from recorder.schema import depth_from_mm
 
 log = logging.getLogger("icrowdnav")
 
@@ -324,7 +324,7 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
         rows = hf[a:b]
         sl = slice(pos, pos + length)
         for ci, c in enumerate(cameras):
-            store.depth[sl, ci] = sample_depth(torch.as_tensor(depth_from_features(rows[depth_key(c.name)])),
+            store.depth[sl, ci] = sample_depth(torch.as_tensor(depth_from_mm(rows[depth_key(c.name)])),
                                                lift_stride_px).numpy()
         store.pose[sl] = rows[OBS_ODOM]
         store.labels[sl], store.valid[sl] = episode_labels(

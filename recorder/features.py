@@ -96,7 +96,7 @@ from pipeline.core.keys import (
     depth_key,
     image_key,
 )
-from recorder.schema import CAMERA_NAMES, EpisodeMeta, Frame
+from recorder.schema import CAMERA_NAMES, DEPTH_SCALE_M, EpisodeMeta, Frame, depth_to_mm
 
 TASK = "navigate to the goal through the crowd"
 FORMAT_VERSION = 2  # 2: LeRobot's action convention, uint16 mm depth, float32 pose mask, calibration in info.json
@@ -104,7 +104,6 @@ FORMAT_KEY = "icrowdnav_format"  # in meta/info.json features["action"]["info"]
 ACTION_CONVENTION = ("action[t] is the command [v m/s, omega rad/s] chosen from observation t and applied from "
                      "frame t to frame t + 1 (LeRobot's convention); next.reward / next.done[t] are the reward / end "
                      "of that step; the episode's terminal observation is not a frame (it stays in the MCAP log)")
-DEPTH_SCALE_M = 0.001  # uint16 depth unit: millimetres
 ROBOT_TYPE = "icrowdnav_diffdrive"
 N_MAX_PEDESTRIANS = 64
 DEFAULT_MAX_PEOPLE = 6  # sim.detector.DetectorConfig.max_people
@@ -479,17 +478,6 @@ def step_features(frame: Frame, source: str, frame_index: int) -> dict[str, np.n
     return out
 
 
-def depth_to_features(depth_m: np.ndarray) -> np.ndarray:
-    """float metres (0 = invalid) -> the dataset's uint16 millimetres (exact for depth read from the MCAP log,
-    which keeps millimetres)."""
-    return np.rint(np.asarray(depth_m, np.float64) / DEPTH_SCALE_M).astype(np.uint16)
-
-
-def depth_from_features(depth_mm: np.ndarray) -> np.ndarray:
-    """The dataset's uint16 millimetres (or their int64 tensor copy) -> float32 metres, 0 = invalid."""
-    return np.asarray(depth_mm, np.float32) * np.float32(DEPTH_SCALE_M)
-
-
 def observation_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray, spec: ExportSpec, source: str,
                          frame_index: int) -> dict[str, np.ndarray]:
     """The observation, label and privileged features of recorded frame ``frame_index`` (all but ``action`` and
@@ -507,7 +495,7 @@ def observation_features(frame: Frame, meta: EpisodeMeta, occupancy: np.ndarray,
         if d.size and (float(d.min()) < 0.0 or float(d.max()) > 65535 * DEPTH_SCALE_M):
             chk.fail(f"depth[{cam}]", f"depths in [0, {65535 * DEPTH_SCALE_M:g}] m (uint16 millimetres)",
                      f"range [{float(d.min()):g}, {float(d.max()):g}] m", depth_key(cam))
-        out[depth_key(cam)] = depth_to_features(d)
+        out[depth_key(cam)] = depth_to_mm(d)  # exact for depth read from the MCAP log, which keeps millimetres
 
     def f32(name: str, shape: tuple[int | None, ...], feature: str) -> np.ndarray:
         return chk.array(name, _field(frame, name, chk), shape, "f", feature).astype(np.float32, copy=False)

@@ -50,6 +50,27 @@ import numpy as np
 from pipeline.core.config import to_dict
 
 CAMERA_NAMES = ("left", "right")
+DEPTH_SCALE_M = 0.001  # metres per depth count: the MCAP log (16UC1) and the dataset (uint16) keep millimetres
+
+
+def depth_to_mm(depth_m: np.ndarray) -> np.ndarray:
+    """z-depth in metres → uint16 millimetres (round to nearest, ≤ 0 / non-finite → 0, saturates at 65535).
+
+    Args:
+        depth_m: ``H x W`` float, m, 0 = invalid.
+
+    Returns:
+        ``H x W`` uint16, mm, 0 = invalid.
+    """
+    d = np.asarray(depth_m, dtype=np.float64)
+    mm = np.rint(np.where(np.isfinite(d) & (d > 0), d, 0.0) / DEPTH_SCALE_M)
+    return np.clip(mm, 0, 65535).astype(np.uint16)
+
+
+def depth_from_mm(mm: np.ndarray) -> np.ndarray:
+    """uint16 millimetres → float32 metres (0 stays 0 = invalid)."""
+    return (np.asarray(mm, dtype=np.float32) * np.float32(DEPTH_SCALE_M)).astype(np.float32)
+
 FRAME_WORLD = "world"
 FRAME_BASE = "base_link"
 

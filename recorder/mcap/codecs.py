@@ -27,7 +27,6 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from recorder import schema
 from recorder.schema import CAMERA_NAMES
 
-DEPTH_SCALE_M = 0.001  # metres per depth count (16UC1)
 _ARRAY_DTYPES = ("float32", "float64", "int64", "int32", "uint8", "bool")
 _NONFINITE = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
 
@@ -176,20 +175,3 @@ def expected_schema_name(topic: str) -> str:
     return PROTO_TYPES[topic].DESCRIPTOR.full_name
 
 
-def depth_to_mm(depth_m: np.ndarray) -> np.ndarray:
-    """z-depth in metres → uint16 millimetres (round to nearest, ≤ 0 / non-finite → 0, saturates at 65535).
-
-    Args:
-        depth_m: ``H x W`` float, m, 0 = invalid.
-
-    Returns:
-        ``H x W`` uint16, mm, 0 = invalid.
-    """
-    d = np.asarray(depth_m, dtype=np.float64)
-    mm = np.rint(np.where(np.isfinite(d) & (d > 0), d, 0.0) / DEPTH_SCALE_M)
-    return np.clip(mm, 0, 65535).astype(np.uint16)
-
-
-def depth_from_mm(mm: np.ndarray) -> np.ndarray:
-    """uint16 millimetres → float32 metres (0 stays 0 = invalid)."""
-    return (np.asarray(mm, dtype=np.float32) * np.float32(DEPTH_SCALE_M)).astype(np.float32)

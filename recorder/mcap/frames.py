@@ -25,7 +25,7 @@ from foxglove_schemas_protobuf.Vector2_pb2 import Vector2
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from google.protobuf.timestamp_pb2 import Timestamp
 
-from recorder.mcap.codecs import dec_array, dec_float, depth_from_mm, depth_to_mm, dumps, enc_array, enc_float
+from recorder.mcap.codecs import dec_array, dec_float, dumps, enc_array, enc_float
 from recorder.mcap.layout import camera_frame_id
 from recorder.schema import (
     CAMERA_NAMES,
@@ -45,6 +45,8 @@ from recorder.schema import (
     TOPIC_TF,
     EpisodeMeta,
     Frame,
+    depth_from_mm,
+    depth_to_mm,
 )
 
 

@@ -24,11 +24,11 @@ from mcap_protobuf.schema import register_schema
 
 from pipeline.core.artifacts import fsync_dir
 from pipeline.core.errors import OutputExistsError
-from recorder.mcap.codecs import DEPTH_SCALE_M, JSON_SCHEMAS, PROTO_TYPES
+from recorder.mcap.codecs import JSON_SCHEMAS, PROTO_TYPES
 from recorder.mcap.frames import FrameEncoder
 from recorder.mcap.layout import LIBRARY, METADATA_ABORTED, all_topics, dt_ns_of, partial_path_of
 from recorder.mcap.signals import critical
-from recorder.schema import CAMERA_NAMES, METADATA_EPISODE, TOPIC_OCCUPANCY, EpisodeMeta, Frame
+from recorder.schema import CAMERA_NAMES, DEPTH_SCALE_M, METADATA_EPISODE, TOPIC_OCCUPANCY, EpisodeMeta, Frame
 
 log = logging.getLogger("icrowdnav")
 

@@ -12,7 +12,7 @@ import pytest
 
 from recorder.dataset_info import DatasetFormatError, read_dataset_info
 from recorder.doctor_dataset import check_dataset, main, require_sound_dataset
-from recorder.mcap.codecs import depth_to_mm
+from recorder.schema import depth_to_mm
 
 DATA = "data/chunk-000/file-000.parquet"  # episode 0 (the export writes one data file per episode)
 DATA1 = "data/chunk-000/file-001.parquet"  # episode 1

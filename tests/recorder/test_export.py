@@ -23,12 +23,11 @@ from recorder.features import (
     ExportSpec,
     FeatureError,
     LocalMapSpec,
-    depth_from_features,
     frame_to_features,
     local_occupancy,
     unflatten_poses,
 )
-from recorder.mcap.codecs import depth_to_mm
+from recorder.schema import depth_from_mm, depth_to_mm
 
 
 def _tree_digest(root: Path) -> dict[str, str]:
@@ -129,7 +128,7 @@ def test_stock_lerobot_loads_export_and_frames_match_the_recording(tiny_dataset)
                 assert depth.shape == (48, 64) and depth.dtype.kind in "iu"
                 # the MCAP log stores whole millimetres: the depth is exact up to that quantisation
                 np.testing.assert_array_equal(depth, depth_to_mm(fr.depth[cam]))
-                np.testing.assert_allclose(depth_from_features(depth), fr.depth[cam], rtol=0, atol=0.5e-3 + 1e-6)
+                np.testing.assert_allclose(depth_from_mm(depth), fr.depth[cam], rtol=0, atol=0.5e-3 + 1e-6)
                 img = item[f"observation.images.{cam}"]
                 assert img.shape == (3, 48, 64) and img.dtype == torch.float32
                 rgb = img.numpy().transpose(1, 2, 0) * 255.0
