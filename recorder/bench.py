@@ -47,12 +47,12 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.keys import ACTION, NEXT_DONE, NEXT_REWARD, OBS_DEPTH, OBS_STATE
+from recorder.export import VCODEC, add_frame, quiet_lerobot, remove_empty_images_dir
 
 log = logging.getLogger("icrowdnav")
 
 VARIANTS = ("ours", "stock_shaped", "ours_policy_features")
 WIDE_PREFIXES = (f"{OBS_DEPTH}.", "privileged.")  # features a stock policy does not read
-VCODEC = "libsvtav1"  # the codec of recorder.export.write_dataset
 _FIGURE_NAME = {"ours": "ours", "stock_shaped": "stock_shaped", "ours_policy_features": "policy_features"}
 _CACHE_DIR = "hf_datasets_cache"
 _STOCK_DIR = "stock_shaped"
@@ -100,22 +100,6 @@ def datasets_cache(path: Path) -> Iterator[None]:
         datasets.config.HF_DATASETS_CACHE = old
 
 
-@contextlib.contextmanager
-def _quiet() -> Iterator[None]:
-    """No HF ``datasets`` bars, no lerobot bool-histogram warning (as in :mod:`recorder.export`)."""
-    import datasets
-
-    was = datasets.is_progress_bar_enabled()
-    datasets.disable_progress_bars()
-    try:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", "Converting input from bool", RuntimeWarning)
-            yield
-    finally:
-        if was:
-            datasets.enable_progress_bars()
-
-
 def _camera_frames(rng: np.random.Generator, shape: tuple[int, int, int], length: int) -> Iterator[np.ndarray]:
     """Smooth, moving uint8 frames (coarse seeded noise upsampled and panned): video-like, cheap to encode."""
     h, w, c = shape
@@ -157,19 +141,15 @@ def write_stock_shaped(root: Path, out: Path, *, seed: int = 0, repo_id: str = "
                 frame = {k: next(it) for k, it in images.items()}
                 frame.update({OBS_STATE: state[i], ACTION: action[i], NEXT_REWARD: reward[i],
                               NEXT_DONE: np.array([i == length - 1]), "task": "bench"})
-                ds.add_frame(frame)
-                for key in scalar_keys:  # lerobot 0.4.4 + numpy >= 2.3: float() of a (1,) array raises later
-                    ds.episode_buffer[key][-1] = ds.episode_buffer[key][-1].reshape(())
-            with _quiet():
+                add_frame(ds, frame, scalar_keys)
+            with quiet_lerobot():
                 ds.save_episode(parallel_encoding=False)
         ds.finalize()
     except BaseException:
         with contextlib.suppress(Exception):
             ds.finalize()
         raise
-    images_dir = Path(out) / "images"  # lerobot's temporary frame directory, empty after encoding
-    if images_dir.is_dir() and not any(p.is_file() for p in images_dir.rglob("*")):
-        shutil.rmtree(images_dir)
+    remove_empty_images_dir(out)
     return Path(out)
 
 
@@ -181,7 +161,7 @@ def write_policy_features(root: Path, out: Path, *, repo_id: str = "bench/policy
 
     removed = wide_features(info_of(root)["features"])
     src = LeRobotDataset("bench/ours", root=root, video_backend="pyav")
-    with _quiet():
+    with quiet_lerobot():
         remove_feature(src, removed, output_dir=out, repo_id=repo_id)
     return removed
 

@@ -22,7 +22,9 @@ from pipeline.core.errors import CorruptArtifactError, InputMissingError
 from pipeline.core.keys import ACTION, PRIV_LOCAL_OCCUPANCY, image_key
 from recorder.features import FORMAT_KEY, FORMAT_VERSION
 
-INFO = "meta/info.json"
+INFO = "meta/info.json"  # lerobot's
+ICROWDNAV_META = "meta/icrowdnav.json"  # ours, optional extras (recorder.export writes them; lerobot's tools drop them)
+ICROWDNAV_EPISODES = "meta/icrowdnav_episodes.jsonl"
 IMAGE_PREFIX = image_key("")
 
 

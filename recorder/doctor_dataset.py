@@ -43,14 +43,16 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
-from recorder.dataset_info import read_dataset_info
+from recorder.dataset_info import (
+    ICROWDNAV_EPISODES,
+    ICROWDNAV_META,
+    INFO,
+    read_dataset_info,
+)
 
-INFO = "meta/info.json"
 STATS = "meta/stats.json"
 TASKS = "meta/tasks.parquet"
 EPISODES_DIR = "meta/episodes"
-ICROWDNAV_META = "meta/icrowdnav.json"
-ICROWDNAV_EPISODES = "meta/icrowdnav_episodes.jsonl"
 DEFAULT_KEYS = ("timestamp", "frame_index", "episode_index", "index", "task_index")
 RENUMBERED = ("index", "episode_index")  # lerobot's dataset tools renumber these columns
 TOLERANCE_S = 1e-4  # lerobot's default tolerance between a requested and a decoded video timestamp

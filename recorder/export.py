@@ -60,6 +60,7 @@ from tqdm import tqdm
 from pipeline.core.artifacts import OutputDir, atomic_write_json, atomic_write_text
 from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
 from pipeline.core.keys import NEXT_DONE, NEXT_REWARD
+from recorder.dataset_info import ICROWDNAV_EPISODES, ICROWDNAV_META
 from recorder.doctor_dataset import check_dataset
 from recorder.features import (
     ACTION_CONVENTION,
@@ -84,14 +85,13 @@ from recorder.schema import CAMERA_NAMES, EpisodeMeta, Frame
 
 log = logging.getLogger("icrowdnav")
 
-ICROWDNAV_META = "meta/icrowdnav.json"
-ICROWDNAV_EPISODES = "meta/icrowdnav_episodes.jsonl"
 PARTIAL_SUFFIX = ".partial"
 # One parquet data file per episode (lerobot starts a new file once the current one reaches this size). lerobot
 # 0.4.4's ``delete_episodes`` must filter rows out of a data file that holds a deleted and a kept episode, and that
 # fails on multi-dimensional features (``datasets``' PandasArrayExtensionDtype compares a string ``_metadata`` letter
 # by letter: "AttributeError: ... has no attribute 'v'"); with one episode per file it copies or skips whole files.
 DATA_FILE_MB = 1e-6
+VCODEC = "libsvtav1"  # AV1 through PyAV / SVT-AV1, lerobot's default
 
 
 @dataclass
@@ -247,17 +247,37 @@ def _check_same_spec(meta: EpisodeMeta, first: EpisodeMeta, spec: ExportSpec, fp
 
 
 @contextlib.contextmanager
-def _quiet_datasets() -> Iterator[None]:
-    """Hides the HF ``datasets`` "Map" bars lerobot triggers per episode (our own bar counts frames)."""
+def quiet_lerobot() -> Iterator[None]:
+    """Around lerobot's ``save_episode``: hides the HF ``datasets`` "Map" bars it triggers per episode (our own bar
+    counts frames) and the (harmless) uint8-conversion warning of its stats histogram of bool features."""
     import datasets
 
     was = datasets.is_progress_bar_enabled()
     datasets.disable_progress_bars()
     try:
-        yield
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", "Converting input from bool", RuntimeWarning)
+            yield
     finally:
         if was:
             datasets.enable_progress_bars()
+
+
+def add_frame(ds: Any, values: dict[str, Any], scalar_keys: list[str]) -> None:
+    """``ds.add_frame(values)``, then the ``(1,)``-shaped ``scalar_keys`` of the buffered frame made 0-d: with
+    lerobot 0.4.4 and numpy >= 2.3, ``float()`` of a (1,) array raises later in ``save_episode``."""
+    ds.add_frame(values)
+    for key in scalar_keys:
+        ds.episode_buffer[key][-1] = ds.episode_buffer[key][-1].reshape(())
+
+
+def remove_empty_images_dir(root: Path) -> None:
+    """Removes lerobot's temporary frame directory ``root/images`` once encoding left it without files."""
+    images = Path(root) / "images"
+    if images.is_dir() and not any(p.is_file() for p in images.rglob("*")):
+        import shutil
+
+        shutil.rmtree(images)
 
 
 @contextlib.contextmanager
@@ -286,7 +306,7 @@ def _no_image_embedding(features: dict[str, dict]) -> Iterator[None]:
 def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | None = None, *,
                   max_people: int | None = None, n_max: int = N_MAX_PEDESTRIANS,
                   local_map: LocalMapSpec | None = None, progress: bool = True,
-                  vcodec: str = "libsvtav1") -> dict[str, Any]:
+                  vcodec: str = VCODEC) -> dict[str, Any]:
     """Writes episodes into a new LeRobot dataset at ``root`` (no staging, no validation: the caller's job).
 
     Use :func:`export_dataset` unless the caller already provides a crash-safe directory (e.g. a stage body
@@ -347,9 +367,7 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
                     values = {**observed, **step_features(fr, src.name, i)}
                     check_features(values, features, src.name, i - 1)
                     values["task"] = TASK
-                    ds.add_frame(values)
-                    for key in scalar_keys:  # lerobot 0.4.4 + numpy >= 2.3: float() of a (1,) array raises later
-                        ds.episode_buffer[key][-1] = ds.episode_buffer[key][-1].reshape(())
+                    add_frame(ds, values, scalar_keys)
                     length += 1
                     ret += float(values[NEXT_REWARD][0])
                     done = bool(values[NEXT_DONE][0])
@@ -359,9 +377,7 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
             if length == 0:
                 raise FeatureError(f"{src.name}: frames: expected at least two recorded frames (an observation and "
                                    f"the step from it), got {0 if observed is None else 1}")
-            with warnings.catch_warnings(), _quiet_datasets(), _no_image_embedding(features):
-                # lerobot's stats histogram of bool features warns (harmlessly) about a uint8 conversion
-                warnings.filterwarnings("ignore", "Converting input from bool", RuntimeWarning)
+            with quiet_lerobot(), _no_image_embedding(features):
                 ds.save_episode(parallel_encoding=False)
             n_frames += length
             bar.set_postfix(episodes=ep_index + 1)
@@ -383,11 +399,7 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
         raise
     finally:
         bar.close()
-    images = root / "images"
-    if images.is_dir() and not any(p.is_file() for p in images.rglob("*")):
-        import shutil
-
-        shutil.rmtree(images)
+    remove_empty_images_dir(root)
     seconds = time.monotonic() - t0
     assert spec is not None and first_meta is not None
     info = {
@@ -441,7 +453,7 @@ def _json_safe(obj: Any) -> Any:
 def export_dataset(inputs: Iterable[Any], out_dir: Path, repo_id: str, fps: int | None = None,
                    overwrite: bool = False, *, max_people: int | None = None,
                    n_max: int = N_MAX_PEDESTRIANS, local_map: LocalMapSpec | None = None,
-                   progress: bool = True, vcodec: str = "libsvtav1") -> dict[str, Any]:
+                   progress: bool = True, vcodec: str = VCODEC) -> dict[str, Any]:
     """Exports episodes into a validated LeRobot dataset at ``out_dir``, atomically.
 
     Args:

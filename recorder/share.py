@@ -80,12 +80,10 @@ from pipeline.core.errors import (
     OutputExistsError,
 )
 from pipeline.core.manifest import MANIFEST_NAME, Manifest
+from recorder.dataset_info import ICROWDNAV_EPISODES, ICROWDNAV_META, INFO
 
 log = logging.getLogger("icrowdnav")
 
-INFO = "meta/info.json"
-ICROWDNAV_META = "meta/icrowdnav.json"
-ICROWDNAV_EPISODES = "meta/icrowdnav_episodes.jsonl"
 PROVENANCE = "meta/provenance.json"
 CARD = "README.md"
 SHARED_DIRS = ("meta", "data", "videos")  # what of the dataset folder is shared (lerobot's tree + our meta files)
