@@ -41,9 +41,10 @@ record: install
 	$(PY) -m pipeline record --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(RECORD_ARGS)
 	$(PY) -m pipeline export --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(EXPORT_ARGS)
 
-# pretrain: the spatio-temporal BEV encoder on DATA_DIR/datasets/<repo_id> -> DATA_DIR/checkpoints/bev/
-# (a killed run continues with PRETRAIN_ARGS=--resume)
+# pretrain: the intention model (-> DATA_DIR/checkpoints/intention/, minutes) and the spatio-temporal BEV encoder
+# (-> DATA_DIR/checkpoints/bev/) on DATA_DIR/datasets/<repo_id> (a killed run continues with PRETRAIN_ARGS=--resume)
 pretrain: install
+	$(PY) -m pipeline pretrain-intention --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(INTENTION_ARGS)
 	$(PY) -m pipeline pretrain --profile $(PROFILE) --data-dir $(DATA_DIR) $(ARGS) $(PRETRAIN_ARGS)
 
 # train: the privileged teacher, then each visual student variant (DAgger from the teacher through the recorder,

@@ -56,6 +56,7 @@ VERBS: dict[str, str] = {
     "record": "pipeline.verbs.record:STAGE",
     "export": "pipeline.verbs.export:STAGE",
     "pretrain": "pipeline.verbs.pretrain:STAGE",
+    "pretrain-intention": "pipeline.verbs.pretrain_intention:STAGE",
     "train": "pipeline.verbs.train:STAGE",
     "eval": "pipeline.verbs.eval:STAGE",
     "doctor": "pipeline.verbs.doctor:main",

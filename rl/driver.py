@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from rl.observe import StudentObserver, load_student_encoder, observer_for
+from rl.observe import StudentObserver, load_student_encoder, load_student_forecaster, observer_for
 from rl.policy import act, load_policy, read_policy_json
 
 _CACHE: dict[str, Any] = {}
@@ -44,6 +44,13 @@ def cached_student_encoder(variant: str, encoder_ckpt: Path | str | None, device
                           lambda: load_student_encoder(variant, encoder_ckpt, device))
 
 
+def cached_student_forecaster(variant: str, head: str, intention_ckpt: Path | str | None):
+    """The frozen intention model of a student (:func:`rl.observe.load_student_forecaster`; None when it has
+    none), once per process."""
+    return process_cached(f"intent:{variant}:{head}:{intention_ckpt}",
+                          lambda: load_student_forecaster(variant, head, intention_ckpt))
+
+
 class PolicyDriver:
     """A saved teacher or student policy (``policy.json`` kind ``teacher`` | ``student``) as a driver."""
 
@@ -53,6 +60,9 @@ class PolicyDriver:
         self.desc = read_policy_json(ckpt)
         self.student = self.desc["kind"] == "student"
         self.encoder = cached_student_encoder(self.desc["variant"], self.desc.get("encoder")) if self.student else None
+        self.head = self.desc.get("net", {}).get("head", "mlp")
+        self.forecaster = (cached_student_forecaster(self.desc["variant"], self.head, self.desc.get("intention"))
+                           if self.student else None)
         self.observer: StudentObserver | None = None
         self.last_obs: dict[str, np.ndarray] | None = None
 
@@ -60,7 +70,7 @@ class PolicyDriver:
         if self.student:
             if self.observer is None:
                 self.observer = observer_for(info["cameras"], info["config"], self.desc["variant"], self.encoder,
-                                             self.desc["net"].get("head", "mlp"))
+                                             self.head, forecaster=self.forecaster)
             self.observer.reset()
 
     def act(self, obs: dict[str, np.ndarray], info: dict[str, Any]):

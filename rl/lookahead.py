@@ -4,7 +4,8 @@
 the student's lookahead head (:class:`rl.networks.StudentLookaheadExtractor`); the extractor owns it as its
 ``lookahead`` submodule and hands it its embedding. For each of the A = 5 x 21 (v, ω) commands
 (:func:`sim.robot.action_grid`) the head rolls the robot forward along its unicycle arc (fixed buffers) for
-:data:`LOOKAHEAD_HORIZON_S`, predicts every observed pedestrian with constant velocity, and measures per action
+:data:`LOOKAHEAD_HORIZON_S`, predicts every observed pedestrian (with constant velocity, or where the pretrained
+intention model says it will be: the observation's ``peds_future``), and measures per action
 ``F`` parameter-free features (:meth:`LookaheadHead.action_features`; all positions in the robot frame at the
 current step, x forward, y left, metres; times in seconds; angles in radians). A linear cost over the last
 :data:`N_LINEAR` of them plus an MLP over all of them and a context vector from the embedding give each action's
@@ -37,6 +38,13 @@ HEADING_MODES = ("end", "best", "spin")  # the lookahead heading error (Lookahea
 SCAN_POINTS = 24  # nearest scan hits the lookahead measures obstacle clearance against
 N_LINEAR = 10  # rollout features of the linear cost (the last ones of action_features)
 NEAR_GOAL_M = 0.5  # closer than this to the goal, the cost rewards reaching it instead of the route's heading
+
+
+def lookahead_times(dt_s: float) -> torch.Tensor:
+    """The ``S`` lookahead times (s): the control period, then every :data:`LOOKAHEAD_STEP_S` up to
+    :data:`LOOKAHEAD_HORIZON_S` — where the head places the robot and every pedestrian."""
+    return torch.cat([torch.tensor([float(dt_s)]),
+                      torch.arange(1, int(round(LOOKAHEAD_HORIZON_S / LOOKAHEAD_STEP_S)) + 1) * LOOKAHEAD_STEP_S])
 
 
 def unicycle_arcs(grid: torch.Tensor, times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -101,8 +109,7 @@ class LookaheadHead(nn.Module):
         self.radius_m = float(rc.radius_m)
         grid = torch.as_tensor(action_grid(rc), dtype=torch.float32)
         self.n_actions = len(grid)
-        times = torch.cat([torch.tensor([float(dt_s)]),
-                           torch.arange(1, int(round(LOOKAHEAD_HORIZON_S / LOOKAHEAD_STEP_S)) + 1) * LOOKAHEAD_STEP_S])
+        times = lookahead_times(dt_s)
         arcs, end = unicycle_arcs(grid, times)
         self.register_buffer("grid_norm", grid / grid.new_tensor([rc.v_max_mps, rc.omega_max_radps]), persistent=False)
         self.register_buffer("times", times, persistent=False)
@@ -146,15 +153,24 @@ class LookaheadHead(nn.Module):
         """``B x A x F`` parameter-free rollout features of every action (see
         :class:`rl.networks.LookaheadTeacherExtractor`). Reads ``obs["state"]`` ``B x 5`` (goal x, y, distance in m;
         velocity), ``obs["scan"]`` ``B x R`` (m), ``obs["peds"]`` ``B x K x 6`` (x, y in m, vx, vy in m/s, radius in
-        m, present; without it nobody is predicted), ``obs["path"]`` ``B x P x 2`` or ``obs["subgoal"]`` ``B x 2``
-        (m) when the head was built with them; all in the robot frame."""
+        m, present; without it nobody is predicted), optionally ``obs["peds_future"]`` ``B x K x S x 2`` (m: where
+        each of them will be at the lookahead :attr:`times`, from the pretrained intention model,
+        :class:`rl.perceive.Perception`; without it they are predicted at constant velocity), ``obs["path"]``
+        ``B x P x 2`` or ``obs["subgoal"]`` ``B x 2`` (m) when the head was built with them; all in the robot
+        frame."""
         arcs, disc = self.arcs, self.disc  # A S 2, S
         b = obs["state"].shape[0]
         a, s = arcs.shape[:2]
-        # pedestrians, constant velocity: B K S 2 (a student without pose input has none)
+        # pedestrians: B K S 2, the intention model's prediction or constant velocity (a student without pose input
+        # has none)
         peds = obs["peds"] if "peds" in obs else obs["state"].new_zeros(b, 1, 6)
         present = peds[..., 5] > 0.5
-        pp = peds[:, :, None, :2] + self.times[None, None, :, None] * peds[:, :, None, 2:4]  # B K S 2
+        if "peds_future" in obs:
+            pp = obs["peds_future"]
+            if pp.shape[-2] != s:
+                raise ConfigError(f"peds_future: expected {s} lookahead times per pedestrian, got {pp.shape[-2]}")
+        else:
+            pp = peds[:, :, None, :2] + self.times[None, None, :, None] * peds[:, :, None, 2:4]
         # |a - p|² = |a|² - 2 a·p + |p|² (one contraction instead of a B A K S 2 difference tensor)
         d2 = arcs[None, :, None, :, 0] * pp[:, None, :, :, 0]
         d2.addcmul_(arcs[None, :, None, :, 1].expand_as(d2), pp[:, None, :, :, 1].expand_as(d2)).mul_(-2.0)

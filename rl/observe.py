@@ -46,6 +46,7 @@ import torch.nn.functional as F
 
 from pipeline.core.errors import ConfigError
 from pretrain.geometry import Camera, LiftGeometry, lift_splat, sample_depth
+from pretrain.intention import IntentionForecaster, load_forecaster
 from pretrain.model import BEVEncoder, BEVStream, EncoderConfig
 from rl.networks import variant_keys
 from rl.perceive import CameraView, Perception
@@ -94,10 +95,13 @@ class StudentObserver:
         head: the policy's actor head (``lookahead`` adds ``peds`` and ``scan``).
         perception: ``{"dt_s", "k", "rays", "range_m"}`` of the lookahead head's :class:`rl.perceive.Perception`
             (:func:`perception_params` of the env).
+        forecaster: the pretrained intention model; with the lookahead head and a variant with poses it predicts
+            the tracks (``peds_future``) instead of constant velocity.
     """
 
     def __init__(self, variant: str, cameras: list[Camera], encoder: BEVEncoder | None, max_people: int,
-                 mirror: bool = False, head: str = "mlp", perception: dict[str, Any] | None = None) -> None:
+                 mirror: bool = False, head: str = "mlp", perception: dict[str, Any] | None = None,
+                 forecaster: IntentionForecaster | None = None) -> None:
         self.variant = variant
         self.keys = variant_keys(variant, head)
         self.cameras = cameras
@@ -106,7 +110,8 @@ class StudentObserver:
             if perception is None:
                 raise ConfigError("the lookahead head's observer needs the perception parameters of the env")
             self.perception = Perception([CameraView.of(c) for c in cameras], perception["dt_s"], perception["k"],
-                                         perception["rays"], perception["range_m"], people="poses" in self.keys)
+                                         perception["rays"], perception["range_m"], people="poses" in self.keys,
+                                         forecaster=forecaster)
         # where the frames are encoded (and the occupancy map lifted): the encoder's device
         self.device = next(encoder.parameters()).device if encoder is not None else torch.device("cpu")
         if "bev" in self.keys:
@@ -148,6 +153,9 @@ class StudentObserver:
             d["scan"] = gym.spaces.Box(0.0, big, (self.perception.scan.rays,), np.float32)
             if self.perception.people:
                 d["peds"] = gym.spaces.Box(-big, big, (self.perception.k, 6), np.float32)
+            if self.perception.forecaster is not None:
+                d["peds_future"] = gym.spaces.Box(-big, big, (self.perception.k, len(self.perception.times), 2),
+                                                  np.float32)
         return gym.spaces.Dict(d)
 
     def reset(self) -> None:
@@ -207,17 +215,32 @@ def perception_params(sim_cfg) -> dict[str, Any]:
 
 
 def observer_for(camera_specs, sim_cfg, variant: str, encoder: BEVEncoder | None, head: str = "mlp",
-                 mirror: bool = False) -> StudentObserver:
+                 mirror: bool = False, forecaster: IntentionForecaster | None = None) -> StudentObserver:
     """The :class:`StudentObserver` of a student variant for the cameras and config an env reports at reset
     (``info["cameras"]``, ``info["config"]``)."""
     return StudentObserver(variant, cameras_of(camera_specs), encoder, sim_cfg.detector.max_people, mirror=mirror,
-                           head=head, perception=perception_params(sim_cfg))
+                           head=head, perception=perception_params(sim_cfg), forecaster=forecaster)
 
 
 def observer_for_env(env, variant: str, encoder: BEVEncoder | None, head: str = "mlp",
-                     mirror: bool = False) -> StudentObserver:
+                     mirror: bool = False, forecaster: IntentionForecaster | None = None) -> StudentObserver:
     """The :class:`StudentObserver` of a student variant on an (unwrapped) env."""
-    return observer_for(env.cameras, env.cfg, variant, encoder, head, mirror)
+    return observer_for(env.cameras, env.cfg, variant, encoder, head, mirror, forecaster)
+
+
+def uses_forecaster(variant: str, head: str) -> bool:
+    """Whether a student predicts people with the intention model when one is given: the lookahead head of a
+    variant that sees poses (``no_i2`` sees none: people are depth obstacles to it)."""
+    return head == "lookahead" and "poses" in variant_keys(variant, head)
+
+
+def load_student_forecaster(variant: str, head: str, intention_ckpt: Path | str | None
+                            ) -> IntentionForecaster | None:
+    """The frozen intention model a student uses (None without a checkpoint, or when the student does not use one,
+    :func:`uses_forecaster`); errors name the checkpoint."""
+    if not intention_ckpt or not uses_forecaster(variant, head):
+        return None
+    return load_forecaster(Path(intention_ckpt))[0]
 
 
 def check_mirror_symmetric(cameras: list[Camera]) -> None:
@@ -243,14 +266,15 @@ class StudentEnv(gym.Wrapper):
     """
 
     def __init__(self, env: gym.Env, variant: str, encoder_ckpt: Path | None, threads: int = 1,
-                 head: str = "mlp", device: torch.device | str = "cpu") -> None:
+                 head: str = "mlp", device: torch.device | str = "cpu", intention_ckpt: Path | None = None) -> None:
         super().__init__(env)
         torch.set_num_threads(threads)
         u = env.unwrapped
         if u.cfg.obs_mode != "visual":
             raise ConfigError(f"StudentEnv needs obs_mode='visual', got {u.cfg.obs_mode!r}")
         encoder = load_student_encoder(variant, encoder_ckpt, device)
-        self.observer = observer_for_env(u, variant, encoder, head)
+        self.observer = observer_for_env(u, variant, encoder, head,
+                                         forecaster=load_student_forecaster(variant, head, intention_ckpt))
         self.observation_space = self.observer.observation_space
 
     def reset(self, **kwargs: Any):

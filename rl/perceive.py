@@ -5,12 +5,10 @@ The privileged teacher scores every action of the grid by rolling it forward aga
 velocities and a range scan of the *static map* (:class:`rl.networks.LookaheadTeacherExtractor`). A student with
 ``net.head = "lookahead"`` gets the same kind of scorer, fed only with what a real robot measures:
 
-* ``peds`` (``K x 6``, [x, y, vx, vy, r, present], robot frame, nearest first): each detected person
-  (:mod:`sim.detector`: COCO-17 joints lifted with measured depth) becomes one point, the mean (x, y) of its detected
-  joints moved 0.1 m further along the viewing ray (lifted joints lie on the surface that faces the cameras); :class:`PedestrianTracker` associates those points over frames in the odometry frame (greedy
-  nearest neighbour within a gate) and runs an alpha–beta filter per track, whose velocity is the estimate (a new
-  track starts at rest). A track that is not re-detected coasts at its velocity for ``max_missed`` frames (a person
-  leaving the 140° view beside the robot is not forgotten at once). ``r`` is a nominal body radius.
+* ``peds`` (``K x 6``, [x, y, vx, vy, r, present], robot frame, nearest first): the tracks of
+  :class:`sim.tracking.PedestrianTracker` over the detected people (each the centre of its detected joints; greedy
+  nearest-neighbour association in the odometry frame, an alpha–beta filter whose velocity is the estimate, a
+  coasting track kept for ``max_missed`` frames). ``r`` is a nominal body radius.
 * ``scan`` (``R`` ranges over 360° from the robot heading, ``range_m`` = no hit): :class:`DepthScan` back-projects
   the depth images (the DWA baseline's :func:`sim.planners.dwa.depth_to_points`, floor and ceiling dropped), drops the
   points within ``person_clear_m`` of a detected person (people are in ``peds``, with a velocity), keeps the rest in an
@@ -19,7 +17,11 @@ velocities and a range scan of the *static map* (:class:`rl.networks.LookaheadTe
   takes the nearest point per bearing bin — the same ray layout as the env's static scan, so one lookahead layer
   serves both. Undetected people stay in the scan as obstacles without velocity.
 
-Nothing here is learned or privileged; the numbers are checked against the simulator's truth in
+* ``peds_future`` (``K x S x 2``, only with a pretrained intention model, :mod:`pretrain.intention`): where each
+  reported track will be at the lookahead head's times, predicted from the track's history and the pose detected on
+  it now — the model is trained on tracks of this very tracker replayed over a recorded dataset.
+
+Apart from that frozen model, nothing here is learned or privileged; the numbers are checked against the simulator's truth in
 ``tests/rl/test_perceive.py`` and measured in docs/results.md ("The students' perception").
 """
 
@@ -29,12 +31,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
+from pretrain.intention import IntentionForecaster, from_track_frame, track_inputs
+from rl.lookahead import lookahead_times
 from sim.depth import ObstacleMemory, depth_to_points
 from sim.geometry import robot_to_world, world_to_robot
-
-SURFACE_TO_CENTRE_M = 0.1  # detected joints → body centre, along the viewing ray
-PED_RADIUS_M = 0.25  # nominal body radius of a perceived person (the simulator's bodies: 0.2-0.3 m)
+from sim.tracking import PedestrianTracker, person_detections
 
 
 @dataclass
@@ -53,86 +56,6 @@ class CameraView:
         """From a :class:`pretrain.geometry.Camera` (the encoder's camera description)."""
         return cls(cam.name, int(cam.width), int(cam.height), np.asarray(cam.K, np.float64),
                    np.asarray(cam.T_base_cam, np.float64), float(cam.min_depth_m))
-
-
-def person_centres(poses: np.ndarray, mask: np.ndarray, min_joints: int = 3) -> np.ndarray:
-    """``M x 2`` robot-frame (x, y) of the detected people: the mean of each person's detected joints (persons with
-    fewer than ``min_joints`` joints are dropped)."""
-    m = np.asarray(mask, bool)
-    n = m.sum(-1)
-    keep = n >= min_joints
-    if not keep.any():
-        return np.zeros((0, 2))
-    p = np.asarray(poses, np.float64)[keep, :, :2]
-    w = m[keep][..., None]
-    c = (p * w).sum(1) / n[keep][:, None]
-    # lifted joints lie on the body's surface facing the cameras: the centre is about half a body depth behind them
-    return c + SURFACE_TO_CENTRE_M * c / np.maximum(np.linalg.norm(c, axis=-1, keepdims=True), 1e-6)
-
-
-class PedestrianTracker:
-    """Alpha–beta tracks of detected people in the odometry frame (module docstring).
-
-    Args:
-        dt_s: time between updates (the control period).
-        gate_m: a detection further than ``gate_m`` from every predicted track starts a new track.
-        alpha, beta: the filter's position and velocity gains.
-        max_missed: frames a track coasts without a detection before it is dropped.
-        max_speed_mps: velocity estimates are clipped to this speed (people walk at ≤ 2 m/s).
-    """
-
-    def __init__(self, dt_s: float, gate_m: float = 0.8, alpha: float = 0.5, beta: float = 0.15,
-                 max_missed: int = 5, max_speed_mps: float = 2.0) -> None:
-        self.dt_s, self.gate_m, self.alpha, self.beta = float(dt_s), float(gate_m), float(alpha), float(beta)
-        self.max_missed, self.max_speed = int(max_missed), float(max_speed_mps)
-        self.reset()
-
-    def reset(self) -> None:
-        self.pos = np.zeros((0, 2))
-        self.vel = np.zeros((0, 2))
-        self.missed = np.zeros(0, np.int64)
-
-    def update(self, detections_w: np.ndarray) -> None:
-        """One frame: ``M x 2`` odometry-frame detections."""
-        z = np.asarray(detections_w, np.float64).reshape(-1, 2)
-        pred = self.pos + self.dt_s * self.vel
-        n, m = len(pred), len(z)
-        det_of = np.full(n, -1)
-        used = np.zeros(m, bool)
-        if n and m:
-            d = np.linalg.norm(pred[:, None] - z[None], axis=-1)
-            for flat in np.argsort(d, axis=None):  # greedy: the closest pairs first
-                i, j = divmod(int(flat), m)
-                if d[i, j] > self.gate_m:
-                    break
-                if det_of[i] < 0 and not used[j]:
-                    det_of[i], used[j] = j, True
-        hit = det_of >= 0
-        r = np.zeros_like(pred)
-        r[hit] = z[det_of[hit]] - pred[hit]
-        pos = pred + self.alpha * r
-        vel = self.vel + (self.beta / self.dt_s) * r
-        speed = np.linalg.norm(vel, axis=-1, keepdims=True)
-        vel *= np.minimum(1.0, self.max_speed / np.maximum(speed, 1e-9))
-        missed = np.where(hit, 0, self.missed + 1)
-        alive = missed <= self.max_missed
-        new = z[~used]
-        self.pos = np.concatenate([pos[alive], new])
-        self.vel = np.concatenate([vel[alive], np.zeros_like(new)])
-        self.missed = np.concatenate([missed[alive], np.zeros(len(new), np.int64)])
-
-    def observation(self, robot_pose: Sequence[float], k: int, radius_m: float = PED_RADIUS_M) -> np.ndarray:
-        """``k x 6`` [x, y, vx, vy, r, present] of the nearest tracks in the robot frame (the teacher's layout)."""
-        out = np.zeros((k, 6), np.float32)
-        if not len(self.pos):
-            return out
-        rel = world_to_robot(self.pos, robot_pose)
-        vel = world_to_robot(self.vel, robot_pose, vectors=True)
-        order = np.argsort(np.hypot(rel[:, 0], rel[:, 1]), kind="stable")[:k]
-        n = len(order)
-        out[:n, :2], out[:n, 2:4] = rel[order], vel[order]
-        out[:n, 4], out[:n, 5] = radius_m, 1.0
-        return out
 
 
 class DepthScan:
@@ -191,8 +114,21 @@ def scan_from_points(xy: np.ndarray, rays: int, range_m: float) -> np.ndarray:
     return out.astype(np.float32)
 
 
+def interpolation_matrix(src_s: np.ndarray, dst_s: np.ndarray) -> np.ndarray:
+    """``len(dst) x (len(src) + 1)`` weights that map values at times ``[0, *src_s]`` to times ``dst_s``: linear
+    between neighbours, extrapolated along the last segment beyond the last time."""
+    src = np.concatenate([[0.0], np.asarray(src_s, np.float64)])
+    w = np.zeros((len(dst_s), len(src)))
+    for i, t in enumerate(np.asarray(dst_s, np.float64)):
+        j = int(np.clip(np.searchsorted(src, t) - 1, 0, len(src) - 2))
+        a = (t - src[j]) / (src[j + 1] - src[j])
+        w[i, j], w[i, j + 1] = 1.0 - a, a
+    return w
+
+
 class Perception:
-    """``peds`` and ``scan`` of a student's lookahead head from one visual observation per control step.
+    """``peds`` and ``scan`` of a student's lookahead head from one visual observation per control step, and with a
+    ``forecaster`` also ``peds_future``.
 
     Args:
         cameras: the robot's cameras, left then right (:class:`CameraView`).
@@ -200,13 +136,24 @@ class Perception:
         k: tracks reported (the teacher's ``privileged_peds``).
         rays, range_m: the scan layout (the env's ``scan_rays`` / ``scan_range_m``).
         people: track detected people (False for a variant without poses: the people are then only depth obstacles).
+        forecaster: the pretrained intention model (:func:`pretrain.intention.load_forecaster`); each reported track
+            is then predicted by it from its history and the pose detected on it now, and ``peds_future``
+            (``k x S x 2``, robot frame, m) holds where it will be at the lookahead head's times
+            (:func:`rl.lookahead.lookahead_times`; linear between the model's horizons). Without it the head
+            extrapolates the tracks' velocities.
     """
 
-    def __init__(self, cameras: Sequence, dt_s: float, k: int, rays: int, range_m: float, people: bool = True) -> None:
-        self.tracker = PedestrianTracker(dt_s)
+    def __init__(self, cameras: Sequence, dt_s: float, k: int, rays: int, range_m: float, people: bool = True,
+                 forecaster: IntentionForecaster | None = None) -> None:
+        self.forecaster = forecaster if people else None
+        history = forecaster.cfg.history if self.forecaster is not None else 8
+        self.tracker = PedestrianTracker(dt_s, history=history)
         self.scan = DepthScan(cameras, rays, range_m)
         self.names = [c.name for c in cameras]
         self.dt_s, self.k, self.people = float(dt_s), int(k), bool(people)
+        self.times = lookahead_times(dt_s).numpy()
+        if self.forecaster is not None:
+            self.interp = interpolation_matrix(np.asarray(self.forecaster.cfg.horizons_s), self.times)
 
     def reset(self) -> None:
         self.tracker.reset()
@@ -218,8 +165,24 @@ class Perception:
         out: dict[str, np.ndarray] = {}
         centres = None
         if self.people:
-            centres = person_centres(obs["poses"], obs["pose_mask"])
+            centres, det_index = person_detections(obs["poses"], obs["pose_mask"])
             self.tracker.update(robot_to_world(centres, pose))
             out["peds"] = self.tracker.observation(pose, self.k)
+            if self.forecaster is not None:
+                out["peds_future"] = self.forecast(pose, obs["poses"], obs["pose_mask"], det_index)
         out["scan"] = self.scan.update(depths, pose, self.dt_s, centres)
+        return out
+
+    @torch.no_grad()
+    def forecast(self, pose: np.ndarray, poses: np.ndarray, mask: np.ndarray, det_index: np.ndarray) -> np.ndarray:
+        """``k x S x 2`` robot-frame positions of the reported tracks (the order of ``peds``) at the lookahead
+        times, from the intention model; zero rows where there is no track."""
+        out = np.zeros((self.k, len(self.times), 2), np.float32)
+        rows = self.tracker.nearest(pose, self.k)
+        if not len(rows):
+            return out
+        x, origin, heading = track_inputs(self.tracker, rows, pose, poses, mask, det_index)
+        disp = self.forecaster({n: torch.from_numpy(v) for n, v in x.items()}).numpy().astype(np.float64)
+        at = np.einsum("sj,njc->nsc", self.interp, np.concatenate([np.zeros((len(rows), 1, 2)), disp], 1))
+        out[:len(rows)] = world_to_robot(from_track_frame(at, origin, heading), pose)
         return out

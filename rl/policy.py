@@ -175,7 +175,7 @@ def load_policy(ckpt: Path) -> tuple[ActorCriticPolicy, dict[str, Any]]:
 
 def check_checkpoint_weights(ckpt: Path) -> None:
     """Reads the weights a policy or baseline checkpoint directory uses — ``policy.safetensors`` and, for a student,
-    its encoder's ``encoder.safetensors`` — through :func:`pretrain.checkpoint.read_weights` (sha256 against the
+    its encoder's ``encoder.safetensors`` and intention model's ``forecaster.safetensors`` — through :func:`pretrain.checkpoint.read_weights` (sha256 against the
     manifest, finite values), so that a damaged checkpoint is refused before any episode starts. Forked episode
     workers inherit the hash check (each file is hashed once).
 
@@ -189,6 +189,8 @@ def check_checkpoint_weights(ckpt: Path) -> None:
     read_weights(ckpt / POLICY_WEIGHTS)
     if desc.get("kind") == "student" and desc.get("encoder"):
         read_weights(Path(desc["encoder"]) / ENCODER_WEIGHTS)
+    if desc.get("kind") == "student" and desc.get("intention"):  # the intention model it predicts people with
+        read_weights(Path(desc["intention"]) / "forecaster.safetensors")
 
 
 def freeze_actor(policy: ActorCriticPolicy) -> list[torch.nn.Parameter]:

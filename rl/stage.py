@@ -57,6 +57,7 @@ from pipeline.core.config import BaseStageConfig, dump_yaml
 from pipeline.core.device import device_counts, resolve_device, start_method
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pretrain.checkpoint import read_encoder_json
+from pretrain.intention import FORECASTER_WEIGHTS, INTENTION_JSON, load_forecaster
 from rl.baselines import BASELINES, baseline_module
 from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
 from rl.baselines.sarl_om.configuration import Config as SARLOMConfig
@@ -66,7 +67,15 @@ from rl.dagger import bev_stats, export_iteration, load_features, run_iteration,
 from rl.evaluate import evaluate, success_table
 from rl.figures import plot_training
 from rl.networks import STUDENT_HEADS, VARIANTS
-from rl.observe import StudentEnv, check_encoder_matches, env_cameras, load_student_encoder, observer_for_env
+from rl.observe import (
+    StudentEnv,
+    check_encoder_matches,
+    env_cameras,
+    load_student_encoder,
+    load_student_forecaster,
+    observer_for_env,
+    uses_forecaster,
+)
 from rl.policy import (
     build_policy,
     describe,
@@ -119,7 +128,7 @@ class TeacherConfig:
     ppo_steps: int = 200_000  # PPO env steps after the warm start (0 = the teacher is the cloned expert)
     critic_warmup_steps: int = 0  # first PPO steps train only the value head (the actor is frozen)
     n_envs: int = 8  # vectorised envs
-    subprocess: bool = True  # SubprocVecEnv (both cores) instead of DummyVecEnv
+    subprocess: bool = True  # rl.vec_env.BatchedSubprocVecEnv (a worker per core) instead of DummyVecEnv
     ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 512, "batch_size": 512, "n_epochs": 6,
                                                            "learning_rate": 1e-4, "clip_range": 0.1,
                                                            "ent_coef": 0.0})
@@ -174,6 +183,10 @@ class TrainConfig(BaseStageConfig):
 
     variant: str = "full"  # teacher | full | no_i2 | no_bev | a learned baseline: drl_vo | sarl_om | vint
     encoder: str = "bev"  # pretrained encoder: DATA_DIR/checkpoints/<encoder>/
+    # pretrained intention model DATA_DIR/checkpoints/<intention>/ (icrowdnav pretrain-intention): the lookahead head
+    # of a variant with poses (full, no_bev) predicts the people it tracks with it; "" = constant velocity (the
+    # ablation). The profiles set it; no_i2 and the mlp head never use it.
+    intention: str = ""
     sim: SimConfig = field(default_factory=SimConfig)
     teacher: TeacherConfig = field(default_factory=TeacherConfig)
     dagger: DaggerConfig = field(default_factory=DaggerConfig)
@@ -247,8 +260,15 @@ def encoder_dir(cfg: TrainConfig) -> Path:
     return layout.checkpoint_dir(cfg.data_dir, cfg.encoder)
 
 
+def intention_dir(cfg: TrainConfig) -> Path | None:
+    """The intention checkpoint the student uses (None: constant velocity, or a student that does not use one)."""
+    if not cfg.intention or not uses_forecaster(cfg.variant, cfg.head):
+        return None
+    return layout.checkpoint_dir(cfg.data_dir, cfg.intention)
+
+
 def inputs(cfg: TrainConfig) -> list[Path]:
-    """The teacher and the encoder a student needs; checked here, before any output exists."""
+    """The teacher, the encoder and the intention model a student needs; checked here, before any output exists."""
     if cfg.variant == "teacher":
         return []
     if cfg.variant in BASELINES:
@@ -273,6 +293,9 @@ def inputs(cfg: TrainConfig) -> list[Path]:
         env.reset(seed=0)
         check_encoder_matches(enc, env_cameras(env), f"train --variant {cfg.variant} (encoder {encoder_dir(cfg)})")
         paths += [encoder_dir(cfg) / "encoder.json", encoder_dir(cfg) / "encoder.safetensors"]
+    if (int_dir := intention_dir(cfg)) is not None:
+        load_forecaster(int_dir)  # missing / unfinished / corrupt -> one clear error naming it
+        paths += [int_dir / INTENTION_JSON, int_dir / FORECASTER_WEIGHTS]
     return paths
 
 
@@ -435,11 +458,14 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     teacher_dir = policy_root(cfg) / "teacher"
     enc_dir = encoder_dir(cfg) if cfg.variant != "no_bev" else None
     encoder = load_student_encoder(cfg.variant, enc_dir)
+    int_dir = intention_dir(cfg)
+    forecaster = load_student_forecaster(cfg.variant, cfg.head, int_dir)
     env = CrowdNavEnv(config=replace(cfg.sim, scene=d.scenes[0], obs_mode="state"))
     env.reset(seed=0)
-    space = observer_for_env(env, cfg.variant, encoder, cfg.head).observation_space
+    space = observer_for_env(env, cfg.variant, encoder, cfg.head, forecaster=forecaster).observation_space
     net = student_net(cfg)
-    extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir)}
+    extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir),
+             "intention": str(int_dir) if int_dir else None}
     pairs = [(s, float(x)) for s in d.scenes for x in d.densities]
     n_rot = cfg.sim.robot.n_rotations  # yaw rates of the action grid (mirroring reverses them)
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
@@ -465,7 +491,8 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         jobs = [{"sim": cfg.sim, "scene": pairs[e % len(pairs)][0], "density": pairs[e % len(pairs)][1],
                  "seed": cfg.seed + 1000 * k + e, "variant": cfg.variant, "encoder": str(enc_dir) if enc_dir else None,
                  "teacher": str(teacher_dir), "student": str(student_dir) if student_dir else None, "beta": beta,
-                 "iteration": k, "iter_dir": str(it), "mirror": d.mirror, "head": cfg.head, "device": str(device)}
+                 "iteration": k, "iter_dir": str(it), "mirror": d.mirror, "head": cfg.head, "device": str(device),
+                 "intention": str(int_dir) if int_dir else None}
                 for e in range(d.episodes_per_iter)]
         rows = run_iteration(it, jobs, cfg.workers, cfg.progress)
         counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress)
@@ -572,9 +599,11 @@ def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir, device: torch
 
     f = cfg.finetune
     sim, variant, head, dev = cfg.sim, cfg.variant, cfg.head, str(device)
+    int_dir = intention_dir(cfg)
 
     def make():  # captures plain values only: pickled into spawned subprocesses
-        return StudentEnv(SceneMixEnv(sim, pairs, obs_mode="visual"), variant, enc_dir, head=head, device=dev)
+        return StudentEnv(SceneMixEnv(sim, pairs, obs_mode="visual"), variant, enc_dir, head=head, device=dev,
+                          intention_ckpt=int_dir)
 
     venv = (SubprocVecEnv([make] * f.n_envs, start_method=start_method(device)) if f.n_envs > 1
             else DummyVecEnv([make]))

@@ -7,62 +7,20 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from rl.lookahead import N_LINEAR
+from pretrain.intention import STANDING_MPS, ForecasterConfig, IntentionForecaster
+from rl.lookahead import N_LINEAR, lookahead_times
 from rl.networks import StudentLookaheadExtractor, variant_keys
-from rl.observe import observer_for_env
-from rl.perceive import (
-    PED_RADIUS_M,
-    CameraView,
-    DepthScan,
-    PedestrianTracker,
-    person_centres,
-    scan_from_points,
-)
+from rl.observe import observer_for_env, uses_forecaster
+from rl.perceive import CameraView, DepthScan, interpolation_matrix, scan_from_points
 from rl.policy import POLICY_WEIGHTS, ScoredPolicy, build_policy, describe, load_policy, save_policy
 from rl.teacher import fit_lookahead_linear, lookahead_feature_cache, mirror_batch
 from sim.env import CrowdNavEnv, SimConfig
 from sim.expert import PrivilegedExpert
+from sim.tracking import PED_RADIUS_M
 from tests.rl.helpers_lookahead import HEAD_KEYS, pre_head_layout
 
 SIM = replace(SimConfig(max_episode_s=8.0), obs_mode="visual", info_level="basic")
 SIM.camera.width_px, SIM.camera.height_px = 80, 60
-
-
-def test_person_centre_is_behind_the_lifted_joints():
-    poses = np.zeros((2, 17, 3), np.float32)
-    poses[0, :, 0], poses[0, :, 1] = 3.0, np.linspace(-0.2, 0.2, 17)
-    mask = np.zeros((2, 17), np.uint8)
-    mask[0] = 1
-    mask[1, :2] = 1  # too few joints: not a person
-    c = person_centres(poses, mask)
-    assert c.shape == (1, 2)
-    assert c[0] == pytest.approx([3.1, 0.0], abs=1e-6)
-
-
-def test_tracker_estimates_a_constant_velocity_and_coasts():
-    tr = PedestrianTracker(dt_s=0.1)
-    rng = np.random.default_rng(0)
-    v = np.array([0.8, -0.4])
-    est = []
-    for t in range(60):
-        p = np.array([[1.0, 2.0]]) + v * 0.1 * t + rng.normal(0, 0.03, 2)
-        far = np.array([[-5.0, 5.0]])  # a standing person
-        tr.update(np.concatenate([p, far]) if t % 2 else np.concatenate([far, p]))  # order must not matter
-        obs = tr.observation((0.0, 0.0, np.pi / 2), k=4)  # robot at the origin facing +y
-        assert obs[:2, 5].tolist() == [1.0, 1.0] and obs[2:, 5].tolist() == [0.0, 0.0]
-        walker = obs[np.argmin(np.hypot(obs[:2, 0] - (p[0, 1]), obs[:2, 1] + p[0, 0]))]
-        if t >= 20:
-            est.append(walker[2:4])
-    # world velocity (0.8, -0.4) seen from a robot facing +y: x_r = world y, y_r = -world x
-    assert np.mean(est, 0) == pytest.approx([-0.4, -0.8], abs=0.06)
-    assert np.std(est, 0).max() < 0.25  # per-frame noise of the estimate (0.03 m position noise)
-    assert walker[4] == PED_RADIUS_M
-    n = len(tr.pos)
-    for _ in range(tr.max_missed):  # nobody detected: the tracks coast
-        tr.update(np.zeros((0, 2)))
-    assert len(tr.pos) == n
-    tr.update(np.zeros((0, 2)))
-    assert len(tr.pos) == 0
 
 
 def test_scan_bins_points_like_the_static_scan():
@@ -244,3 +202,80 @@ def test_bounded_scorer_cannot_override_the_cost(lobby):
     linear = 10.0 * ext.lookahead.linear(feats[..., -N_LINEAR:]).squeeze(-1)
     gap = (logits - linear).abs()
     assert gap.max() <= 2.0 + 1e-4 and gap.max() > 1.5
+
+
+# ------------------------------------------------------------------------ the intention model in the lookahead head
+def _cv_forecaster() -> IntentionForecaster:
+    """An intention model whose learned residuals are zero: it predicts constant velocity."""
+    m = IntentionForecaster(ForecasterConfig())
+    for head in (m.base, m.pose_residual):
+        torch.nn.init.zeros_(head[-1].weight)
+        torch.nn.init.zeros_(head[-1].bias)
+    return m.eval().requires_grad_(False)
+
+
+def test_interpolation_matrix_is_exact_on_lines_and_extrapolates():
+    src, dst = np.array([0.2, 0.4, 1.0]), np.array([0.1, 0.2, 0.7, 1.2])
+    w = interpolation_matrix(src, dst)
+    assert np.allclose(w.sum(1), 1.0)
+    vals = 3.0 * np.r_[0.0, src] - 1.0  # a line: interpolation and extrapolation are exact
+    assert np.allclose(w @ vals, 3.0 * dst - 1.0)
+
+
+def test_perception_forecasts_every_reported_track_in_the_robot_frame(lobby):
+    """With a zero-residual model the forecast of a moving track is its constant velocity at the lookahead times:
+    peds_future equals what the head would extrapolate from ``peds`` (one frame convention for both)."""
+    env = lobby
+    obs, _ = env.reset(seed=3)
+    observer = observer_for_env(env, "no_bev", None, head="lookahead", forecaster=_cv_forecaster())
+    assert observer.observation_space["peds_future"].shape == (env.cfg.privileged_peds, len(lookahead_times(0.1)), 2)
+    observer.reset()
+    expert = PrivilegedExpert()
+    expert.reset(env)
+    seen = 0
+    for _ in range(30):
+        o = observer(obs)
+        peds, fut = o["peds"], o["peds_future"]
+        times = lookahead_times(env.cfg.dt_s).numpy()
+        cv = peds[:, None, :2] + times[None, :, None] * peds[:, None, 2:4]
+        live = peds[:, 5] > 0.5
+        speed = np.hypot(peds[:, 2], peds[:, 3])
+        moving = live & (speed > STANDING_MPS)  # a standing track's frame faces the robot: its speed along that ray
+        assert np.allclose(fut[moving], cv[moving], atol=1e-4) and not fut[~live].any()
+        drift = np.linalg.norm(fut[live & ~moving] - peds[live & ~moving, None, :2], axis=-1)
+        assert np.all(drift <= speed[live & ~moving, None] * times[None] + 1e-4)
+        seen += int(moving.sum())
+        obs, _, term, trunc, _ = env.step(env.encode_command(*expert.command(env)))
+        if term or trunc:
+            break
+    assert seen > 10
+
+
+def test_the_lookahead_head_uses_the_intention_prediction(lobby):
+    """A pedestrian 2 m ahead walking across the robot's path: predicted to turn into the path (peds_future) it
+    changes the scores of the straight actions; predicted where constant velocity puts it, nothing changes."""
+    space = observer_for_env(lobby, "no_bev", None, head="lookahead", forecaster=_cv_forecaster()).observation_space
+    torch.manual_seed(0)
+    policy = build_policy("student", "no_bev", space, _net(lobby))
+    head = policy.features_extractor.lookahead
+    obs = _batch(space, 1)
+    obs["peds"][:] = 0.0
+    obs["peds"][0, 0] = torch.tensor([2.0, 1.5, 0.0, 1.0, PED_RADIUS_M, 1.0])  # ahead-left, walking further left
+    obs["state"][0] = torch.tensor([6.0, 0.0, 6.0, 0.0, 0.0])
+    obs["scan"][:] = 10.0
+    times = head.times
+    cv = obs["peds"][:, :, None, :2] + times[None, None, :, None] * obs["peds"][:, :, None, 2:4]
+    without = {k: v for k, v in obs.items() if k != "peds_future"}
+    f_cv = head.action_features({**obs, "peds_future": cv})
+    assert torch.allclose(f_cv, head.action_features(without), atol=1e-5)
+    turn = cv.clone()
+    turn[0, 0, :, 1] = 1.5 - 1.5 * (times / times[-1]).clamp(max=1.0)  # it turns right, into the robot's path
+    f_turn = head.action_features({**obs, "peds_future": turn})
+    assert not torch.allclose(f_turn, f_cv)
+    logits = policy.get_distribution({**obs, "peds_future": turn}).distribution.logits
+    assert torch.isfinite(logits).all()
+
+
+def test_a_student_without_poses_or_with_the_mlp_head_uses_no_intention_model():
+    assert uses_forecaster("full", "lookahead") and uses_forecaster("no_bev", "lookahead")
+    assert not uses_forecaster("no_i2", "lookahead") and not uses_forecaster("full", "mlp")
