@@ -475,7 +475,7 @@ def plot_errors(path: Path, metrics: dict) -> None:
 def plot_turn(path: Path, s: dict[str, np.ndarray], i: int, preds: dict[str, np.ndarray]) -> None:
     """One turning pedestrian: its track history, the true future and each model's prediction (track frame)."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(4.6, 4.2))
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
     h = s["hist"][i][s["hist_valid"][i]]
     ax.plot(h[:, 0], h[:, 1], "k.-", label="track (past)")
     ax.plot(*np.r_[[[0, 0]], s["target"][i]].T, "k-", lw=2.5, alpha=0.5, label="true future")
@@ -484,12 +484,12 @@ def plot_turn(path: Path, s: dict[str, np.ndarray], i: int, preds: dict[str, np.
     kp, km = s["kp"][i], s["kp_mask"][i]
     if km.any():
         ax.scatter(kp[km, 0], kp[km, 1], s=8, c="m", label="detected joints")
-    ax.set_aspect("equal")
+    ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x along the track's velocity (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(f"episode {int(s['episode'][i])}, frame {int(s['frame'][i])}, turn {s['lead_s'][i]:.1f} s ahead",
                  fontsize=8)
-    ax.legend(fontsize=6)
+    ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.02, 0.5))
     fig.tight_layout()
     save_figure(fig, path)
     plt.close(fig)
@@ -517,7 +517,7 @@ class IntentionConfig(BaseStageConfig):
     lr: float = 3e-3  # AdamW peak learning rate (one-cycle)
     pose_dropout: float = 0.3  # fraction of training samples whose pose residual is dropped
     head_aux_weight: float = 0.2  # weight of the head-yaw auxiliary loss
-    val_fraction: float = 0.1  # validation episodes (split by episode; the BEV pretraining's split for one seed)
+    val_fraction: float = 0.1  # validation episodes, split by episode among those that hold samples
     max_episodes: int = 0  # use at most this many episodes (0 = all)
     max_samples: int = 300_000  # training samples drawn at most (seeded)
     ceiling: bool = True  # also fit and report the references (true keypoints: the ceiling; the detected joints'
@@ -569,13 +569,16 @@ def body(cfg: IntentionConfig, out: Path) -> dict:
     root = dataset_dir(cfg)
     mc = cfg.model
     samples, fps, n_eps = collect(root, mc.horizons_s, mc.history, cfg.max_episodes)
-    train_eps, val_eps = split_episodes(n_eps, cfg.val_fraction, cfg.seed)
+    # split the episodes that hold samples (an episode in which nobody was tracked would leave a side empty)
+    with_samples = np.unique(samples["episode"])
+    if len(with_samples) < 2:
+        raise InputMissingError(f"dataset {root}: only {len(with_samples)} of its {n_eps} episodes hold a tracked "
+                                f"pedestrian with {mc.horizons_s[-1]:g} s of future; a training and a validation "
+                                "episode are needed — record more episodes")
+    tr, va = split_episodes(len(with_samples), cfg.val_fraction, cfg.seed)
+    train_eps, val_eps = with_samples[tr].tolist(), with_samples[va].tolist()
     train = take(samples, np.flatnonzero(np.isin(samples["episode"], train_eps)))
     val = take(samples, np.flatnonzero(np.isin(samples["episode"], val_eps)))
-    for part, what in ((train, "training"), (val, "validation")):
-        if not len(part["speed"]):
-            raise InputMissingError(f"dataset {root}: its {what} episodes hold no tracked pedestrian with "
-                                    f"{mc.horizons_s[-1]:g} s of future; record more or longer episodes")
     if len(train["speed"]) > cfg.max_samples:
         train = take(train, np.sort(np.random.default_rng(cfg.seed).choice(len(train["speed"]), cfg.max_samples,
                                                                            replace=False)))
@@ -609,12 +612,8 @@ def body(cfg: IntentionConfig, out: Path) -> dict:
                         "bootstrap": f"{cfg.bootstrap} resamples of the validation episodes, 95 % percentile"},
         "model_seconds": seconds, "seconds": round(time.monotonic() - t0, 1), **device_counts(device)})
     metrics = json_safe(metrics)
-    for name, file in (("pose", FORECASTER_WEIGHTS), ("position", POSITION_WEIGHTS)):
-        save_safetensors(models[name].cpu(), out / file, {"format_version": str(FORMAT_VERSION)})
-    desc = {"format_version": FORMAT_VERSION, "model": asdict(mc), "fps": fps,
-            "files": {FORECASTER_WEIGHTS: "pose (detected keypoints)", POSITION_WEIGHTS: "position only"},
-            "dataset": {"repo_id": cfg.repo_id, "train_episodes": train_eps, "val_episodes": val_eps}}
-    atomic_write_text(out / INTENTION_JSON, json.dumps(desc, indent=2, sort_keys=True) + "\n")
+    write_forecaster_checkpoint(out, models["pose"], models["position"], fps, {
+        "repo_id": cfg.repo_id, "train_episodes": train_eps, "val_episodes": val_eps})
     atomic_write_json(out / METRICS_JSON, metrics)
     atomic_write_text(out / "metrics.md", markdown(metrics))
     with open(out / "train_log.csv", "w", newline="") as f:
@@ -638,7 +637,20 @@ def body(cfg: IntentionConfig, out: Path) -> dict:
     return counts
 
 
-# ------------------------------------------------------------------------------------------------ loading
+# ------------------------------------------------------------------------------------------------ the checkpoint
+def write_forecaster_checkpoint(out: Path, pose: IntentionForecaster, position: IntentionForecaster, fps: float,
+                                dataset: dict[str, Any]) -> None:
+    """Writes ``forecaster.safetensors``, ``position.safetensors`` and ``intention.json`` into ``out`` (the stage
+    runner adds ``config.yaml`` and ``manifest.json``)."""
+    meta = {"format_version": str(FORMAT_VERSION)}
+    save_safetensors(pose.cpu(), out / FORECASTER_WEIGHTS, meta)
+    save_safetensors(position.cpu(), out / POSITION_WEIGHTS, meta)
+    desc = {"format_version": FORMAT_VERSION, "model": {**asdict(pose.cfg), "pose": True}, "fps": fps,
+            "files": {FORECASTER_WEIGHTS: "pose (detected keypoints)", POSITION_WEIGHTS: "position only"},
+            "dataset": dataset}
+    atomic_write_text(out / INTENTION_JSON, json.dumps(desc, indent=2, sort_keys=True) + "\n")
+
+
 def load_forecaster(ckpt: Path, which: str = "pose") -> tuple[IntentionForecaster, dict[str, Any]]:
     """The frozen intention model of a finished checkpoint (``which``: ``pose`` or ``position``) and its
     ``intention.json``.

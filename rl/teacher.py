@@ -434,6 +434,9 @@ def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch
     if "peds" in obs:  # [x, y, vx, vy, r, present]
         sign = obs["peds"].new_tensor([1.0, -1.0, 1.0, -1.0, 1.0, 1.0])
         out["peds"] = torch.where(f.unsqueeze(-1), obs["peds"] * sign, obs["peds"])
+    if "peds_future" in obs:  # K x S x [x, y]: the intention model's prediction (reflected with the world)
+        sign = obs["peds_future"].new_tensor([1.0, -1.0])
+        out["peds_future"] = torch.where(f.view(-1, 1, 1, 1), obs["peds_future"] * sign, obs["peds_future"])
     if "subgoal" in obs:  # [x, y]
         out["subgoal"] = torch.where(f, obs["subgoal"] * obs["subgoal"].new_tensor([1.0, -1.0]), obs["subgoal"])
     if "path" in obs:  # P x [x, y]

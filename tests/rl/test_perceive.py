@@ -274,6 +274,12 @@ def test_the_lookahead_head_uses_the_intention_prediction(lobby):
     assert not torch.allclose(f_turn, f_cv)
     logits = policy.get_distribution({**obs, "peds_future": turn}).distribution.logits
     assert torch.isfinite(logits).all()
+    # mirroring reflects the prediction with the world: the linear cost's terms of yaw index r and 20 - r agree
+    flip = torch.ones(1, dtype=torch.bool)
+    mobs, _, _ = mirror_batch({**obs, "peds_future": turn}, torch.zeros(1, dtype=torch.long), None, flip, 21)
+    lin = f_turn[..., -N_LINEAR:].view(1, 5, 21, -1)
+    mlin = head.action_features(mobs)[..., -N_LINEAR:].view(1, 5, 21, -1)
+    assert torch.allclose(lin, torch.flip(mlin, [2]), atol=1e-4)
 
 
 def test_a_student_without_poses_or_with_the_mlp_head_uses_no_intention_model():

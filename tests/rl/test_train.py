@@ -235,6 +235,7 @@ def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
     from rl.policy import ScoredPolicy
 
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    intention = tiny_intention_checkpoint(tmp_path / "checkpoints" / "intention")
     sizes = {"dagger.iterations": 1, "dagger.episodes_per_iter": 2, "sim.max_episode_s": 6.0, "dagger.bc_epochs": 3}
     run(_train_cfg(tmp_path, "no_bev", **sizes))  # default: the teacher's linear cost, frozen; the scorer is cloned
     out = tmp_path / "checkpoints" / "policy" / "no_bev"
@@ -244,16 +245,43 @@ def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
     with np.load(next((out / "dagger" / "iter_0" / "features").glob("*.npz"))) as z:
         assert z["scan"].shape[1] == 72 and z["peds"].shape[1:] == (10, 6)
         assert z["scan"].min() < 10.0  # the hallway's walls
+        assert z["peds_future"].shape[1:] == (10, 11, 2)  # the intention model's prediction at the lookahead times
     policy, desc = load_policy(out)
     teacher, _ = load_policy(teacher_dir)
     assert isinstance(policy, ScoredPolicy) and desc["net"]["head"] == "lookahead"
+    assert desc["intention"] == str(intention) and "peds_future" in desc["observation_space"]
     assert torch.equal(policy.features_extractor.lookahead.linear.weight,
                        teacher.features_extractor.lookahead.linear.weight)
-    # the alternative: the linear cost fitted by convex regression to the teacher's distribution
-    run(_train_cfg(tmp_path, "no_bev", overwrite="true", **{**sizes, "dagger.linear_cost": "fit"}))
+    # the alternatives: the linear cost fitted by convex regression to the teacher's distribution, and the
+    # constant-velocity ablation (no intention model)
+    run(_train_cfg(tmp_path, "no_bev", overwrite="true", **{**sizes, "dagger.linear_cost": "fit", "intention": ""}))
     it = json.loads((out / "metrics.json").read_text())["dagger"][0]
     assert it["linear_fit"]["ce_after"] < it["linear_fit"]["ce_before"]
     assert it["soft_ce_new_after"] < it["soft_ce_new_before"]
+    _, desc = load_policy(out)
+    assert desc["intention"] is None and "peds_future" not in desc["observation_space"]
+
+
+def tiny_intention_checkpoint(out):
+    """A small untrained intention model written as the stage writes it (manifest stub: a finished checkpoint)."""
+    from pretrain.intention import ForecasterConfig, IntentionForecaster, write_forecaster_checkpoint
+
+    out.mkdir(parents=True)
+    torch.manual_seed(0)
+    cfg = ForecasterConfig(dim=8, hidden=16)
+    write_forecaster_checkpoint(out, IntentionForecaster(cfg), IntentionForecaster(ForecasterConfig(
+        dim=8, hidden=16, pose=False)), 10.0, {})
+    (out / "manifest.json").write_text("{}")
+    return out
+
+
+def test_missing_intention_model_is_one_clear_error(tmp_path, teacher_dir):
+    from pipeline.verbs.train import run
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    with pytest.raises(InputMissingError, match="no intention checkpoint"):
+        run(_train_cfg(tmp_path, "no_bev"))
+    assert not (tmp_path / "checkpoints" / "policy" / "no_bev").exists()
 
 
 def test_missing_encoder_is_one_clear_error(tmp_path, teacher_dir):
