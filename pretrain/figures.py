@@ -1,4 +1,5 @@
-"""Pictures of the pretext task: samples (inputs, true and predicted BEV maps), training curves, the FOV mask."""
+"""Pictures of pretraining: BEV samples (inputs, true and predicted maps), training curves, the FOV mask, and the
+prediction errors of the intention models (probe and pretraining)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ from pretrain.model import TARGETS
 from sim.viz import save_figure
 
 
-def _plt():
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (files only)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -36,7 +38,7 @@ def plot_sample(path: Path, grid: BEVGrid, camera_names: list[str], rgb: np.ndar
         labels, probs: ``K x X x Y`` true occupancy and predicted probability; valid: ``K`` bool.
         fov: ``X x Y`` field-of-view mask (outlined).
     """
-    plt = _plt()
+    plt = pyplot()
     n = len(camera_names)
     k = len(TARGETS)
     cols = max(2 * n, k)
@@ -73,7 +75,7 @@ def plot_sample(path: Path, grid: BEVGrid, camera_names: list[str], rgb: np.ndar
 
 def plot_curves(path: Path, log_csv: Path, history: list[dict[str, Any]]) -> None:
     """Training loss per step and validation IoU per target per epoch."""
-    plt = _plt()
+    plt = pyplot()
     rows = []
     if Path(log_csv).is_file():
         with open(log_csv, newline="") as f:
@@ -106,7 +108,7 @@ def plot_curves(path: Path, log_csv: Path, history: list[dict[str, Any]]) -> Non
 
 
 def plot_fov(path: Path, grid: BEVGrid, fov: np.ndarray) -> None:
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(4.5, 3.4))
     ax.imshow(bev_to_image(fov.astype(float)), cmap="gray", extent=_extent(grid), vmin=0, vmax=1)
     ax.plot(0, 0, marker="^", color="r")
@@ -115,4 +117,24 @@ def plot_fov(path: Path, grid: BEVGrid, fov: np.ndarray) -> None:
     ax.set_ylabel("forward x (m)")
     fig.tight_layout()
     save_figure(fig, path, 100)
+    plt.close(fig)
+
+
+def plot_model_errors(path: Path, results: dict[str, dict[str, dict[str, Any]]], key: str, ylabel: str,
+                      title: str) -> None:
+    """Grouped bars: one bar per model (``results`` keys, in order) per sample group (the first model's groups
+    with samples), height ``results[model][group][key]``, the group's ``n`` under its name."""
+    plt = pyplot()
+    first = next(iter(results.values()))
+    groups = [g for g in first if first[g]["n"]]
+    fig, ax = plt.subplots(figsize=(10, 3.8))
+    w = 0.8 / len(results)
+    for i, (m, r) in enumerate(results.items()):
+        ax.bar(np.arange(len(groups)) + i * w, [r[g][key] for g in groups], w, label=m)
+    ax.set_xticks(np.arange(len(groups)) + 0.4 - w / 2, [f"{g}\n(n={first[g]['n']})" for g in groups], fontsize=7)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path)
     plt.close(fig)

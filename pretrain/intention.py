@@ -67,6 +67,7 @@ from pipeline.core.keys import OBS_ODOM, OBS_POSE_MASK, OBS_POSES, PRIV_PED_KEYP
 from pipeline.core.manifest import MANIFEST_NAME
 from pretrain.checkpoint import load_safetensors, save_safetensors
 from pretrain.data import split_episodes
+from pretrain.figures import plot_model_errors, pyplot
 from pretrain.i2former import N_JOINTS, POSE_SCALE_M, I2Former, I2FormerConfig, mlp
 from pretrain.probe import read_episodes
 from recorder.dataset_info import read_dataset_info
@@ -455,26 +456,14 @@ def markdown(metrics: dict) -> str:
 
 
 def plot_errors(path: Path, metrics: dict) -> None:
-    plt = _plt()
-    res = metrics["results"]
-    groups = [g for g in res["cv"] if res["cv"][g]["n"]]
-    fig, ax = plt.subplots(figsize=(10, 3.8))
-    w = 0.8 / len(res)
-    for i, (m, r) in enumerate(res.items()):
-        ax.bar(np.arange(len(groups)) + i * w, [r[g]["fde_1s_m"] for g in groups], w, label=m)
-    ax.set_xticks(np.arange(len(groups)) + 0.4 - w / 2, [f"{g}\n(n={res['cv'][g]['n']})" for g in groups], fontsize=7)
-    ax.set_ylabel("FDE at +1.0 s (m)")
-    ax.set_title("Tracked pedestrians 1 s ahead, validation episodes: constant velocity, track, + detected pose, "
-                 "+ true pose", fontsize=9)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    save_figure(fig, path)
-    plt.close(fig)
+    plot_model_errors(path, metrics["results"], "fde_1s_m", "FDE at +1.0 s (m)",
+                      "Tracked pedestrians 1 s ahead, validation episodes: constant velocity, track, + detected pose, "
+                      "+ centroid, + true pose")
 
 
 def plot_turn(path: Path, s: dict[str, np.ndarray], i: int, preds: dict[str, np.ndarray]) -> None:
     """One turning pedestrian: its track history, the true future and each model's prediction (track frame)."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     h = s["hist"][i][s["hist_valid"][i]]
     ax.plot(h[:, 0], h[:, 1], "k.-", label="track (past)")
@@ -493,15 +482,6 @@ def plot_turn(path: Path, s: dict[str, np.ndarray], i: int, preds: dict[str, np.
     fig.tight_layout()
     save_figure(fig, path)
     plt.close(fig)
-
-
-def _plt():
-    import matplotlib  # lazy: matplotlib only for the figures
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: as above
-
-    return plt
 
 
 # ------------------------------------------------------------------------------------------------ the stage

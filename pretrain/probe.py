@@ -50,6 +50,7 @@ from pipeline.core.keys import (
     PRIV_POSE_TRACK,
 )
 from pretrain.data import check_dataset, split_episodes
+from pretrain.figures import plot_model_errors
 from pretrain.i2former import N_JOINTS, I2Former, I2FormerConfig
 from recorder.dataset_info import read_dataset_info
 
@@ -409,27 +410,8 @@ def markdown(report: dict) -> str:
 
 
 def figure(report: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    res = report["results"]
-    groups = list(res["cv"])
-    fig, ax = plt.subplots(figsize=(9, 3.6))
-    w = 0.8 / len(res)
-    for i, (name, r) in enumerate(res.items()):
-        ax.bar(np.arange(len(groups)) + i * w, [r[g]["fde_m"] for g in groups], w, label=name)
-    ax.set_xticks(np.arange(len(groups)) + 0.4 - w / 2, [f"{g}\n(n={res['cv'][g]['n']})" for g in groups], fontsize=8)
-    ax.set_ylabel("FDE at +1.0 s (m)")
-    ax.set_title("Where a pedestrian is 1 s later: positions alone vs + pose (validation episodes)", fontsize=9)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    plot_model_errors(path, report["results"], "fde_m", "FDE at +1.0 s (m)",
+                      "Where a pedestrian is 1 s later: positions alone vs + pose (validation episodes)")
 
 
 def main(argv: list[str] | None = None) -> int:
