@@ -1,0 +1,120 @@
+"""Paired comparison of two runs on the same seeds: two trainings of one method, or one method with and without a
+component (e.g. a student with the intention model vs its constant-velocity ablation), each trained into its own
+data dir.
+
+::
+
+    python -m evaluation.compare data/checkpoints/policy/no_bev data/cvabl/checkpoints/policy/no_bev \\
+        --labels intention,cv
+
+Each argument is a file of per-episode rows — ``acceptance_episodes.jsonl`` (end of ``train``) or an eval run's
+``episodes.jsonl`` / ``scenarios/episodes.jsonl`` — or a directory holding one (``acceptance_episodes.jsonl``, then
+``episodes.jsonl``). Rows are matched by (scene, density, seed); per cell and pooled over the cells: SR of each,
+the exact McNemar test, the SR difference detectable at 80 % power with these pairs, and the Wilcoxon test of the
+time in private zones (TPZ). Prints Markdown; ``--json`` writes the numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from evaluation.report import paired, paired_pooled
+from pipeline.core.artifacts import atomic_write_json, json_safe
+from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
+
+ROW_FILES = ("acceptance_episodes.jsonl", "episodes.jsonl")
+KEYS = ("scene", "density", "seed", "success", "tpz_s")
+
+
+def read_rows(path: Path) -> list[dict[str, Any]]:
+    """The per-episode rows of a run (module docstring); every row must carry :data:`KEYS`."""
+    path = Path(path)
+    if path.is_dir():
+        found = [path / n for n in ROW_FILES if (path / n).is_file()]
+        if not found:
+            raise InputMissingError(f"{path}: no per-episode rows ({' or '.join(ROW_FILES)})")
+        path = found[0]
+    if not path.is_file():
+        raise InputMissingError(f"no per-episode rows at {path}")
+    rows = []
+    for k, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            r = json.loads(line)
+        except json.JSONDecodeError as e:
+            raise CorruptArtifactError(f"{path}:{k}: not a JSON row ({e})") from None
+        missing = [key for key in KEYS if key not in r]
+        if missing:
+            raise CorruptArtifactError(f"{path}:{k}: row lacks {missing}")
+        rows.append(r)
+    if not rows:
+        raise InputMissingError(f"{path}: no rows")
+    return rows
+
+
+def compare(a: list[dict[str, Any]], b: list[dict[str, Any]], labels: tuple[str, str]) -> dict[str, Any]:
+    """``a`` (labelled ``labels[0]``, the reference) against ``b`` on their common (scene, density, seed)."""
+    if labels[0] == labels[1]:
+        raise ConfigError(f"compare: the two labels must differ, got {labels}")
+    rows = [{**r, "method": labels[0]} for r in a] + [{**r, "method": labels[1]} for r in b]
+    cells = paired(rows, labels[0])
+    if not cells:
+        raise InputMissingError("compare: the two runs share no (scene, density, seed)")
+    sr = {lab: {} for lab in labels}
+    for lab, rs in zip(labels, (a, b), strict=True):
+        for r in rs:
+            sr[lab].setdefault(f"{r['scene']}@{float(r['density']):g}", []).append(float(r["success"]))
+    return {"reference": labels[0], "other": labels[1], "cells": cells,
+            "pooled": paired_pooled(rows, labels[0]).get(labels[1]),
+            "sr": {lab: {c: sum(v) / len(v) for c, v in cs.items()} for lab, cs in sr.items()}}
+
+
+def markdown(res: dict[str, Any]) -> str:
+    a, b = res["reference"], res["other"]
+    lines = [f"| cell | pairs | SR {a} | SR {b} | {a} only / {b} only | McNemar p | detectable ΔSR | TPZ Wilcoxon p |",
+             "|---|---|---|---|---|---|---|---|"]
+
+    def p(x: Any) -> str:
+        return "—" if x is None or x != x else f"{x:.3f}"
+
+    for cell, d in res["cells"].items():
+        e = d[b]
+        s = e["sr"]
+        lines.append(f"| {cell} | {e['n_pairs']} | {res['sr'][a][cell]:.2f} | {res['sr'][b][cell]:.2f} | "
+                     f"{s['a_only']} / {s['b_only']} | {p(s['p_value'])} | {p(s['detectable_diff'])} | "
+                     f"{p(e['tpz_s'].get('p_value'))} |")
+    pooled = res["pooled"]["sr"]
+    lines += ["", f"Pooled over {res['pooled']['n_cells']} cells: {pooled['n']} pairs, ΔSR ({a} − {b}) "
+              f"{pooled['sr_diff']:+.3f}, {pooled['a_only']} / {pooled['b_only']} discordant, McNemar p = "
+              f"{p(pooled['p_value'])}, detectable ΔSR at 80 % power {p(pooled['detectable_diff'])}."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m evaluation.compare", description=__doc__.split("\n\n")[0])
+    ap.add_argument("a", type=Path, help="reference run: rows file or directory")
+    ap.add_argument("b", type=Path, help="the other run")
+    ap.add_argument("--labels", default="a,b", help="names of the two runs, comma-separated")
+    ap.add_argument("--json", type=Path, default=None, help="also write the numbers here")
+    args = ap.parse_args(argv)
+    try:
+        labels = tuple(x.strip() for x in args.labels.split(","))
+        if len(labels) != 2 or not all(labels):
+            raise ConfigError(f"--labels: expected two comma-separated names, got {args.labels!r}")
+        res = compare(read_rows(args.a), read_rows(args.b), labels)
+        if args.json:
+            atomic_write_json(args.json, json_safe(res))
+    except ICrowdNavError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(markdown(res), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,49 @@
+"""Paired comparison of two runs' per-episode rows (evaluation.compare)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from evaluation import compare
+from pipeline.core.errors import CorruptArtifactError, InputMissingError
+
+
+def _rows(successes: list[int], scene: str = "office_lobby") -> list[dict]:
+    return [{"scene": scene, "density": 0.1, "seed": 10000 + k, "success": float(s), "tpz_s": 1.0 + k % 3,
+             "nav_time_s": 9.0, "path_length_m": 6.0} for k, s in enumerate(successes)]
+
+
+def _write(path, rows):
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return path
+
+
+def test_pairs_by_seed_and_counts_the_discordant_pairs(tmp_path, capsys):
+    a = _rows([1] * 20 + [1] * 10)  # a succeeds where b fails on the last 10 seeds
+    b = _rows([1] * 20 + [0] * 10)
+    _write(tmp_path / "a.jsonl", a)
+    (tmp_path / "run_b").mkdir()
+    _write(tmp_path / "run_b" / "acceptance_episodes.jsonl", list(reversed(b)))  # order does not matter
+    assert compare.main([str(tmp_path / "a.jsonl"), str(tmp_path / "run_b"), "--labels", "new,old",
+                         "--json", str(tmp_path / "c.json")]) == 0
+    res = json.loads((tmp_path / "c.json").read_text())
+    sr = res["cells"]["office_lobby@0.1"]["old"]["sr"]
+    assert (sr["a_only"], sr["b_only"], sr["n"]) == (10, 0, 30) and sr["p_value"] < 0.01
+    assert res["pooled"]["sr"]["sr_diff"] == pytest.approx(1 / 3)
+    assert "| office_lobby@0.1 | 30 | 1.00 | 0.67 | 10 / 0 |" in capsys.readouterr().out
+
+
+def test_bad_inputs_are_named_errors(tmp_path, capsys):
+    with pytest.raises(InputMissingError, match="no per-episode rows"):
+        compare.read_rows(tmp_path)
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text('{"scene": "x"}\n')
+    with pytest.raises(CorruptArtifactError, match="lacks"):
+        compare.read_rows(bad)
+    other = _write(tmp_path / "other.jsonl", _rows([1, 0], scene="warehouse"))
+    good = _write(tmp_path / "good.jsonl", _rows([1, 0]))
+    assert compare.main([str(good), str(other)]) == 2
+    assert "share no" in capsys.readouterr().err
+    assert compare.main([str(good), str(good), "--labels", "same,same"]) == 2
