@@ -1,14 +1,21 @@
 """Benchmark figures of training and inference (called by ``icrowdnav bench``).
 
-* ``teacher_env_steps_per_s`` — the teacher's PPO (stable-baselines3, privileged envs, SubprocVecEnv of
-  ``n_envs`` on both cores) collecting and updating, env steps per second of wall time; reference in the same run:
-  ``teacher_env_steps_per_s_1env`` — the same PPO on one in-process env (DummyVecEnv); the ratio is reported;
-  where the time goes, from the vectorised run: ``teacher_collect_s_share`` (collecting vs updating), and the CPU
-  cost per env step of each part measured alone — ``teacher_env_step_ms`` (one env, in process),
-  ``teacher_policy_ms_per_step`` (the rollout forward pass per env, batched over ``n_envs``),
-  ``teacher_update_ms_per_step`` (PPO's update per collected step: ``n_epochs`` passes, one thread) — and
-  ``teacher_cpu_bound_steps_per_s``: the rate at which every core would be busy with no waiting at all,
-  ``cores / (sum of the three)``, the ceiling any scheduling of this PPO reaches on this machine;
+* ``teacher_env_steps_per_s`` — the teacher's PPO (stable-baselines3, privileged envs; ``n_envs`` envs in
+  :class:`rl.vec_env.BatchedSubprocVecEnv`, one worker process per usable core, as ``train`` runs it) collecting and
+  updating, env steps per second of wall time; references in the same run, the same PPO:
+  ``teacher_env_steps_per_s_sb3_subproc`` — SB3's ``SubprocVecEnv`` (one process per env, in lockstep; what the
+  teacher used before), its chunks alternating with the batched one's so load on a shared machine reaches both, and
+  ``teacher_env_steps_per_s_1env`` — one in-process env (DummyVecEnv); the ratios are reported. Where the time goes,
+  from the batched run: ``teacher_collect_s_share`` (collecting vs updating), ``teacher_collect_ms_per_step`` (wall
+  time of collecting per env step), and the CPU cost per env step of each part measured alone —
+  ``teacher_env_step_ms`` (one env, in process), ``teacher_policy_ms_per_step`` (the rollout forward pass per env,
+  batched over ``n_envs``), ``teacher_update_ms_per_step`` (PPO's update per collected step: ``n_epochs`` passes,
+  one thread; ``teacher_update_cache_ms_per_step`` of it fills the lookahead teacher's feature cache, once per
+  rollout). Two ceilings from these parts: ``teacher_cpu_bound_steps_per_s`` — every core busy with no waiting at
+  all, ``cores / (sum of the three)``, what any scheduling of this PPO reaches on this machine — and
+  ``teacher_loop_bound_steps_per_s`` — SB3's PPO loop as it runs: only the env steps are spread over the cores, the
+  forward pass and the update run on one thread while the env workers wait, ``1 / (env / cores + policy +
+  update)``; ``teacher_cores`` is the usable core count (``os.sched_getaffinity``);
 * ``policy_inference_ms`` / ``policy_inference_hz`` — the full visual policy (variant ``full``) from the two RGB-D
   frames + detected poses to an action index, one CPU thread: streaming encoder step (newest frame only) + pooling +
   φ_bev + I²Former + fusion + actor head; ``policy_inference_recompute_ms`` — the same with the encoder recomputing
@@ -20,7 +27,6 @@ the frames are rendered from the bench scene at the profile's resolution.
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import replace
 from typing import Any
@@ -33,43 +39,83 @@ from pretrain.model import BEVEncoder
 from rl.observe import BEV_POOL, StudentObserver, env_cameras, observer_for_env
 from rl.policy import act, build_policy, policy_class, policy_kwargs
 from rl.teacher import attach_lookahead_cache, make_vec_env, ppo_kwargs, teacher_net
+from rl.vec_env import usable_cores
 from sim.env import CrowdNavEnv
 
 
 def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_cfg: Any, seconds: float) -> dict:
+    """The teacher's PPO throughput with the configured vec env, SB3's ``SubprocVecEnv`` and one env, and the cost
+    breakdown that bounds it (module docstring). The vectorised runs alternate rollout + update chunks, so load on
+    a shared machine reaches both alike; each runs for at least ``seconds``."""
     from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import SubprocVecEnv
 
     t = train_cfg.teacher
-    out = {}
+    cores = usable_cores()
+    net = teacher_net(dict(t.net), sim_cfg)
+    out: dict[str, float] = {}
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
+
+    def build(n_envs: int, subprocess: bool, cls: type | None = None):
+        venv = make_vec_env(sim_cfg, [(scene, density)], n_envs, seed, subprocess, vec_env_cls=cls)
+        model = PPO(policy_class("teacher", net), venv, policy_kwargs=policy_kwargs("teacher", None, net),
+                    seed=seed, device="cpu", **ppo_kwargs(t.ppo))
+        attach_lookahead_cache(model)
+        model.learn(model.n_steps * n_envs)  # warm-up: one rollout + update
+        return model
+
+    batched = t.subprocess and t.n_envs > 1
+    runs = {"teacher_env_steps_per_s": (t.n_envs, t.subprocess, None)}
+    if batched:  # today's reference: SB3's one env per process, the same PPO
+        runs["teacher_env_steps_per_s_sb3_subproc"] = (t.n_envs, True, SubprocVecEnv)
+    models = {}
     try:
-        for key, n_envs, sub in (("teacher_env_steps_per_s", t.n_envs, t.subprocess),
-                                 ("teacher_env_steps_per_s_1env", 1, False)):
-            venv = make_vec_env(sim_cfg, [(scene, density)], n_envs, seed, sub)
-            net = teacher_net(dict(t.net), sim_cfg)
-            model = PPO(policy_class("teacher", net), venv, policy_kwargs=policy_kwargs("teacher", None, net),
-                        seed=seed, device="cpu", **ppo_kwargs(t.ppo))
-            attach_lookahead_cache(model)
-            chunk = model.n_steps * n_envs
-            model.learn(chunk)  # warm-up: one rollout + update
-            spent = _time_phases(model)
-            t0, done = time.perf_counter(), 0
-            while time.perf_counter() - t0 < seconds or done == 0:
+        for key, spec in runs.items():
+            models[key] = build(*spec)
+        main = models["teacher_env_steps_per_s"]
+        spent = _time_phases(main)
+        cache_s0 = getattr(main.rollout_buffer, "features_s", 0.0)  # the lookahead teacher's feature cache
+        wall = dict.fromkeys(models, 0.0)
+        done = dict.fromkeys(models, 0)
+        while min(wall.values()) < seconds:
+            for key, model in models.items():
+                chunk = model.n_steps * model.n_envs
+                t0 = time.perf_counter()
                 model.learn(chunk, reset_num_timesteps=False)
-                done += chunk
-            out[key] = done / (time.perf_counter() - t0)
-            if n_envs > 1:
-                out["teacher_collect_s_share"] = spent["collect"] / (spent["collect"] + spent["train"])
-                out["teacher_update_ms_per_step"] = 1e3 * spent["train"] / done
-                out["teacher_policy_ms_per_step"] = _policy_ms_per_step(model, venv, n_envs)
-            venv.close()
+                wall[key] += time.perf_counter() - t0
+                done[key] += chunk
+        out.update({key: done[key] / wall[key] for key in models})
+        n = done["teacher_env_steps_per_s"]
+        out["teacher_collect_s_share"] = spent["collect"] / (spent["collect"] + spent["train"])
+        out["teacher_collect_ms_per_step"] = 1e3 * spent["collect"] / n
+        out["teacher_update_ms_per_step"] = 1e3 * spent["train"] / n
+        out["teacher_update_cache_ms_per_step"] = 1e3 * (getattr(main.rollout_buffer, "features_s", 0.0)
+                                                         - cache_s0) / n
+        out["teacher_policy_ms_per_step"] = _policy_ms_per_step(main, main.get_env(), t.n_envs)
+        for model in models.values():
+            model.get_env().close()
+        models.clear()
+        models["1env"] = one = build(1, False)
+        t0, n1 = time.perf_counter(), 0
+        while time.perf_counter() - t0 < seconds or n1 == 0:
+            one.learn(one.n_steps, reset_num_timesteps=False)
+            n1 += one.n_steps
+        out["teacher_env_steps_per_s_1env"] = n1 / (time.perf_counter() - t0)
         out["teacher_env_step_ms"] = _env_step_ms(sim_cfg, scene, density, seed, seconds / 4)
     finally:
+        for model in models.values():
+            model.get_env().close()
         torch.set_num_threads(threads)
     out["teacher_env_steps_speedup_vs_1env"] = out["teacher_env_steps_per_s"] / out["teacher_env_steps_per_s_1env"]
-    per_step_ms = out["teacher_env_step_ms"] + out["teacher_policy_ms_per_step"] + out["teacher_update_ms_per_step"]
-    out["teacher_cpu_bound_steps_per_s"] = 1e3 * (os.cpu_count() or 1) / per_step_ms
+    if batched:
+        out["teacher_env_steps_speedup_vs_sb3_subproc"] = (out["teacher_env_steps_per_s"]
+                                                           / out["teacher_env_steps_per_s_sb3_subproc"])
+    env_ms, policy_ms, update_ms = (out["teacher_env_step_ms"], out["teacher_policy_ms_per_step"],
+                                    out["teacher_update_ms_per_step"])
+    out["teacher_cores"] = float(cores)
+    out["teacher_cpu_bound_steps_per_s"] = 1e3 * cores / (env_ms + policy_ms + update_ms)
+    out["teacher_loop_bound_steps_per_s"] = 1e3 / (env_ms / cores + policy_ms + update_ms)
     return out
 
 

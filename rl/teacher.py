@@ -11,7 +11,8 @@ cores. Training, on the *training* scenes only:
    scores each action from kinematic rollout features; its linear cost is first fitted by convex regression
    (:func:`fit_lookahead_linear`), then the rest is cloned. Then ``dagger_iterations`` of DAgger: the teacher
    drives, the expert labels every visited state (no rendering).
-2. **PPO** (stable-baselines3, ``SubprocVecEnv`` on both cores, the paper's reward) continues from the warm start.
+2. **PPO** (stable-baselines3 on :class:`rl.vec_env.BatchedSubprocVecEnv`: one process per core, each stepping
+   several envs; the paper's reward) continues from the warm start.
    A curriculum widens the (scene, density) pool with training progress (:class:`SceneMixEnv`). ``ppo_steps = 0``
    skips PPO (the teacher is then the cloned expert; the report says so).
 
@@ -21,6 +22,7 @@ steps for crowds — the paper's GPU budget, kept in the ``paper`` profile.
 
 from __future__ import annotations
 
+import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -32,6 +34,7 @@ import torch
 from pipeline.core.errors import ConfigError, InputMissingError
 from rl.lookahead import N_LINEAR, SCORE_SCALE
 from rl.policy import LOOKAHEAD_KEY, act, build_policy
+from rl.vec_env import BatchedSubprocVecEnv
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
 from sim.expert import PrivilegedExpert
@@ -486,11 +489,22 @@ def bc_loss(policy, data: dict[str, np.ndarray], batch: int = 1024, soft_tau: fl
     return tot / max(n, 1)
 
 
-def make_vec_env(sim_cfg: SimConfig, pairs: list[tuple[str, float]], n_envs: int, seed: int, subprocess: bool):
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+def make_vec_env(sim_cfg: SimConfig, pairs: list[tuple[str, float]], n_envs: int, seed: int, subprocess: bool,
+                 vec_env_cls: type | None = None):
+    """``n_envs`` privileged :class:`SceneMixEnv` s, env ``i`` seeded with ``seed + i`` at the first reset.
+
+    ``subprocess`` and more than one env: :class:`rl.vec_env.BatchedSubprocVecEnv` (one worker process per usable
+    core, each stepping its block of envs together); else SB3's ``DummyVecEnv`` in this process. Both give the same
+    episodes. ``vec_env_cls`` (e.g. SB3's ``SubprocVecEnv``, for the benchmark's comparison) replaces the subprocess
+    class; it is called as ``cls(env_fns, start_method="fork")``.
+    """
+    from stable_baselines3.common.vec_env import DummyVecEnv
 
     fns = [lambda: SceneMixEnv(sim_cfg, pairs) for _ in range(n_envs)]
-    venv = SubprocVecEnv(fns, start_method="fork") if subprocess and n_envs > 1 else DummyVecEnv(fns)
+    if subprocess and n_envs > 1:
+        venv = (vec_env_cls or BatchedSubprocVecEnv)(fns, start_method="fork")
+    else:
+        venv = DummyVecEnv(fns)
     venv.seed(seed)
     return venv
 
@@ -504,6 +518,7 @@ def _lookahead_buffer_class():
         PPO's epochs do not recompute them (:class:`rl.policy.ScoredPolicy` reads ``LOOKAHEAD_KEY``)."""
 
         features_fn = None
+        features_s = 0.0  # wall time spent computing the cached features so far (rl.bench reports it)
 
         def reset(self) -> None:
             super().reset()
@@ -523,7 +538,9 @@ def _lookahead_buffer_class():
             samples = super()._get_samples(batch_inds, env)
             if self.features_fn is not None:  # called after get() flattened the observations
                 if self._lookahead is None:
+                    t0 = time.perf_counter()
                     self._lookahead = self._features()
+                    self.features_s += time.perf_counter() - t0
                 samples.observations[LOOKAHEAD_KEY] = self._lookahead[torch.as_tensor(batch_inds,
                                                                                       device=self._lookahead.device)]
             return samples

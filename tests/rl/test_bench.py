@@ -1,25 +1,32 @@
-"""rl.bench on tiny sizes: the figures exist, are finite and positive, and the CPU bound is their combination.
+"""rl.bench on tiny sizes: the figures exist, are finite and positive, and the CPU bounds are their combination.
 
 Speed itself is never asserted here (figures, not timed tests: `make bench` prints them)."""
 
 import math
-import os
 from dataclasses import replace
 
 from rl.bench import measure_teacher
 from rl.stage import TrainConfig
+from rl.vec_env import usable_cores
 from sim.env import SimConfig
 
 
 def test_teacher_benchmark_reports_its_cost_breakdown():
+    """The batched vec env against SB3's SubprocVecEnv and one env, and the breakdown of the batched run."""
     cfg = TrainConfig()
-    cfg.teacher = replace(cfg.teacher, n_envs=2, subprocess=False,
+    cfg.teacher = replace(cfg.teacher, n_envs=2, subprocess=True,
                           ppo={"n_steps": 16, "batch_size": 32, "n_epochs": 1})
     out = measure_teacher(SimConfig(max_episode_s=4.0), "hallway", 0.1, 0, cfg, 0.2)
-    for key in ("teacher_env_steps_per_s", "teacher_env_steps_per_s_1env", "teacher_collect_s_share",
+    for key in ("teacher_env_steps_per_s", "teacher_env_steps_per_s_sb3_subproc", "teacher_env_steps_per_s_1env",
+                "teacher_env_steps_speedup_vs_sb3_subproc", "teacher_collect_s_share", "teacher_collect_ms_per_step",
                 "teacher_env_step_ms", "teacher_policy_ms_per_step", "teacher_update_ms_per_step",
-                "teacher_cpu_bound_steps_per_s"):
+                "teacher_update_cache_ms_per_step", "teacher_cpu_bound_steps_per_s", "teacher_loop_bound_steps_per_s"):
         assert math.isfinite(out[key]) and out[key] > 0, key
     assert 0 < out["teacher_collect_s_share"] < 1
-    parts = out["teacher_env_step_ms"] + out["teacher_policy_ms_per_step"] + out["teacher_update_ms_per_step"]
-    assert math.isclose(out["teacher_cpu_bound_steps_per_s"], 1e3 * (os.cpu_count() or 1) / parts, rel_tol=1e-9)
+    assert out["teacher_update_cache_ms_per_step"] < out["teacher_update_ms_per_step"]
+    cores = usable_cores()
+    assert out["teacher_cores"] == cores
+    env, policy, update = (out["teacher_env_step_ms"], out["teacher_policy_ms_per_step"],
+                           out["teacher_update_ms_per_step"])
+    assert math.isclose(out["teacher_cpu_bound_steps_per_s"], 1e3 * cores / (env + policy + update), rel_tol=1e-9)
+    assert math.isclose(out["teacher_loop_bound_steps_per_s"], 1e3 / (env / cores + policy + update), rel_tol=1e-9)

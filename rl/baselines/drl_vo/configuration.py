@@ -59,7 +59,7 @@ class Config:
     ppo_steps: int = 16_384  # PPO env steps after the warm start (the critic warm-up included)
     critic_warmup_steps: int = 4096  # first PPO steps train only the value head (the actor is frozen)
     n_envs: int = 4  # vectorised envs
-    subprocess: bool = True  # SubprocVecEnv (both cores) instead of DummyVecEnv
+    subprocess: bool = True  # rl.vec_env.BatchedSubprocVecEnv (a worker per core) instead of DummyVecEnv
     ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 128, "batch_size": 128, "n_epochs": 4,
                                                            "learning_rate": 5e-5, "target_kl": 0.02})
     reward: RewardConfig = field(default_factory=RewardConfig)

@@ -17,7 +17,7 @@ import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import ActorCriticPolicy
-from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 from torch import nn
 from tqdm import tqdm
 
@@ -30,6 +30,7 @@ from rl.baselines.drl_vo.observation import Observer
 from rl.callbacks import checkpoint_callback, progress_callback
 from rl.policy import freeze_actor
 from rl.teacher import SceneMixEnv, curriculum_callback, discounted, ppo_kwargs
+from rl.vec_env import BatchedSubprocVecEnv
 
 
 def inputs(cfg) -> list[Path]:
@@ -215,7 +216,7 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
     if c.ppo_steps > 0:
         sim_cfg = cfg.sim
         fns = [functools.partial(_make_env, sim_cfg, pairs, sensors, c.reward)] * c.n_envs
-        venv = SubprocVecEnv(fns, start_method="fork") if c.subprocess and c.n_envs > 1 else DummyVecEnv(fns)
+        venv = BatchedSubprocVecEnv(fns, start_method="fork") if c.subprocess and c.n_envs > 1 else DummyVecEnv(fns)
         venv = VecMonitor(venv, info_keywords=("is_success",))
         venv.seed(cfg.seed + 1)
         last = out / "ppo" / "last.zip"
