@@ -167,18 +167,19 @@ class Perception:
         if self.people:
             centres, det_index = person_detections(obs["poses"], obs["pose_mask"])
             self.tracker.update(robot_to_world(centres, pose))
-            out["peds"] = self.tracker.observation(pose, self.k)
+            rows = self.tracker.nearest(pose, self.k)  # the reported tracks, nearest first (peds and peds_future)
+            out["peds"] = self.tracker.observation(pose, self.k, order=rows)
             if self.forecaster is not None:
-                out["peds_future"] = self.forecast(pose, obs["poses"], obs["pose_mask"], det_index)
+                out["peds_future"] = self.forecast(pose, obs["poses"], obs["pose_mask"], det_index, rows)
         out["scan"] = self.scan.update(depths, pose, self.dt_s, centres)
         return out
 
     @torch.no_grad()
-    def forecast(self, pose: np.ndarray, poses: np.ndarray, mask: np.ndarray, det_index: np.ndarray) -> np.ndarray:
-        """``k x S x 2`` robot-frame positions of the reported tracks (the order of ``peds``) at the lookahead
-        times, from the intention model; zero rows where there is no track."""
+    def forecast(self, pose: np.ndarray, poses: np.ndarray, mask: np.ndarray, det_index: np.ndarray,
+                 rows: np.ndarray) -> np.ndarray:
+        """``k x S x 2`` robot-frame positions of the reported tracks ``rows`` (the order of ``peds``) at the
+        lookahead times, from the intention model; zero rows where there is no track."""
         out = np.zeros((self.k, len(self.times), 2), np.float32)
-        rows = self.tracker.nearest(pose, self.k)
         if not len(rows):
             return out
         x, origin, heading = track_inputs(self.tracker, rows, pose, poses, mask, det_index)

@@ -121,12 +121,14 @@ class PedestrianTracker:
         rel = world_to_robot(self.pos, robot_pose)
         return np.argsort(np.hypot(rel[:, 0], rel[:, 1]), kind="stable")[:k]
 
-    def observation(self, robot_pose: Sequence[float], k: int, radius_m: float = PED_RADIUS_M) -> np.ndarray:
-        """``k x 6`` [x, y, vx, vy, r, present] of the nearest tracks in the robot frame (the teacher's layout)."""
+    def observation(self, robot_pose: Sequence[float], k: int, radius_m: float = PED_RADIUS_M,
+                    order: np.ndarray | None = None) -> np.ndarray:
+        """``k x 6`` [x, y, vx, vy, r, present] of the nearest tracks in the robot frame (the teacher's layout);
+        ``order``: those tracks' :meth:`nearest` indices when the caller already has them."""
         out = np.zeros((k, 6), np.float32)
         if not len(self.pos):
             return out
-        order = self.nearest(robot_pose, k)
+        order = self.nearest(robot_pose, k) if order is None else order
         n = len(order)
         out[:n, :2] = world_to_robot(self.pos[order], robot_pose)
         out[:n, 2:4] = world_to_robot(self.vel[order], robot_pose, vectors=True)
