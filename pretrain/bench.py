@@ -1,4 +1,5 @@
-"""Benchmark figures of the BEV encoder (called by ``icrowdnav bench``; single CPU thread, the profile's cameras).
+"""Benchmark figures of the BEV encoder and the intention model (called by ``icrowdnav bench``; single CPU thread,
+the profile's cameras).
 
 * ``bev_lift_ms`` / ``bev_lift_reference_ms`` / ``bev_lift_speedup_vs_reference`` — :func:`lift_splat` vs the
   per-point loop :func:`lift_splat_reference` on the same rendered RGB-D frame pair (real depth from the sim, so
@@ -12,6 +13,8 @@
   size, every thread the machine has, median of the steps after the first two (:func:`measure_fit_step`); with a
   GPU, ``pretrain_step_speedup_cuda_vs_cpu`` from the same run. ``python -m pretrain.bench --dataset ROOT --devices
   cpu,cuda`` measures it alone (it reads only ``ROOT/meta/info.json``: the cameras), e.g. on a GPU machine.
+* ``intention_fit_s_<device>`` — the intention stage's saved model fitted on a dataset's samples
+  (:func:`measure_intention_fit`; ``--intention-samples``), with its validation error per device.
 
 The encoder has the profile's ``pretrain.encoder`` architecture with random weights (speed does not depend on
 the weights); the frames come from the bench scene rendered at the profile's camera resolution.
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -127,7 +131,6 @@ def measure_fit_step(cameras: list[Camera], encoder_cfg: Any, device: str, *, st
     """
     import csv
     import tempfile
-    from pathlib import Path
 
 
     dev = resolve_device(device, "device")
@@ -170,14 +173,72 @@ def measure_fit_steps(cameras: list[Camera], encoder_cfg: Any, devices: list[str
     return out
 
 
+def write_intention_samples(dataset: Path, out: Path) -> dict[str, int]:
+    """Collects the intention stage's samples of ``dataset`` (:func:`pretrain.intention.collect`, the default
+    model's horizons and history) into one ``.npz`` (a few MB: the stage's inputs without the dataset's images), so
+    that :func:`measure_intention_fit` can run on a machine that holds no dataset."""
+    from pretrain.intention import ForecasterConfig, collect
+
+    mc = ForecasterConfig()
+    samples, fps, n_eps = collect(dataset, mc.horizons_s, mc.history)
+    tmp = out.with_name(out.name + ".tmp.npz")
+    np.savez_compressed(tmp, fps=np.float64(fps), n_episodes=np.int64(n_eps), **samples)
+    tmp.replace(out)
+    return {"samples": int(len(samples["speed"])), "episodes": int(n_eps)}
+
+
+def measure_intention_fit(samples_npz: Path, devices: list[str], epochs: int = 12) -> dict[str, float]:
+    """Fits the intention stage's saved model (track + detected pose, the default config's batch, learning rate and
+    pose dropout) on the samples of :func:`write_intention_samples` once per device, split as the stage splits
+    them; ``intention_fit_s_<device>`` (wall seconds for ``epochs`` epochs), ``intention_val_fde_1s_<device>``
+    (validation FDE at the last horizon: the two devices must agree to within run-to-run noise) and, with both
+    devices, ``intention_fit_speedup_cuda_vs_cpu``."""
+    from pretrain.intention import (
+        FitOptions,
+        ForecasterConfig,
+        IntentionConfig,
+        IntentionForecaster,
+        fit_model,
+        predict,
+        split_samples,
+    )
+
+    with np.load(samples_npz) as z:
+        samples = {k: z[k] for k in z.files if k not in ("fps", "n_episodes")}
+        n_eps = int(z["n_episodes"])
+    cfg = IntentionConfig()
+    mc = cfg.model
+    train, val, _, _ = split_samples(samples, cfg.val_fraction, cfg.seed, cfg.max_samples, str(samples_npz), n_eps,
+                                     mc.horizons_s[-1])
+    opt = FitOptions(epochs, cfg.batch, cfg.lr, cfg.pose_dropout, cfg.head_aux_weight, cfg.seed)
+    out: dict[str, float] = {"intention_train_samples": len(train["speed"]), "intention_epochs": epochs}
+    for d in devices:
+        dev = resolve_device(d, "device")
+        key = d.split(":")[0]
+        model = IntentionForecaster(ForecasterConfig(**{**vars(mc), "pose": True}))
+        t = time.perf_counter()
+        fit_model(model, train, val, opt, dev)
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+        out[f"intention_fit_s_{key}"] = round(time.perf_counter() - t, 2)
+        last = predict(model, val, dev)[:, -1] - val["target"][:, -1]
+        out[f"intention_val_fde_last_m_{key}"] = round(float(np.linalg.norm(last, axis=-1).mean()), 4)
+    if "intention_fit_s_cpu" in out and "intention_fit_s_cuda" in out:
+        out["intention_fit_speedup_cuda_vs_cpu"] = round(out["intention_fit_s_cpu"] / out["intention_fit_s_cuda"], 2)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``python -m pretrain.bench --dataset ROOT [--devices cpu,cuda] [--steps 12]``: the fit-step figures as JSON."""
+    """``python -m pretrain.bench --dataset ROOT [--devices cpu,cuda] [--steps 12]``: the fit-step figures as JSON.
+
+    ``--write-intention-samples F`` collects the intention stage's samples of the dataset into ``F`` (no bench);
+    ``--intention-samples F`` adds the intention model's fit on those samples per device
+    (:func:`measure_intention_fit`)."""
     import argparse
     import json
     import os
     import platform
     import sys
-    from pathlib import Path
 
 
     ap = argparse.ArgumentParser(prog="python -m pretrain.bench", description=main.__doc__)
@@ -186,11 +247,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=12)
     ap.add_argument("--clips-per-batch", type=int, default=4)
     ap.add_argument("--clip-frames", type=int, default=8)
+    ap.add_argument("--write-intention-samples", type=Path, help="collect the intention samples into this .npz")
+    ap.add_argument("--intention-samples", type=Path, help="also time the intention model's fit on these samples")
+    ap.add_argument("--intention-epochs", type=int, default=12)
     args = ap.parse_args(argv)
     torch.set_num_threads(os.cpu_count() or 1)
+    devices = args.devices.split(",")
     try:
-        out = measure_fit_steps(cameras_from_dataset(args.dataset), EncoderConfig(), args.devices.split(","),
+        if args.write_intention_samples:
+            print(json.dumps(write_intention_samples(args.dataset, args.write_intention_samples)))
+            return 0
+        out = measure_fit_steps(cameras_from_dataset(args.dataset), EncoderConfig(), devices,
                                 steps=args.steps, clips_per_batch=args.clips_per_batch, clip_frames=args.clip_frames)
+        if args.intention_samples:
+            out.update(measure_intention_fit(args.intention_samples, devices, args.intention_epochs))
     except ICrowdNavError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -300,6 +300,27 @@ def take(samples: dict[str, np.ndarray], idx: np.ndarray) -> dict[str, np.ndarra
     return {k: v[idx] for k, v in samples.items()}
 
 
+def split_samples(samples: dict[str, np.ndarray], val_fraction: float, seed: int, max_samples: int, where: str,
+                  n_episodes: int, horizon_s: float
+                  ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], list[int], list[int]]:
+    """Training and validation samples, split by episode among the episodes that hold samples (one in which nobody
+    was tracked would leave a side empty), at most ``max_samples`` training samples (seeded draw); with the
+    episode lists."""
+    with_samples = np.unique(samples["episode"])
+    if len(with_samples) < 2:
+        raise InputMissingError(f"{where}: only {len(with_samples)} of its {n_episodes} episodes hold a tracked "
+                                f"pedestrian with {horizon_s:g} s of future; a training and a validation "
+                                "episode are needed — record more episodes")
+    tr, va = split_episodes(len(with_samples), val_fraction, seed)
+    train_eps, val_eps = with_samples[tr].tolist(), with_samples[va].tolist()
+    train = take(samples, np.flatnonzero(np.isin(samples["episode"], train_eps)))
+    val = take(samples, np.flatnonzero(np.isin(samples["episode"], val_eps)))
+    if len(train["speed"]) > max_samples:
+        train = take(train, np.sort(np.random.default_rng(seed).choice(len(train["speed"]), max_samples,
+                                                                       replace=False)))
+    return train, val, train_eps, val_eps
+
+
 # ------------------------------------------------------------------------------------------------ training
 @dataclass
 class FitOptions:
@@ -549,19 +570,8 @@ def body(cfg: IntentionConfig, out: Path) -> dict:
     root = dataset_dir(cfg)
     mc = cfg.model
     samples, fps, n_eps = collect(root, mc.horizons_s, mc.history, cfg.max_episodes)
-    # split the episodes that hold samples (an episode in which nobody was tracked would leave a side empty)
-    with_samples = np.unique(samples["episode"])
-    if len(with_samples) < 2:
-        raise InputMissingError(f"dataset {root}: only {len(with_samples)} of its {n_eps} episodes hold a tracked "
-                                f"pedestrian with {mc.horizons_s[-1]:g} s of future; a training and a validation "
-                                "episode are needed — record more episodes")
-    tr, va = split_episodes(len(with_samples), cfg.val_fraction, cfg.seed)
-    train_eps, val_eps = with_samples[tr].tolist(), with_samples[va].tolist()
-    train = take(samples, np.flatnonzero(np.isin(samples["episode"], train_eps)))
-    val = take(samples, np.flatnonzero(np.isin(samples["episode"], val_eps)))
-    if len(train["speed"]) > cfg.max_samples:
-        train = take(train, np.sort(np.random.default_rng(cfg.seed).choice(len(train["speed"]), cfg.max_samples,
-                                                                           replace=False)))
+    train, val, train_eps, val_eps = split_samples(samples, cfg.val_fraction, cfg.seed, cfg.max_samples,
+                                                   f"dataset {root}", n_eps, mc.horizons_s[-1])
     log.info("pretrain-intention: %d training / %d validation samples (%d / %d turn events) from %d episodes on %s",
              len(train["speed"]), len(val["speed"]), int(train["turn"].sum()), int(val["turn"].sum()), n_eps, device)
     opt = FitOptions(cfg.epochs, cfg.batch, cfg.lr, cfg.pose_dropout, cfg.head_aux_weight, cfg.seed)

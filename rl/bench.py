@@ -19,7 +19,14 @@
 * ``policy_inference_ms`` / ``policy_inference_hz`` — the full visual policy (variant ``full``) from the two RGB-D
   frames + detected poses to an action index, one CPU thread: streaming encoder step (newest frame only) + pooling +
   φ_bev + I²Former + fusion + actor head; ``policy_inference_recompute_ms`` — the same with the encoder recomputing
-  the whole T-frame window (what a policy without the streaming cache does), and the ratio.
+  the whole T-frame window (what a policy without the streaming cache does), and the ratio;
+* ``student_clone_ms_per_kframe_<device>`` — the default student's DAgger update (``full``, the lookahead head, the
+  profile's ``dagger`` batch, learning rate, soft targets and mirroring; :func:`rl.teacher.behaviour_clone`) per
+  1,000 frames and epoch, the lookahead feature cache included, on synthetic frames of the observation's shapes;
+  ``student_encoder_ms_<device>_b<B>`` — the frozen BEV encoder's streaming step on B streams at once (2 = one env
+  with its mirrored world, as DAgger records; 16 = eight such envs); the CUDA / CPU ratios when both are measured
+  (:func:`measure_student_devices`; ``python -m rl.bench --dataset ROOT --devices cpu,cuda`` on a GPU machine, no
+  simulator needed: the cameras come from ``ROOT/meta/info.json``).
 
 Weights are random (speed does not depend on them); the encoder has the profile's ``pretrain.encoder`` architecture,
 the frames are rendered from the bench scene at the profile's resolution.
@@ -162,6 +169,142 @@ def _env_step_ms(sim_cfg: Any, scene: str, density: float, seed: int, seconds: f
     return ms
 
 
+def synthetic_student_frames(space, n: int, n_actions: int, seed: int) -> dict[str, np.ndarray]:
+    """``n`` frames shaped like a student's DAgger features (speed does not depend on their content): positions
+    and tracks ~N(0, 2 m), scans 0.3–10 m, pose masks 0/1, a mirrored ``s_bev``, expert actions and costs."""
+    rng = np.random.default_rng(seed)
+    data: dict[str, np.ndarray] = {}
+    for k, box in space.spaces.items():
+        shape = (n, *box.shape)
+        if k == "scan":
+            data[k] = rng.uniform(0.3, 10.0, shape).astype(np.float32)
+        elif k.endswith("_mask"):
+            data[k] = (rng.random(shape) < 0.7).astype(np.float32)
+        else:
+            data[k] = rng.normal(0.0, 2.0, shape).astype(np.float32)
+    if "bev" in data:
+        data["bev_mirror"] = data["bev"][..., ::-1].copy()  # the lateral axis reflected
+    data["action"] = rng.integers(0, n_actions, n)
+    data["costs"] = rng.uniform(0.0, 5.0, (n, n_actions)).astype(np.float32)
+    return data
+
+
+def measure_student_update(cameras, train_cfg: Any, device: str, frames: int = 2048, epochs: int = 2,
+                           seed: int = 0) -> float:
+    """Milliseconds per 1,000 frames and epoch of the default student's DAgger update on ``device`` (see the module
+    docstring): :func:`rl.teacher.behaviour_clone` with the profile's ``dagger`` settings, timed over ``epochs``
+    epochs after one warm-up epoch (each call fills the lookahead feature cache once, as every iteration does)."""
+    from dataclasses import asdict
+
+    from pipeline.core.device import resolve_device
+    from pretrain.intention import ForecasterConfig, IntentionForecaster
+    from pretrain.model import EncoderConfig
+    from rl.observe import perception_params
+    from rl.teacher import behaviour_clone
+
+    cfg, d = train_cfg, train_cfg.dagger
+    dev = resolve_device(device, "device")
+    torch.manual_seed(seed)
+    enc = BEVEncoder(EncoderConfig(), cameras).eval().requires_grad_(False)
+    observer = StudentObserver("full", cameras, enc, cfg.sim.detector.max_people, mirror=d.mirror, head="lookahead",
+                               perception=perception_params(cfg.sim),
+                               forecaster=IntentionForecaster(ForecasterConfig()).eval())
+    net = {**cfg.net, "head": "lookahead", "robot": asdict(cfg.sim.robot), "dt_s": cfg.sim.dt_s,
+           "scan_range_m": cfg.sim.scan_range_m, "scorer_bound": cfg.scorer_bound}
+    policy = build_policy("student", "full", observer.observation_space, net).to(dev)
+    n_rot = cfg.sim.robot.n_rotations
+    data = synthetic_student_frames(observer.observation_space, frames, policy.action_space.n, seed)
+
+    def clone(n_epochs: int) -> None:
+        behaviour_clone(policy, data, n_epochs, d.bc_batch, d.bc_lr, seed, progress=False, soft_tau=d.soft_tau,
+                        mirror=d.mirror, n_rot=n_rot)
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+
+    clone(1)
+    t = time.perf_counter()
+    clone(epochs)
+    return 1e6 * (time.perf_counter() - t) / (frames * epochs)
+
+
+def measure_student_encoder(cameras, device: str, streams: int, steps: int = 20, seed: int = 0) -> float:
+    """Milliseconds per :meth:`pretrain.model.BEVStream.step` of the default encoder on ``streams`` streams at once
+    (random frames of the cameras' size; median after two warm-up steps)."""
+    from pipeline.core.device import resolve_device
+    from pretrain.model import BEVStream, EncoderConfig
+
+    dev = resolve_device(device, "device")
+    torch.manual_seed(seed)
+    enc = BEVEncoder(EncoderConfig(), cameras).eval().requires_grad_(False).to(dev)
+    stream = BEVStream(enc)
+    c0, n = cameras[0], len(cameras)
+    g = torch.Generator().manual_seed(seed)
+    rgb = torch.randint(0, 256, (streams, n, 3, c0.height, c0.width), dtype=torch.uint8, generator=g)
+    depth = torch.rand(streams, n, c0.height, c0.width, generator=g) * 7.7 + 0.3
+    pose = torch.zeros(streams, 3, dtype=torch.float64)
+    times = []
+    for i in range(steps + 2):
+        t = time.perf_counter()
+        # the frames come from the simulator in host memory: their copy to the device is part of the step
+        stream.step(rgb.to(dev), depth.to(dev), (pose + 0.01 * i).to(dev))
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - t)
+    return 1e3 * float(np.median(times[2:]))
+
+
+def measure_student_devices(cameras, train_cfg: Any, devices: list[str], frames: int = 2048) -> dict[str, float]:
+    """The student's update and encoder figures for each device, with the CUDA / CPU ratios (module docstring)."""
+    out: dict[str, float] = {}
+    for d in devices:
+        key = d.split(":")[0]
+        out[f"student_clone_ms_per_kframe_{key}"] = round(measure_student_update(cameras, train_cfg, d, frames), 1)
+        for b in (2, 16):
+            out[f"student_encoder_ms_{key}_b{b}"] = round(measure_student_encoder(cameras, d, b), 2)
+    if "student_clone_ms_per_kframe_cpu" in out and "student_clone_ms_per_kframe_cuda" in out:
+        out["student_clone_speedup_cuda_vs_cpu"] = round(out["student_clone_ms_per_kframe_cpu"]
+                                                         / out["student_clone_ms_per_kframe_cuda"], 2)
+        for b in (2, 16):
+            out[f"student_encoder_b{b}_speedup_cuda_vs_cpu"] = round(out[f"student_encoder_ms_cpu_b{b}"]
+                                                                     / out[f"student_encoder_ms_cuda_b{b}"], 2)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m rl.bench --dataset ROOT [--devices cpu,cuda] [--profile default]``: the student's update and
+    frozen-encoder figures per device as JSON (reads only ``ROOT/meta/info.json``: the cameras)."""
+    import argparse
+    import json
+    import os
+    import platform
+    import sys
+    from pathlib import Path
+
+    from pipeline.core.config import load_config
+    from pipeline.core.errors import ICrowdNavError
+    from pretrain.geometry import cameras_from_dataset
+    from rl.stage import TrainConfig
+
+    ap = argparse.ArgumentParser(prog="python -m rl.bench", description=main.__doc__)
+    ap.add_argument("--dataset", type=Path, required=True, help="a dataset root (only meta/info.json is read)")
+    ap.add_argument("--devices", default="cpu,cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--profile", default="default")
+    ap.add_argument("--frames", type=int, default=2048)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(os.cpu_count() or 1)
+    try:
+        out = measure_student_devices(cameras_from_dataset(args.dataset), load_config(TrainConfig, "train", args.profile),
+                                      args.devices.split(","), args.frames)
+    except ICrowdNavError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    out.update({"cpu_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
+                **({"gpu": torch.cuda.get_device_name()} if torch.cuda.is_available() else {}),
+                "torch": torch.__version__})
+    print(json.dumps(out))
+    return 0
+
+
 def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg: Any, seconds: float) -> dict:
     from dataclasses import asdict
 
@@ -216,3 +359,7 @@ def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encod
     return {"policy_inference_ms": ms, "policy_inference_hz": 1000.0 / ms, "policy_inference_recompute_ms": ref,
             "policy_inference_speedup_vs_recompute": ref / ms, "policy_inference_lookahead_ms": ms_look,
             "policy_inference_lookahead_hz": 1000.0 / ms_look}
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

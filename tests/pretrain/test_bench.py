@@ -28,3 +28,21 @@ def test_cli_asks_for_cuda_without_it_is_a_named_error(tiny_dataset, capsys, mon
     assert main(["--dataset", str(tiny_dataset.root), "--devices", "cpu", "--steps", "1", "--clips-per-batch", "1",
                  "--clip-frames", "2"]) == 0
     assert json.loads(capsys.readouterr().out)["pretrain_step_ms_cpu"] > 0
+
+
+def test_intention_fit_figures_from_a_samples_file(tmp_path) -> None:
+    """The samples file round trip (what travels to a GPU machine) and the fit's figures per device."""
+    import numpy as np
+
+    from pretrain.bench import measure_intention_fit
+    from pretrain.intention import ForecasterConfig
+    from tests.pretrain.test_intention import cue_samples
+
+    s = cue_samples(60)
+    h = np.asarray(ForecasterConfig().horizons_s, np.float32)  # the bench fits the default model's horizons
+    s["target"] = np.stack([np.broadcast_to(h, (60, len(h))), np.zeros((60, len(h)), np.float32)], -1)
+    np.savez_compressed(tmp_path / "s.npz", fps=np.float64(10.0), n_episodes=np.int64(10), **s)
+    out = measure_intention_fit(tmp_path / "s.npz", ["cpu"], epochs=1)
+    assert out["intention_epochs"] == 1 and 0 < out["intention_train_samples"] < 60
+    assert out["intention_fit_s_cpu"] > 0 and math.isfinite(out["intention_val_fde_last_m_cpu"])
+    assert "intention_fit_speedup_cuda_vs_cpu" not in out  # one device: no ratio

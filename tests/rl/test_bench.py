@@ -30,3 +30,13 @@ def test_teacher_benchmark_reports_its_cost_breakdown():
                            out["teacher_update_ms_per_step"])
     assert math.isclose(out["teacher_cpu_bound_steps_per_s"], 1e3 * cores / (env + policy + update), rel_tol=1e-9)
     assert math.isclose(out["teacher_loop_bound_steps_per_s"], 1e3 / (env / cores + policy + update), rel_tol=1e-9)
+
+
+def test_student_device_figures_on_the_cpu(tiny_dataset):
+    """The default student's DAgger update and the frozen encoder's streaming step, from a dataset's cameras only."""
+    from pretrain.geometry import cameras_from_dataset
+    from rl.bench import measure_student_devices
+
+    out = measure_student_devices(cameras_from_dataset(tiny_dataset.root), TrainConfig(), ["cpu"], frames=64)
+    assert set(out) == {"student_clone_ms_per_kframe_cpu", "student_encoder_ms_cpu_b2", "student_encoder_ms_cpu_b16"}
+    assert all(math.isfinite(v) and v > 0 for v in out.values())
