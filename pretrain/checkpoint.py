@@ -30,7 +30,7 @@ from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
 from pipeline.core.manifest import MANIFEST_NAME, release_output, verify_output
 from pretrain.geometry import Camera
-from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
+from pretrain.model import LEGACY_ENCODER, BEVEncoder, EncoderConfig, PretextHeads
 
 ENCODER_WEIGHTS = "encoder.safetensors"
 HEADS_WEIGHTS = "heads.safetensors"
@@ -176,7 +176,7 @@ def encoder_from_json(desc: dict[str, Any], where: str = "encoder.json") -> BEVE
     unknown = sorted(set(desc["encoder"]) - set(fields))
     if unknown:
         raise CorruptArtifactError(f"{where}: unknown encoder keys {unknown}")
-    cfg = EncoderConfig(**desc["encoder"])
+    cfg = EncoderConfig(**{**LEGACY_ENCODER, **desc["encoder"]})  # keys newer than the file: what it was trained as
     cameras = [Camera.from_dict(c, f"{where} cameras[{k}]") for k, c in enumerate(desc["cameras"])]
     return BEVEncoder(cfg, cameras)
 

@@ -289,6 +289,54 @@ def lift_splat(features: torch.Tensor, depth: torch.Tensor, geom: LiftGeometry, 
     return out.view(b, nx, ny, c).permute(0, 3, 1, 2).contiguous()
 
 
+EVIDENCE_CHANNELS = ("hits", "floor", "free")  # the channels of :func:`lift_evidence`, in order
+FREE_SAMPLES = 12  # points sampled along each ray's free stretch
+FREE_MARGIN_M = 0.15  # the free stretch ends this far before the measured point
+
+
+def _count_cells(pts: torch.Tensor, keep: torch.Tensor, grid: BEVGrid) -> torch.Tensor:
+    """``B x ...`` points (``... x 3``, base frame) and a keep mask → ``B x X x Y`` counts of kept points inside the
+    grid."""
+    b, nx, ny = pts.shape[0], *grid.shape
+    ix = torch.floor((pts[..., 0] - grid.x_bound[0]) / grid.x_bound[2]).long()
+    iy = torch.floor((pts[..., 1] - grid.y_bound[0]) / grid.y_bound[2]).long()
+    keep = keep & (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+    batch = torch.arange(b, device=ix.device).view(b, *([1] * (ix.dim() - 1))).expand_as(ix)
+    flat = ((batch * nx + ix) * ny + iy)[keep]
+    out = pts.new_zeros(b * nx * ny)
+    out.index_add_(0, flat, torch.ones_like(flat, dtype=pts.dtype))
+    return out.view(b, nx, ny)
+
+
+def lift_evidence(depth: torch.Tensor, geom: LiftGeometry, grid: BEVGrid) -> torch.Tensor:
+    """Geometric evidence of every BEV cell from the depth alone: ``B x N x h x w`` depth at the lift pixels →
+    ``B x 3 x X x Y`` = ``log(1 + count)`` of (:data:`EVIDENCE_CHANNELS`)
+
+    * ``hits``: measured points inside the height band (something is there — what :func:`lift_splat` pools);
+    * ``floor``: measured points below the ground threshold (the floor is seen there: free);
+    * ``free``: points sampled along each valid ray up to :data:`FREE_MARGIN_M` before its measured point (the ray
+      crossed that cell: free), :data:`FREE_SAMPLES` per ray.
+
+    Without ``floor`` and ``free`` a cell with no lifted point is ambiguous — free floor and the space hidden behind
+    a wall look the same — which is what held the static IoU down (docs/notes/2026-11-bev-pretrain-epochs-and-
+    thresholds.md).
+    """
+    b, n = depth.shape[:2]
+    origins, rays, min_depth, max_depth = geom.on(depth.device)
+    d = depth.float()
+    ok = (d > 0) & (d >= min_depth.view(1, n, 1, 1)) & (d <= max_depth.view(1, n, 1, 1))
+    pts = origins.view(1, n, 1, 1, 3) + d.unsqueeze(-1) * rays.unsqueeze(0)  # B N h w 3
+    z = pts[..., 2]
+    hits = _count_cells(pts, ok & (z >= grid.z_bound[0]) & (z <= grid.z_bound[1]), grid)
+    floor = _count_cells(pts, ok & (z < grid.z_bound[0]), grid)
+    frac = (torch.arange(FREE_SAMPLES, device=d.device, dtype=d.dtype) + 0.5) / FREE_SAMPLES  # S
+    reach = (d - FREE_MARGIN_M).clamp_min(0.0).unsqueeze(-1) * frac  # B N h w S: z-depth of each sample
+    samples = origins.view(1, n, 1, 1, 1, 3) + reach.unsqueeze(-1) * rays.view(1, n, *rays.shape[1:3], 1, 3)
+    # samples above the band's top say nothing about what stands below them in the band
+    free = _count_cells(samples, ok.unsqueeze(-1).expand_as(reach) & (samples[..., 2] <= grid.z_bound[1]), grid)
+    return torch.log1p(torch.stack([hits, floor, free], 1))
+
+
 def lift_splat_reference(features: np.ndarray, depth: np.ndarray, cameras: list[Camera], stride: int,
                          grid: BEVGrid) -> np.ndarray:
     """The obvious per-point loop, for testing :func:`lift_splat` (same arguments, numpy, float64).

@@ -10,11 +10,13 @@ Shapes (B batch, T history frames, N cameras, C BEV channels, X x Y BEV cells, H
 
 Pipeline per frame: ResNet-18 trunk (torchvision architecture; the first ``resnet_stages`` stages) → 1x1 neck to C
 channels → bilinear resize to the lift pixels → measured-depth lift + vertical sum pooling (:func:`lift_splat`)
-→ ``x_bev``. Over the window: every past ``x_bev`` is warped into the newest frame by ego-motion
-(:func:`warp_bev`), the T maps are stacked in time and a FIERY-style temporal model (causal 3D convolutions with
-kernel ``2 x 3 x 3``, T−1 of them, plus a 2D skip from the newest map) gives ``s_bev``. The first frames of an
-episode have no history: the earliest available frame is repeated (the same rule in training, batch and
-streaming inference).
+(+ with ``evidence``, a 1x1 projection of the depth's geometric evidence per cell — points in the height band, floor
+hits, rays that crossed the cell: :func:`lift_evidence`) → ``x_bev``. Over the window: every past ``x_bev`` is
+warped into the newest frame by ego-motion (:func:`warp_bev`), the T maps are stacked in time and a FIERY-style
+temporal model (causal 3D convolutions with kernel ``2 x 3 x 3``, T−1 of them, plus a 2D skip from the newest map)
+fuses them; with ``decoder: unet`` a BEV encoder-decoder (:class:`BEVDecoder`, three stride-2 stages, receptive
+field ≈ 5 m) follows, residual to its input; the result is ``s_bev``. The first frames of an episode have no
+history: the earliest available frame is repeated (the same rule in training, batch and streaming inference).
 """
 
 from __future__ import annotations
@@ -28,13 +30,28 @@ import torchvision
 from torch import nn
 
 from pipeline.core.errors import ConfigError
-from pretrain.geometry import BEVGrid, Camera, LiftGeometry, lift_splat, relative_pose, sample_depth, warp_bev
+from pretrain.geometry import (
+    EVIDENCE_CHANNELS,
+    BEVGrid,
+    Camera,
+    LiftGeometry,
+    lift_evidence,
+    lift_splat,
+    relative_pose,
+    sample_depth,
+    warp_bev,
+)
 
 _IMAGENET_MEAN = (0.485, 0.456, 0.406)
 _IMAGENET_STD = (0.229, 0.224, 0.225)
 _STAGE_CHANNELS = {1: 64, 2: 128, 3: 256, 4: 512}
 # the pretext targets, in the heads' channel order
 TARGETS = ("static", "ped_t", "ped_t+0.5s", "ped_t+1.0s")
+
+
+DECODERS = ("unet", "none")
+# what an encoder.json written before a key existed means (the architecture it was trained with)
+LEGACY_ENCODER = {"evidence": False, "decoder": "none"}
 
 
 @dataclass
@@ -47,13 +64,19 @@ class EncoderConfig:
     bev_channels: int = 32  # C of x_bev and s_bev
     resnet_stages: int = 2  # ResNet-18 stages kept (1-4): feature stride 4, 8, 16, 32 px
     lift_stride_px: int = 4  # lift one pixel in every lift_stride_px x lift_stride_px block
-    history_frames: int = 3  # T: frames in the temporal window, newest included
+    history_frames: int = 5  # T: frames in the temporal window, newest included (0.4 s at 10 Hz)
     backbone_weights: str = ""  # optional torchvision resnet18 state dict (.pth/.safetensors) to start from
+    evidence: bool = True  # add the depth's per-cell evidence (hits / floor / free rays) to x_bev
+    decoder: str = "unet"  # after the temporal model: "unet" (BEVDecoder, ~5 m receptive field) | "none"
 
     def validate(self) -> None:
         self.grid.validate("encoder")
         if self.resnet_stages not in _STAGE_CHANNELS:
             raise ConfigError(f"encoder.resnet_stages: expected 1-4, got {self.resnet_stages}")
+        if self.decoder not in DECODERS:
+            raise ConfigError(f"encoder.decoder: expected one of {list(DECODERS)}, got {self.decoder!r}")
+        if not isinstance(self.evidence, bool):
+            raise ConfigError(f"encoder.evidence: expected true or false, got {self.evidence!r}")
         for k in ("bev_channels", "lift_stride_px", "history_frames"):
             v = getattr(self, k)
             if not isinstance(v, int) or v < 1:
@@ -118,6 +141,39 @@ class TemporalModel(nn.Module):
         return F.relu(self.norm(out))
 
 
+def _conv_bn(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1, bias=False), nn.BatchNorm2d(c_out),
+                         nn.ReLU(inplace=True))
+
+
+class BEVDecoder(nn.Module):
+    """A BEV encoder-decoder on ``B x C x X x Y`` (FIERY's decoder, smaller): three stride-2 stages (C → 2C → 2C →
+    4C channels, two 3x3 convolutions each: receptive field ≈ 43 cells, 4.3 m at 0.1 m, before the upsampling
+    path widens it), bilinear upsampling with skip connections back to full resolution, added to the input. The
+    heads alone see ~1 m; this lets a cell's occupancy depend on the room around it (a wall's far side, a free
+    corridor, where a person is heading)."""
+
+    def __init__(self, c: int) -> None:
+        super().__init__()
+        self.down = nn.ModuleList([nn.Sequential(_conv_bn(a, b, 2), _conv_bn(b, b))
+                                   for a, b in ((c, 2 * c), (2 * c, 2 * c), (2 * c, 4 * c))])
+        self.up = nn.ModuleList([_conv_bn(4 * c + 2 * c, 2 * c), _conv_bn(2 * c + 2 * c, 2 * c),
+                                 _conv_bn(2 * c + c, c)])
+        self.out = nn.Sequential(nn.Conv2d(c, c, 1, bias=False), nn.BatchNorm2d(c))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        skips, y = [x], x
+        for stage in self.down:
+            y = stage(y)
+            skips.append(y)
+        skips.pop()  # the bottom is y itself
+        for stage in self.up:
+            skip = skips.pop()
+            y = stage(torch.cat([F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False), skip],
+                                1))
+        return F.relu(x + self.out(y))
+
+
 class BEVEncoder(nn.Module):
     """The spatio-temporal encoder: RGB-D window → ``s_bev`` (see the module docstring for shapes)."""
 
@@ -131,6 +187,10 @@ class BEVEncoder(nn.Module):
         self.neck = nn.Sequential(nn.Conv2d(_STAGE_CHANNELS[cfg.resnet_stages], cfg.bev_channels, 1, bias=False),
                                   nn.BatchNorm2d(cfg.bev_channels), nn.ReLU(inplace=True))
         self.temporal = TemporalModel(cfg.bev_channels, cfg.history_frames)
+        if cfg.evidence:
+            self.evidence = nn.Conv2d(len(EVIDENCE_CHANNELS), cfg.bev_channels, 1)
+        if cfg.decoder == "unet":
+            self.decoder = BEVDecoder(cfg.bev_channels)
         self.geom = LiftGeometry(self.cameras, cfg.lift_stride_px)
         self.register_buffer("mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
@@ -168,7 +228,10 @@ class BEVEncoder(nn.Module):
             raise ValueError(f"expected {len(self.cameras)} cameras, got {n}")
         feats = self.image_features(rgb.flatten(0, 1))
         feats = feats.view(m, n, *feats.shape[1:])
-        return lift_splat(feats, depth_lift.float(), self.geom, self.grid)
+        x = lift_splat(feats, depth_lift.float(), self.geom, self.grid)
+        if self.cfg.evidence:
+            x = x + self.evidence(lift_evidence(depth_lift, self.geom, self.grid))
+        return x
 
     def lift_depth(self, depth: torch.Tensor) -> torch.Tensor:
         """Full-resolution depth ``... x H x W`` → depth at the lift pixels ``... x h x w``."""
@@ -191,7 +254,8 @@ class BEVEncoder(nn.Module):
         rel = relative_pose(poses[:, :-1].double(), newest.double()).float()
         past = warp_bev(maps[:, :-1].flatten(0, 1), rel.flatten(0, 1), self.grid) if t > 1 else maps[:, :0]
         aligned = torch.cat([past.view(b, t - 1, *maps.shape[2:]), maps[:, -1:]], 1)
-        return self.temporal(aligned)
+        s_bev = self.temporal(aligned)
+        return self.decoder(s_bev) if self.cfg.decoder == "unet" else s_bev
 
     def forward(self, rgb: torch.Tensor, depth: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """Batch forward: ``B x T`` windows (full-resolution depth) → ``s_bev`` ``B x C x X x Y``."""

@@ -27,12 +27,13 @@ import numpy as np
 import torch
 
 from pipeline.core import layout
-from pipeline.core.artifacts import atomic_write_json
+from pipeline.core.artifacts import atomic_write_json, json_safe
 from pipeline.core.config import BaseStageConfig, check_run_name, config_hash
 from pipeline.core.device import device_counts, resolve_device
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.checkpoint import METRICS_JSON, read_weights, write_encoder_checkpoint
 from pretrain.data import Batch, check_dataset, check_grid_in_local_map, load_frames, split_episodes
+from pretrain.evaluate import CAL_THRESHOLDS, calibrate, episode_counts, turning_pedestrian_frame
 from pretrain.figures import plot_curves, plot_fov, plot_sample
 from pretrain.geometry import check_grid_fits_cameras
 from pretrain.model import TARGETS, BEVEncoder, EncoderConfig, PretextHeads
@@ -55,6 +56,9 @@ class PretrainConfig(BaseStageConfig):
     lr: float = 2e-3  # AdamW peak learning rate (one-cycle schedule: warm-up, cosine decay)
     weight_decay: float = 1e-4  # AdamW weight decay
     warmup_frac: float = 0.1  # fraction of the steps spent warming up
+    # BCE weight of positives = sqrt(negatives / positives), at most this: a weight w inflates the learned odds by w
+    # (pedestrians: w ~ 8 at a cap of 10 put p = 0.5 far from the best threshold), so keep it small
+    pos_weight_cap: float = 3.0
     val_fraction: float = 0.1  # fraction of the episodes held out for validation (split by episode)
     max_episodes: int = 0  # use at most this many episodes of the dataset (0 = all)
     checkpoint_every_steps: int = 100  # save the training state this often (and at every epoch end)
@@ -76,6 +80,8 @@ class PretrainConfig(BaseStageConfig):
         for k in ("max_episodes", "threads", "figures"):
             if getattr(self, k) < 0:
                 raise ConfigError(f"pretrain.{k}: expected an integer >= 0, got {getattr(self, k)}")
+        if not (math.isfinite(self.pos_weight_cap) and self.pos_weight_cap >= 1):
+            raise ConfigError(f"pretrain.pos_weight_cap: expected a number >= 1, got {self.pos_weight_cap}")
         if not (self.lr > 0 and self.weight_decay >= 0 and 0 <= self.warmup_frac < 1 and self.max_ram_gb > 0):
             raise ConfigError(f"pretrain: expected lr > 0, weight_decay >= 0, 0 <= warmup_frac < 1, max_ram_gb > 0, "
                               f"got {self.lr}, {self.weight_decay}, {self.warmup_frac}, {self.max_ram_gb}")
@@ -153,7 +159,7 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
     fc = FitConfig(epochs=cfg.epochs, clip_frames=cfg.clip_frames, clips_per_batch=cfg.clips_per_batch, lr=cfg.lr,
                    weight_decay=cfg.weight_decay, warmup_frac=cfg.warmup_frac,
                    checkpoint_every_steps=cfg.checkpoint_every_steps, log_every_steps=cfg.log_every_steps,
-                   seed=cfg.seed, config_hash=config_hash(cfg))
+                   seed=cfg.seed, config_hash=config_hash(cfg), pos_weight_cap=cfg.pos_weight_cap)
     result = fit(encoder, heads, store, train_slices, val_slices, fov, fc, out, resume=True, progress=cfg.progress)
     history = result["history"]
     final = history[-1] if history else evaluate(encoder, heads, store, val_slices, fov,
@@ -166,9 +172,14 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
         "targets": list(TARGETS), "future_s": list(cfg.future_s),
         "dataset": {"repo_id": cfg.repo_id, "train_episodes": train_eps, "val_episodes": val_eps},
         "trained_steps": result["step"], "fps": meta.fps})
+    # the decision rule: per-target thresholds chosen on the validation episodes, scored cross-fitted (honest)
+    inter, union = episode_counts(encoder, heads, store, val_slices, fov, CAL_THRESHOLDS, cfg.clip_frames,
+                                  cfg.clips_per_batch)
+    decision = json_safe(calibrate(inter, union, CAL_THRESHOLDS, result["pos_weight"]))
     atomic_write_json(out / METRICS_JSON, {
         "final": final, "history": history, "targets": list(TARGETS), "iou": "dataset-level IoU at p > 0.5 over "
         "validation frames, cells in the cameras' field of view only", "pos_weight": result["pos_weight"],
+        "decision": decision, "thresholds": decision["best_threshold"],
         "train_frames": n_train, "val_frames": sum(b - a for a, b in val_slices), "steps": result["step"],
         "fov_fraction": float(fov.mean()), **device_counts(device)})
 
@@ -178,7 +189,12 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
     plot_fov(fig_dir / "fov.png", grid, fov)
     plot_curves(fig_dir / "curves.png", out / "train_log.csv", history)
     val_idx = np.concatenate([np.arange(a, b) for a, b in val_slices])
-    picks = val_idx[np.linspace(0, len(val_idx) - 1, cfg.figures).astype(int)] if cfg.figures else []
+    picks = list(val_idx[np.linspace(0, len(val_idx) - 1, cfg.figures).astype(int)]) if cfg.figures else []
+    names = [f"sample_{k}.png" for k in range(len(picks))]
+    turning = turning_pedestrian_frame(store, val_slices, fov, grid.x_bound[2]) if cfg.figures else None
+    if turning is not None:
+        picks.append(turning[0])
+        names.append("turning_pedestrian.png")
 
     with torch.no_grad():
         for k, t in enumerate(picks):
@@ -187,14 +203,20 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
             batch = Batch(frames, np.arange(encoder.frames)[None], np.array([t]))
             logits, labels, valid = forward_batch(encoder, heads, store, batch)
             ep = int(np.searchsorted([a for a, _ in sl], t, side="right") - 1)
-            plot_sample(fig_dir / f"sample_{k}.png", grid, [c.name for c in cameras], store.rgb[t],
+            what = (f"a pedestrian turning {turning[1]:.0f}° between +0.5 s and +1.0 s, "
+                    if names[k] == "turning_pedestrian.png" else "")
+            plot_sample(fig_dir / names[k], grid, [c.name for c in cameras], store.rgb[t],
                         store.depth[t], labels[0].cpu().numpy(), torch.sigmoid(logits[0]).cpu().numpy(),
                         valid[0].cpu().numpy(), fov,
-                        f"validation episode {ep}, frame {t - start} — step {result['step']}")
+                        f"{what}validation episode {ep}, frame {t - start} — step {result['step']}")
     counts = {"steps": result["step"], "train_frames": n_train, "val_frames": int(len(val_idx)),
               "episodes": n_eps, **device_counts(device)}
     for key, v in final.items():
         if key.startswith(("iou_", "val_loss")) and not (isinstance(v, float) and math.isnan(v)):
             counts[key] = round(float(v), 4)
+    for k, t in enumerate(TARGETS):
+        v = decision["cross_fitted"][k]
+        if v is not None:
+            counts[f"iou_calibrated_{t}"] = round(float(v), 4)
     log.info("pretrain: validation %s", ", ".join(f"{k} {v}" for k, v in counts.items() if k.startswith("iou_")))
     return counts

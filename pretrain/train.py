@@ -58,6 +58,7 @@ class FitConfig:
     log_every_steps: int
     seed: int
     config_hash: str
+    pos_weight_cap: float = 10.0  # upper bound of the per-target BCE positive weight (positive_weights)
 
 
 def positive_weights(store: FrameStore, slices: list[tuple[int, int]], fov: np.ndarray,
@@ -230,7 +231,7 @@ def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slice
     torch.manual_seed(fc.seed)
     device = device_of(encoder)
     fov_t = torch.from_numpy(fov).to(device)
-    pos_weight = positive_weights(store, train_slices, fov)
+    pos_weight = positive_weights(store, train_slices, fov, fc.pos_weight_cap)
     pos_weight_d = pos_weight.to(device)
     params = list(encoder.parameters()) + list(heads.parameters())
     optim = torch.optim.AdamW(params, lr=fc.lr, weight_decay=fc.weight_decay)

@@ -33,7 +33,8 @@ def cameras() -> list[Camera]:
 
 
 def tiny_config(**kw) -> EncoderConfig:
-    return EncoderConfig(**({"bev_channels": 8, "x_bound": [0.0, 4.0, 0.2], "y_bound": [-3.2, 3.2, 0.2]} | kw))
+    return EncoderConfig(**({"bev_channels": 8, "x_bound": [0.0, 4.0, 0.2], "y_bound": [-3.2, 3.2, 0.2],
+                             "history_frames": 3} | kw))
 
 
 def randomise_norms(module: torch.nn.Module, gen: torch.Generator) -> None:
