@@ -290,7 +290,7 @@ def lift_splat(features: torch.Tensor, depth: torch.Tensor, geom: LiftGeometry, 
 
 
 EVIDENCE_CHANNELS = ("hits", "floor", "free")  # the channels of :func:`lift_evidence`, in order
-FREE_SAMPLES = 12  # points sampled along each ray's free stretch
+FREE_SAMPLES = 16  # points sampled along each ray's free stretch (stratified: free_offsets)
 FREE_MARGIN_M = 0.15  # the free stretch ends this far before the measured point
 
 
@@ -308,6 +308,15 @@ def _count_cells(pts: torch.Tensor, keep: torch.Tensor, grid: BEVGrid) -> torch.
     return out.view(b, nx, ny)
 
 
+def free_offsets(hw: tuple[int, int], device: torch.device | str = "cpu") -> torch.Tensor:
+    """``h x w x 1`` fixed offsets in [0, 1) of the free-ray samples of each lift pixel (golden-ratio sequence over
+    the pixel index): rays of equal depth sample different distances, so a flat wall's free stretch is covered
+    without gaps between the sample rows (with one offset for all, cells at every 1/S of the depth stay empty)."""
+    h, w = hw
+    return torch.remainder(torch.arange(h * w, dtype=torch.float64) * 0.6180339887498949, 1.0).view(h, w, 1).to(
+        device, torch.float32)
+
+
 def lift_evidence(depth: torch.Tensor, geom: LiftGeometry, grid: BEVGrid) -> torch.Tensor:
     """Geometric evidence of every BEV cell from the depth alone: ``B x N x h x w`` depth at the lift pixels →
     ``B x 3 x X x Y`` = ``log(1 + count)`` of (:data:`EVIDENCE_CHANNELS`)
@@ -315,7 +324,7 @@ def lift_evidence(depth: torch.Tensor, geom: LiftGeometry, grid: BEVGrid) -> tor
     * ``hits``: measured points inside the height band (something is there — what :func:`lift_splat` pools);
     * ``floor``: measured points below the ground threshold (the floor is seen there: free);
     * ``free``: points sampled along each valid ray up to :data:`FREE_MARGIN_M` before its measured point (the ray
-      crossed that cell: free), :data:`FREE_SAMPLES` per ray.
+      crossed that cell: free), :data:`FREE_SAMPLES` per ray, stratified by :func:`free_offsets`.
 
     Without ``floor`` and ``free`` a cell with no lifted point is ambiguous — free floor and the space hidden behind
     a wall look the same — which is what held the static IoU down (docs/notes/2026-11-bev-pretrain-epochs-and-
@@ -329,7 +338,8 @@ def lift_evidence(depth: torch.Tensor, geom: LiftGeometry, grid: BEVGrid) -> tor
     z = pts[..., 2]
     hits = _count_cells(pts, ok & (z >= grid.z_bound[0]) & (z <= grid.z_bound[1]), grid)
     floor = _count_cells(pts, ok & (z < grid.z_bound[0]), grid)
-    frac = (torch.arange(FREE_SAMPLES, device=d.device, dtype=d.dtype) + 0.5) / FREE_SAMPLES  # S
+    frac = (torch.arange(FREE_SAMPLES, device=d.device, dtype=d.dtype) + free_offsets(d.shape[-2:], d.device)
+            ) / FREE_SAMPLES  # h x w x S
     reach = (d - FREE_MARGIN_M).clamp_min(0.0).unsqueeze(-1) * frac  # B N h w S: z-depth of each sample
     samples = origins.view(1, n, 1, 1, 1, 3) + reach.unsqueeze(-1) * rays.view(1, n, *rays.shape[1:3], 1, 3)
     # samples above the band's top say nothing about what stands below them in the band

@@ -17,6 +17,7 @@ from pretrain.geometry import (
     bev_to_image,
     check_grid_fits_cameras,
     fov_mask,
+    lift_pixel_index,
     lift_splat,
     lift_splat_reference,
     relative_pose,
@@ -448,3 +449,76 @@ def test_camera_from_malformed_dict_raises(mutate):
 def test_camera_from_non_mapping_raises(bad):
     with pytest.raises(CorruptArtifactError):
         Camera.from_dict(bad)
+
+
+# ---------------------------------------------------------------- depth evidence (hits / floor / free rays)
+
+
+def evidence_reference(depth: np.ndarray, cams: list[Camera], stride: int, grid: BEVGrid) -> np.ndarray:
+    """The obvious per-point loop of :func:`lift_evidence` for one frame: ``N x h x w`` depth → ``3 x X x Y``."""
+    from pretrain.geometry import FREE_MARGIN_M, FREE_SAMPLES, free_offsets
+
+    nx, ny = grid.shape
+    counts = np.zeros((3, nx, ny))
+    rows, cols = lift_pixel_index(cams[0].height, cams[0].width, stride)
+    offsets = free_offsets(rows.shape).numpy()[..., 0]
+
+    def add(ch: int, p: np.ndarray) -> None:
+        i = math.floor((p[0] - grid.x_bound[0]) / grid.x_bound[2])
+        j = math.floor((p[1] - grid.y_bound[0]) / grid.y_bound[2])
+        if 0 <= i < nx and 0 <= j < ny:
+            counts[ch, i, j] += 1
+
+    for n, cam in enumerate(cams):
+        K, T = cam.K_np, cam.T_np
+        for r in range(rows.shape[0]):
+            for c in range(rows.shape[1]):
+                d = float(depth[n, r, c])
+                if not (d > 0 and cam.min_depth_m <= d <= cam.max_depth_m):
+                    continue
+                ray = T[:3, :3] @ np.array([(cols[r, c] + 0.5 - K[0, 2]) / K[0, 0],
+                                            (rows[r, c] + 0.5 - K[1, 2]) / K[1, 1], 1.0])
+                p = T[:3, 3] + d * ray
+                if grid.z_bound[0] <= p[2] <= grid.z_bound[1]:
+                    add(0, p)
+                elif p[2] < grid.z_bound[0]:
+                    add(1, p)
+                for s in range(FREE_SAMPLES):
+                    q = T[:3, 3] + max(d - FREE_MARGIN_M, 0.0) * (s + offsets[r, c]) / FREE_SAMPLES * ray
+                    if q[2] <= grid.z_bound[1]:
+                        add(2, q)
+    return np.log1p(counts)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_lift_evidence_matches_reference(seed):
+    """The vectorised evidence equals the per-point loop (floor hits included: the depths reach the floor)."""
+    from pretrain.geometry import LiftGeometry, lift_evidence
+
+    cams, grid = cameras(), default_grid()
+    rng = np.random.default_rng(seed)
+    h, w = lift_pixel_index(H, W, STRIDE)[0].shape
+    depth = rng.uniform(0.0, 7.0, (1, 2, h, w)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.1] = 0.0  # invalid pixels
+    got = lift_evidence(torch.from_numpy(depth), LiftGeometry(cams, STRIDE), grid)[0].numpy()
+    want = evidence_reference(depth[0], cams, STRIDE, grid)
+    assert got.shape == (3, *grid.shape)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    assert want[1].sum() > 0 and want[0].sum() > 0 and want[2].sum() > want[0].sum()
+
+
+def test_free_rays_mark_the_cells_before_a_wall():
+    """A wall 3 m ahead of the left camera: hits at 3 m, free cells between camera and wall, nothing behind it."""
+    from pretrain.geometry import LiftGeometry, lift_evidence
+
+    spec = CameraSpec("front", W, H, 70.0, 0.0, 0.0, (0.0, 0.0, 0.8))
+    cam = Camera.from_dict(spec.to_dict())
+    grid = default_grid()
+    h, w = lift_pixel_index(H, W, STRIDE)[0].shape
+    depth = torch.full((1, 1, h, w), 3.0)
+    ev = lift_evidence(depth, LiftGeometry([cam], STRIDE), grid)[0]
+    rows = ev.sum(2)  # 3 x X: evidence per distance ahead, over every lateral cell
+    wall = grid.cell_of(3.0, 0.0)[0]
+    assert rows[0, wall - 1:wall + 2].sum() > 0 and rows[0, :wall - 1].sum() == 0  # hits only at the wall
+    assert (rows[2, 1:wall - 1] > 0).all()  # free rays in front of it, without gaps
+    assert rows[:, wall + 2:].sum() == 0  # nothing known behind it
