@@ -57,8 +57,12 @@ def test_stage_writes_the_documented_tree(trained) -> None:
     metrics = json.loads((out / "metrics.json").read_text())
     for t in ("static", "ped_t", "ped_t+0.5s", "ped_t+1.0s"):
         assert f"iou_{t}" in metrics["final"]
+    dec = metrics["decision"]  # the calibrated decision rule (pretrain.evaluate.calibrate)
+    assert metrics["thresholds"] == dec["best_threshold"] and len(dec["best_threshold"]) == 4
+    assert set(dec) >= {"at_0.5", "best", "cross_fitted", "bayes", "bayes_threshold", "cross_fit_thresholds"}
     desc = json.loads((out / "encoder.json").read_text())
     assert desc["encoder"]["bev_channels"] == 8 and len(desc["cameras"]) == 2
+    assert desc["encoder"]["evidence"] is True and desc["encoder"]["decoder"] == "unet"
     assert desc["dataset"]["repo_id"] == REPO
     assert set(desc["dataset"]["train_episodes"]).isdisjoint(desc["dataset"]["val_episodes"])
 
@@ -186,6 +190,22 @@ def test_config_errors() -> None:
         load_config(PretrainConfig, "pretrain", "smoke", overrides={"val_fraction": "1.5"})
     with pytest.raises(ConfigError, match="resnet_stages"):
         load_config(PretrainConfig, "pretrain", "smoke", overrides={"encoder.resnet_stages": "7"})
+    with pytest.raises(ConfigError, match="encoder.decoder"):
+        load_config(PretrainConfig, "pretrain", "smoke", overrides={"encoder.decoder": "fpn"})
+    with pytest.raises(ConfigError, match="pos_weight_cap"):
+        load_config(PretrainConfig, "pretrain", "smoke", overrides={"pos_weight_cap": "0.5"})
+
+
+def test_an_encoder_json_from_before_the_evidence_and_decoder_loads_as_trained(trained, tmp_path: Path) -> None:
+    """A checkpoint written before ``evidence`` / ``decoder`` existed is the architecture without them."""
+    from pretrain.checkpoint import encoder_from_json, read_encoder_json
+
+    _, out = trained
+    desc = read_encoder_json(out)
+    old = {**desc, "encoder": {k: v for k, v in desc["encoder"].items() if k not in ("evidence", "decoder")}}
+    enc = encoder_from_json(old)
+    assert not enc.cfg.evidence and enc.cfg.decoder == "none"
+    assert not hasattr(enc, "evidence") and not hasattr(enc, "decoder")
 
 
 def test_backbone_initialised_from_a_user_weights_file(tmp_path: Path) -> None:
