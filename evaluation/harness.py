@@ -23,7 +23,7 @@ import numpy as np
 from evaluation.methods import MethodSpec
 from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError
-from pipeline.core.parallel import map_jobs
+from pipeline.core.executor import Executor, map_jobs
 from recorder.mcap.writer import EpisodeWriter
 from recorder.schema import episode_meta_from_env, frame_from_env
 from sim.env import CrowdNavEnv, SimConfig
@@ -188,15 +188,15 @@ def _heat(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.flipud(img))  # row 0 = far / top
 
 
-def run_jobs_cached(jobs: list[Job], cache: Path, workers: int, desc: str, progress: bool = True
-                    ) -> list[dict[str, Any]]:
+def run_jobs_cached(jobs: list[Job], cache: Path, workers: int, desc: str, progress: bool = True,
+                    executor: Executor | None = None) -> list[dict[str, Any]]:
     """:func:`run_jobs` that keeps each finished row in ``cache`` and runs only the jobs without one (a killed run
     continues where it stopped); rows in job order."""
     jobs = [replace(j, row_cache=cache) for j in jobs]
     todo = [j for j in jobs if not (cache / f"{j.name}.json").is_file()]
     if len(todo) < len(jobs):
         log.info("%s: %d of %d episodes already done (%s)", desc, len(jobs) - len(todo), len(jobs), cache)
-    run_jobs(todo, workers, desc, progress)
+    run_jobs(todo, workers, desc, progress, executor)
     rows = []
     for j in jobs:
         path = cache / f"{j.name}.json"
@@ -208,6 +208,8 @@ def run_jobs_cached(jobs: list[Job], cache: Path, workers: int, desc: str, progr
     return rows
 
 
-def run_jobs(jobs: list[Job], workers: int, desc: str, progress: bool = True) -> list[dict[str, Any]]:
-    """All ``jobs`` in a process pool (fork; each worker loads a method's weights once), rows in job order."""
-    return map_jobs(run_episode, jobs, workers, desc, progress)
+def run_jobs(jobs: list[Job], workers: int, desc: str, progress: bool = True,
+             executor: Executor | None = None) -> list[dict[str, Any]]:
+    """All ``jobs`` in a process pool (fork; each worker loads a method's weights once) or on Ray
+    (:mod:`pipeline.core.executor`), rows in job order."""
+    return map_jobs(run_episode, jobs, workers, desc, progress, executor=executor)

@@ -63,6 +63,7 @@ from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
+from pipeline.core.executor import Executor, check_executor
 from rl.policy import check_checkpoint_weights
 from sim.env import CrowdNavEnv, SimConfig
 from sim.planners.topomap import build_gvg, plot_topomap
@@ -106,6 +107,10 @@ class EvalConfig(BaseStageConfig):
     paired_with: str = field(default="full", metadata={"help": "the method every other is paired against"})
     seed_base: int = field(default=20_000, metadata={"help": "episode seeds are seed_base + seed + k"})
     workers: int = 2
+    executor: str = field(default="auto", metadata={"help": "where episodes run: auto (Ray when RAY_ADDRESS is set) "
+                                                            "| local | ray (pipeline.core.executor)"})
+    ray_address: str = field(default="", metadata={"help": "Ray cluster address host:port (empty: RAY_ADDRESS, or "
+                                                           "a Ray instance started on this machine)"})
     figures: int = field(default=1, metadata={"help": "trajectory PNGs per cell and method (first episodes)"})
     videos: int = field(default=1, metadata={"help": "mp4 + MCAP per cell and method (first episodes, rendered)"})
     long_horizon: LongHorizonConfig = field(default_factory=LongHorizonConfig)
@@ -136,6 +141,7 @@ class EvalConfig(BaseStageConfig):
             raise ConfigError(f"eval.scenario_trials: expected an integer in [1, 1000], got {self.scenario_trials!r}")
         if not self.methods:
             raise ConfigError("eval.methods: expected at least one method")
+        check_executor(self.executor, self.ray_address, "eval")
         if self.figures < 0 or self.videos < 0:
             raise ConfigError(f"eval.figures/videos: expected >= 0, got {self.figures}/{self.videos}")
         lh = self.long_horizon
@@ -233,20 +239,27 @@ def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:
 
 
 def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
+    ex = Executor.of(cfg)
+    with ex.session(cfg.workers):  # one Ray connection for every part (nothing for the local pool)
+        return _body(cfg, out, ex)
+
+
+def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
     specs = resolve_methods(cfg.methods, Path(cfg.data_dir))
     labels = {m.name: m.label for m in specs}
     seeds = seeds_of(cfg)
-    rows = run_jobs_cached(benchmark_jobs(cfg, specs, out), out / "rows", cfg.workers, "eval: benchmark", cfg.progress)
+    rows = run_jobs_cached(benchmark_jobs(cfg, specs, out), out / "rows", cfg.workers, "eval: benchmark", cfg.progress,
+                           ex)
     routing_rows: list[dict[str, Any]] = []
     if cfg.routing_scenes:
         routing_rows = run_jobs_cached(benchmark_jobs(cfg, specs, out / "routing", cfg.routing_scenes, route=True),
-                                       out / "rows", cfg.workers, "eval: routing", cfg.progress)
+                                       out / "rows", cfg.workers, "eval: routing", cfg.progress, ex)
         atomic_write_text(out / "routing" / "episodes.jsonl",
                           "".join(json.dumps(r) + "\n" for r in json_safe(routing_rows)))
     sc_rows: list[dict[str, Any]] = []
     if cfg.scenarios:
         sc_rows = run_jobs_cached(scenario_jobs(cfg, specs, out / "scenarios"), out / "rows", cfg.workers,
-                                  "eval: scenarios", cfg.progress)
+                                  "eval: scenarios", cfg.progress, ex)
         atomic_write_text(out / "scenarios" / "episodes.jsonl",
                           "".join(json.dumps(r) + "\n" for r in json_safe(sc_rows)))
     lh_rows: list[dict[str, Any]] = []
@@ -260,7 +273,7 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
                     extra={"graph_path_m": float(np.sum(np.hypot(*np.diff(
                         np.vstack([p["start"], p["waypoints"]]), axis=0).T)))})
                 for p in plans for m in specs]
-        lh_rows = run_jobs_cached(jobs, out / "rows", cfg.workers, "eval: long horizon", cfg.progress)
+        lh_rows = run_jobs_cached(jobs, out / "rows", cfg.workers, "eval: long horizon", cfg.progress, ex)
         _plot_long_horizon(plans, lh_rows, out / "long_horizon", labels)
         for p in plans:
             lh_seeds.setdefault(p["map"], []).append(p["seed"])

@@ -41,6 +41,16 @@ from pretrain.geometry import (
     lift_splat,
     lift_splat_reference,
 )
+from pretrain.intention import (
+    FitOptions,
+    ForecasterConfig,
+    IntentionConfig,
+    IntentionForecaster,
+    collect,
+    fit_model,
+    predict,
+    split_samples,
+)
 from pretrain.model import BEVEncoder, BEVStream, EncoderConfig, PretextHeads
 from pretrain.train import FitConfig, fit
 
@@ -177,8 +187,6 @@ def write_intention_samples(dataset: Path, out: Path) -> dict[str, int]:
     """Collects the intention stage's samples of ``dataset`` (:func:`pretrain.intention.collect`, the default
     model's horizons and history) into one ``.npz`` (a few MB: the stage's inputs without the dataset's images), so
     that :func:`measure_intention_fit` can run on a machine that holds no dataset."""
-    from pretrain.intention import ForecasterConfig, collect
-
     mc = ForecasterConfig()
     samples, fps, n_eps = collect(dataset, mc.horizons_s, mc.history)
     tmp = out.with_name(out.name + ".tmp.npz")
@@ -193,16 +201,6 @@ def measure_intention_fit(samples_npz: Path, devices: list[str], epochs: int = 1
     them; ``intention_fit_s_<device>`` (wall seconds for ``epochs`` epochs), ``intention_val_fde_1s_<device>``
     (validation FDE at the last horizon: the two devices must agree to within run-to-run noise) and, with both
     devices, ``intention_fit_speedup_cuda_vs_cpu``."""
-    from pretrain.intention import (
-        FitOptions,
-        ForecasterConfig,
-        IntentionConfig,
-        IntentionForecaster,
-        fit_model,
-        predict,
-        split_samples,
-    )
-
     with np.load(samples_npz) as z:
         samples = {k: z[k] for k in z.files if k not in ("fps", "n_episodes")}
         n_eps = int(z["n_episodes"])

@@ -38,6 +38,7 @@ from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError, StoppedError
+from pipeline.core.executor import Executor, check_executor, map_jobs
 from pipeline.core.manifest import hash_file
 from recorder.drive import DRIVERS, drive_episode
 from recorder.mcap.reader import episode_summary
@@ -65,10 +66,15 @@ class RecordConfig(BaseStageConfig):
     episodes: int = field(default=4, metadata={"help": "episodes per (scene, density); seeds seed..seed+N-1"})
     driver: str = field(default="expert", metadata={"help": f"who drives: one of {list(DRIVERS)}"})
     workers: int = field(default=2, metadata={"help": "parallel episode processes"})
+    executor: str = field(default="auto", metadata={"help": "where episodes run: auto (Ray when RAY_ADDRESS is set) "
+                                                            "| local | ray (pipeline.core.executor)"})
+    ray_address: str = field(default="", metadata={"help": "Ray cluster address host:port (empty: RAY_ADDRESS, or "
+                                                           "a Ray instance started on this machine)"})
     sim: SimConfig = field(default_factory=SimConfig, metadata={"help": "the crowd world"})
 
     def validate(self) -> None:
         super().validate()
+        check_executor(self.executor, self.ray_address, "record")
         check_episode_grid(self.scenes, self.densities, self.episodes, self.workers)
         check_run_name(self.run_name)
         if self.driver not in DRIVERS:
@@ -185,10 +191,26 @@ def _stop_pool(pool: ProcessPoolExecutor, stop: mp.synchronize.Event, grace_s: f
             p.join(timeout=1.0)
 
 
+def _record_task(args: tuple) -> dict:
+    """One episode as a Ray task (:mod:`pipeline.core.executor`): a killed worker leaves ``*.mcap.partial``, the
+    retried task records the episode again under the same name."""
+    return record_one(*args)
+
+
 def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: list[Job]) -> None:
     bar = tqdm(total=len(todo), desc=f"record {cfg.driver}", unit="ep")
+    ex = Executor.of(cfg)
     try:
         with graceful_signals():
+            if ex.kind == "ray":
+                def finished(_: int, r: dict) -> None:
+                    rows[r["file"]] = r
+                    _write_rows(out, rows, jobs)
+                    bar.update()
+
+                map_jobs(_record_task, [(cfg.sim, j, out, cfg.driver) for j in todo], cfg.workers, "record",
+                         progress=False, executor=ex, on_result=finished)
+                return
             if cfg.workers == 1:
                 for j in todo:
                     r = record_one(cfg.sim, j, out, cfg.driver)

@@ -35,17 +35,23 @@ the frames are rendered from the bench scene at the profile's resolution.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from typing import Any
 
 import numpy as np
 import torch
 
+from pipeline.core.config import load_config
+from pipeline.core.device import resolve_device
+from pipeline.core.errors import ICrowdNavError
 from pipeline.core.timing import time_call
-from pretrain.model import BEVEncoder
-from rl.observe import BEV_POOL, StudentObserver, env_cameras, observer_for_env
+from pretrain.geometry import cameras_from_dataset
+from pretrain.intention import ForecasterConfig, IntentionForecaster
+from pretrain.model import BEVEncoder, BEVStream, EncoderConfig
+from rl.observe import BEV_POOL, StudentObserver, env_cameras, observer_for_env, perception_params
 from rl.policy import act, build_policy, policy_class, policy_kwargs
-from rl.teacher import attach_lookahead_cache, make_vec_env, ppo_kwargs, teacher_net
+from rl.stage import TrainConfig
+from rl.teacher import attach_lookahead_cache, behaviour_clone, make_vec_env, ppo_kwargs, teacher_net
 from rl.vec_env import usable_cores
 from sim.env import CrowdNavEnv
 
@@ -194,14 +200,6 @@ def measure_student_update(cameras, train_cfg: Any, device: str, frames: int = 2
     """Milliseconds per 1,000 frames and epoch of the default student's DAgger update on ``device`` (see the module
     docstring): :func:`rl.teacher.behaviour_clone` with the profile's ``dagger`` settings, timed over ``epochs``
     epochs after one warm-up epoch (each call fills the lookahead feature cache once, as every iteration does)."""
-    from dataclasses import asdict
-
-    from pipeline.core.device import resolve_device
-    from pretrain.intention import ForecasterConfig, IntentionForecaster
-    from pretrain.model import EncoderConfig
-    from rl.observe import perception_params
-    from rl.teacher import behaviour_clone
-
     cfg, d = train_cfg, train_cfg.dagger
     dev = resolve_device(device, "device")
     torch.manual_seed(seed)
@@ -230,9 +228,6 @@ def measure_student_update(cameras, train_cfg: Any, device: str, frames: int = 2
 def measure_student_encoder(cameras, device: str, streams: int, steps: int = 20, seed: int = 0) -> float:
     """Milliseconds per :meth:`pretrain.model.BEVStream.step` of the default encoder on ``streams`` streams at once
     (random frames of the cameras' size; median after two warm-up steps)."""
-    from pipeline.core.device import resolve_device
-    from pretrain.model import BEVStream, EncoderConfig
-
     dev = resolve_device(device, "device")
     torch.manual_seed(seed)
     enc = BEVEncoder(EncoderConfig(), cameras).eval().requires_grad_(False).to(dev)
@@ -280,11 +275,6 @@ def main(argv: list[str] | None = None) -> int:
     import sys
     from pathlib import Path
 
-    from pipeline.core.config import load_config
-    from pipeline.core.errors import ICrowdNavError
-    from pretrain.geometry import cameras_from_dataset
-    from rl.stage import TrainConfig
-
     ap = argparse.ArgumentParser(prog="python -m rl.bench", description=main.__doc__)
     ap.add_argument("--dataset", type=Path, required=True, help="a dataset root (only meta/info.json is read)")
     ap.add_argument("--devices", default="cpu,cuda" if torch.cuda.is_available() else "cpu")
@@ -306,7 +296,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg: Any, seconds: float) -> dict:
-    from dataclasses import asdict
 
     import torch.nn.functional as F
 

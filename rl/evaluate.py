@@ -11,7 +11,7 @@ from typing import Any
 
 import torch
 
-from pipeline.core.parallel import map_jobs
+from pipeline.core.executor import map_jobs
 from rl.baselines import BASELINES, baseline_module
 from rl.driver import PolicyDriver, process_cached
 from rl.policy import read_policy_json

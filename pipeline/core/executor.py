@@ -1,0 +1,233 @@
+"""Where independent jobs (episodes) run: the local process pool (the default) or a Ray cluster.
+
+::
+
+    icrowdnav record --executor ray                      # a Ray instance started for this run on this machine
+    RAY_ADDRESS=10.0.0.5:6379 icrowdnav eval ...         # a running cluster (``ray start --head`` there)
+    icrowdnav eval --executor ray --ray_address 10.0.0.5:6379
+
+``executor``: ``auto`` (Ray when ``RAY_ADDRESS`` is set, else local), ``local`` or ``ray``. Both give the same
+results: a job is a pure function of its arguments (seeded episodes), each writes its own files under deterministic
+names (atomically: a temporary name, then a rename), and results come back in job order. On Ray:
+
+* every job is one task (one CPU); a task whose worker process or node dies is rerun (``max_retries``) — it
+  rewrites the same files, so nothing is lost or duplicated; an exception raised *by* the job is not retried and
+  surfaces as itself (a named error stays a named error);
+* files are written where the job's paths point: the data directory must be the same path on every node (a shared
+  filesystem: NFS, a cluster volume; on one machine nothing is needed). :func:`check_data_dir` runs a probe task on
+  every alive node first and names a node that cannot write there (exit 2, nothing written). Clusters without a
+  shared filesystem: mount one (the driver's data directory) — moving episode files through the object store is
+  not implemented (docs/scale-out.md);
+* the progress bar counts finished tasks; Ctrl-C (or SIGTERM) cancels every pending and running task
+  (``ray.cancel(force=True)``), then the stage reports what finished, as with the local pool;
+* an address nobody answers is a named error after a 5 s TCP probe (``ray.init`` itself would wait for minutes).
+
+The local pool forks (workers keep what they load, e.g. a method's weights, for the jobs that follow); Ray workers
+are long-lived processes too, so per-process caches work the same way there.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import socket
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+from tqdm import tqdm
+
+from pipeline.core.errors import ConfigError, ICrowdNavError
+
+log = logging.getLogger("icrowdnav")
+
+J = TypeVar("J")
+EXECUTORS = ("auto", "local", "ray")
+PROBE_TIMEOUT_S = 5.0
+MAX_RETRIES = 3  # reruns of a task whose worker died
+
+
+def check_executor(executor: str, address: str, where: str) -> None:
+    """Config check of the ``executor`` / ``ray_address`` fields of a stage config (``where``: its key prefix)."""
+    if executor not in EXECUTORS:
+        raise ConfigError(f"{where}.executor: expected one of {list(EXECUTORS)}, got {executor!r}")
+    if address and executor == "local":
+        raise ConfigError(f"{where}.ray_address: given ({address!r}) but {where}.executor is 'local'")
+
+
+def resolve_executor(executor: str, address: str = "") -> str:
+    """``local`` or ``ray``: ``auto`` is Ray when an address is given or ``RAY_ADDRESS`` is set."""
+    if executor == "auto":
+        return "ray" if (address or os.environ.get("RAY_ADDRESS")) else "local"
+    return executor
+
+
+def _probe_address(address: str) -> None:
+    """A TCP connection to a ``host:port`` / ``ray://host:port`` address, or one named error."""
+    if address in ("", "auto", "local"):
+        return
+    hostport = address.split("://", 1)[-1]
+    host, _, port = hostport.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError(f"Ray address: expected host:port (or ray://host:port, auto), got {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=PROBE_TIMEOUT_S).close()
+    except OSError as e:
+        raise ConfigError(f"Ray address {address}: nobody answers ({type(e).__name__}: {e}); start a cluster with "
+                          "`ray start --head` (then --address / RAY_ADDRESS = what it prints) or unset RAY_ADDRESS "
+                          "to run locally") from None
+
+
+def _write_probe(data_dir: str, token: str) -> tuple[str, str]:
+    """On one node: ``(node ip, "")`` if ``data_dir`` exists there and a file can be written in it, else the
+    reason."""
+    import ray
+
+    ip = ray.util.get_node_ip_address()
+    d = Path(data_dir)
+    if not d.is_dir():
+        return ip, f"{data_dir} does not exist there"
+    probe = d / f".ray_probe_{token}_{ray.get_runtime_context().get_node_id()[:12]}"  # nodes may share the folder
+    try:
+        probe.write_text(token)
+        probe.unlink()
+    except OSError as e:
+        return ip, f"{data_dir} is not writable there ({type(e).__name__}: {e})"
+    return ip, ""
+
+
+def check_data_dir(data_dir: Path) -> None:
+    """Every alive node can write into ``data_dir`` (the same path as on the driver), or one named error."""
+    import ray
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    probe = ray.remote(num_cpus=0, max_retries=0)(_write_probe)
+    token = uuid.uuid4().hex
+    nodes = [n["NodeID"] for n in ray.nodes() if n.get("Alive")]
+    refs = [probe.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n, soft=False)).remote(
+        str(Path(data_dir).resolve()), token) for n in nodes]
+    bad = [(ip, why) for ip, why in ray.get(refs) if why]
+    if bad:
+        ip, why = bad[0]
+        raise ConfigError(f"data dir {Path(data_dir).resolve()}: the Ray workers cannot reach it — on node {ip}, "
+                          f"{why} ({len(bad)} of {len(nodes)} nodes); the data directory must be the same path on "
+                          "every node (a shared filesystem), see docs/scale-out.md")
+
+
+@contextmanager
+def ray_session(address: str, data_dir: Path, workers: int) -> Iterator[None]:
+    """Connects to the cluster at ``address`` (or ``RAY_ADDRESS``), or starts a local Ray instance with ``workers``
+    CPUs; checks the data dir from every node; shuts down what it started. Reuses a session already connected
+    (tests, notebooks)."""
+    import ray
+
+    addr = address or os.environ.get("RAY_ADDRESS", "")
+    started = False
+    if not ray.is_initialized():
+        _probe_address(addr)
+        kw: dict[str, Any] = {"address": addr or None, "log_to_driver": False, "configure_logging": False}
+        if not addr:
+            kw.update(num_cpus=max(1, workers), include_dashboard=False)
+        try:
+            ray.init(**kw)
+        except (ConnectionError, RuntimeError, ValueError) as e:
+            raise ConfigError(f"Ray address {addr or '(a local instance)'}: could not connect "
+                              f"({type(e).__name__}: {str(e)[:200]})") from None
+        started = True
+    try:
+        check_data_dir(data_dir)
+        yield
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def _ray_map(fn: Callable[[J], Any], jobs: Sequence[J], desc: str, progress: bool, unit: str,
+             on_result: Callable[[int, Any], None] | None) -> list[Any]:
+    import ray
+    from ray.exceptions import RayTaskError
+
+    task = ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)(fn)
+    refs = [task.remote(j) for j in jobs]
+    index = {r: i for i, r in enumerate(refs)}
+    out: list[Any] = [None] * len(jobs)
+    pending = list(refs)
+    bar = tqdm(total=len(jobs), desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
+    try:
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for r in done:
+                try:
+                    out[index[r]] = ray.get(r)
+                except RayTaskError as e:  # the job's own exception: raise it as itself (named errors stay named)
+                    cause = getattr(e, "cause", None)
+                    if isinstance(cause, ICrowdNavError | KeyboardInterrupt):
+                        raise cause from None
+                    raise
+                if on_result is not None:
+                    on_result(index[r], out[index[r]])
+                bar.update()
+    except BaseException:
+        for r in pending:
+            ray.cancel(r, force=True)
+        raise
+    finally:
+        bar.close()
+    return out
+
+
+@dataclass(frozen=True)
+class Executor:
+    """Where a stage's jobs run: ``kind`` ``local`` or ``ray`` (resolved), the Ray ``address`` ("" = ``RAY_ADDRESS``
+    or a local instance) and the ``data_dir`` the jobs write into (checked from every Ray node)."""
+
+    kind: str = "local"
+    address: str = ""
+    data_dir: Path = Path(".")
+
+    @classmethod
+    def of(cls, cfg: Any) -> Executor:
+        """From a stage config's ``executor`` / ``ray_address`` / ``data_dir`` fields."""
+        return cls(resolve_executor(cfg.executor, cfg.ray_address), cfg.ray_address, Path(cfg.data_dir))
+
+    @contextmanager
+    def session(self, workers: int) -> Iterator[None]:
+        """One Ray connection for a whole stage (every :func:`map_jobs` inside reuses it); nothing for ``local``."""
+        if self.kind != "ray":
+            yield
+            return
+        with ray_session(self.address, self.data_dir, workers):
+            yield
+
+
+def map_jobs(fn: Callable[[J], Any], jobs: Sequence[J], workers: int, desc: str, progress: bool = True,
+             unit: str = "ep", executor: Executor | None = None,
+             on_result: Callable[[int, Any], None] | None = None) -> list[Any]:
+    """``[fn(j) for j in jobs]`` in job order: in this process (``workers <= 1``), a fork process pool of
+    ``workers``, or Ray tasks (``executor.kind == "ray"``; inside :meth:`Executor.session` or starting one).
+    ``on_result(i, result)`` is called as each job finishes (in completion order), e.g. to record progress."""
+    if executor is not None and executor.kind == "ray":
+        if not jobs:
+            return []
+        with executor.session(workers):
+            return _ray_map(fn, jobs, desc, progress, unit, on_result)
+    if workers <= 1:
+        out = []
+        for i, j in enumerate(tqdm(jobs, desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)):
+            out.append(fn(j))
+            if on_result is not None:
+                on_result(i, out[-1])
+        return out
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
+        out = []
+        for i, r in enumerate(tqdm(pool.map(fn, jobs, chunksize=1), total=len(jobs), desc=desc, unit=unit,
+                                   disable=not progress, dynamic_ncols=True)):
+            out.append(r)
+            if on_result is not None:
+                on_result(i, r)
+        return out

@@ -1,0 +1,189 @@
+"""pipeline.core.executor: the local pool and Ray give the rows of a serial run, in job order; a real local Ray
+cluster (a head and one more node on this machine) records and evaluates byte- and row-identically to the local
+pool, survives a worker killed mid-episode, and refuses what it cannot use with one named error."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import socket
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from pipeline import cli
+from pipeline.core.errors import ConfigError
+from pipeline.core.executor import Executor, check_executor, map_jobs, ray_session, resolve_executor
+
+SCENE_ARGS = ["--scenes", "hallway", "--densities", "0.05", "--sim.camera.width-px", "64",
+              "--sim.camera.height-px", "48"]
+RECORD = [*SCENE_ARGS, "--episodes", "4", "--sim.max-episode-s", "4.0"]
+NAMES = [f"hallway_d0.05_s{k}.mcap" for k in range(4)]
+
+
+def _square_and_pid(k: int) -> tuple[int, int]:
+    return k * k, os.getpid()
+
+
+def test_pool_and_serial_give_the_same_rows_in_job_order():
+    jobs = list(range(7))
+    seen: list[int] = []
+    serial = map_jobs(_square_and_pid, jobs, workers=1, desc="serial", progress=False)
+    pooled = map_jobs(_square_and_pid, jobs, workers=2, desc="pool", progress=False,
+                      on_result=lambda i, r: seen.append(i))
+    assert [r for r, _ in serial] == [r for r, _ in pooled] == [k * k for k in jobs]
+    assert {p for _, p in serial} == {os.getpid()}
+    assert os.getpid() not in {p for _, p in pooled}
+    assert sorted(seen) == jobs
+
+
+def test_executor_choice(monkeypatch):
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    assert resolve_executor("auto") == "local" and resolve_executor("ray") == "ray"
+    assert resolve_executor("auto", "10.0.0.1:6379") == "ray"
+    monkeypatch.setenv("RAY_ADDRESS", "10.0.0.1:6379")
+    assert resolve_executor("auto") == "ray" and resolve_executor("local") == "local"
+    with pytest.raises(ConfigError, match="record.executor: expected one of"):
+        check_executor("dask", "", "record")
+    with pytest.raises(ConfigError, match="ray_address"):
+        check_executor("local", "10.0.0.1:6379", "eval")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_an_address_nobody_answers_is_one_named_error_in_seconds(tmp_path):
+    t = time.monotonic()
+    with pytest.raises(ConfigError, match="nobody answers"), ray_session(f"127.0.0.1:{_free_port()}", tmp_path, 1):
+        pass
+    assert time.monotonic() - t < 30  # ray.init alone keeps retrying for minutes
+    with pytest.raises(ConfigError, match="expected host:port"), ray_session("no-port-here", tmp_path, 1):
+        pass
+
+
+def test_cli_unreachable_ray_address_exits_2_and_writes_nothing(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{_free_port()}")
+    data = tmp_path / "data"
+    rc = cli.main(["record", "--data-dir", str(data), *RECORD])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
+    assert rc == 2 and len(err) == 1 and "nobody answers" in err[0]
+    assert not (data / "raw" / "expert").exists() or not any((data / "raw" / "expert").glob("*.mcap"))
+
+
+# ------------------------------------------------------------------------------------------ a real Ray cluster
+def _digests(d: Path) -> dict[str, str]:
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(d.glob("*.mcap"))}
+
+
+def _rows(d: Path) -> list[dict]:
+    return [{k: v for k, v in json.loads(line).items() if k not in ("seconds", "mcap_seconds")}
+            for line in (d / "episodes.jsonl").read_text().splitlines()]
+
+
+@pytest.fixture(scope="module")
+def local_record(tmp_path_factory) -> Path:
+    """The reference: the same recording with the local pool."""
+    data = tmp_path_factory.mktemp("local") / "data"
+    assert cli.main(["record", "--data-dir", str(data), *RECORD, "--workers", "2", "--executor", "local"]) == 0
+    return data / "raw" / "expert"
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A Ray head and a second node process on this machine (one CPU each); RAY_ADDRESS points at it."""
+    ray = pytest.importorskip("ray")
+    from ray.cluster_utils import Cluster
+
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    c.add_node(num_cpus=1)
+    c.wait_for_nodes()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("RAY_ADDRESS", c.address)
+        yield c
+    if ray.is_initialized():
+        ray.shutdown()
+    c.shutdown()
+
+
+@pytest.mark.slow
+def test_record_and_eval_on_ray_equal_the_local_pool(cluster, local_record, tmp_path):
+    data = tmp_path / "data"
+    assert cli.main(["record", "--data-dir", str(data), *RECORD, "--workers", "2"]) == 0  # auto: RAY_ADDRESS
+    out = data / "raw" / "expert"
+    assert list(_digests(out)) == NAMES and _digests(out) == _digests(local_record)
+    assert _rows(out) == _rows(local_record)
+
+    from evaluation.stage import EvalConfig
+    from pipeline.verbs.eval import run
+    from sim.env import SimConfig
+
+    tiny = SimConfig(max_episode_s=3.0)
+    base = EvalConfig(methods=["expert"], scenes=["office_lobby"], densities=[0.1], goals=2, trials=1,
+                      routing_scenes=[], scenarios=[], workers=2, figures=1, videos=0, sim=tiny, progress=False)
+    base.long_horizon = replace(base.long_horizon, runs=0)
+    rows = {}
+    for ex in ("ray", "local"):
+        run(replace(base, data_dir=str(tmp_path / ex), executor=ex))
+        d = tmp_path / ex / "eval" / "benchmark"
+        rows[ex] = (d / "episodes.jsonl").read_text()
+        assert len(list((d / "figures").glob("office_lobby_*.png"))) == 1  # a file a task wrote reaches the data dir
+    assert rows["ray"] == rows["local"]
+
+
+def _ray_task_pids(name: str) -> list[int]:
+    import psutil
+
+    out = []
+    for p in psutil.process_iter(["pid", "name", "cmdline"]):
+        cmd = " ".join(p.info.get("cmdline") or [])
+        if f"ray::{name}" in cmd or p.info.get("name") == f"ray::{name}":
+            out.append(p.info["pid"])
+    return out
+
+
+@pytest.mark.slow
+def test_a_worker_killed_mid_episode_loses_and_duplicates_nothing(cluster, local_record, tmp_path):
+    data = tmp_path / "data"
+    out = data / "raw" / "expert"
+    killed: list[int] = []
+
+    def kill_one() -> None:  # SIGKILL the first worker seen recording an episode (its .partial is open)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not killed:
+            pids = _ray_task_pids("_record_task")
+            if pids and out.is_dir() and any(out.glob("*.mcap.partial")):
+                os.kill(pids[0], signal.SIGKILL)
+                killed.append(pids[0])
+            time.sleep(0.05)
+
+    t = threading.Thread(target=kill_one, daemon=True)
+    t.start()
+    assert cli.main(["record", "--data-dir", str(data), *RECORD, "--workers", "2", "--executor", "ray"]) == 0
+    t.join(timeout=5)
+    assert killed, "no worker was seen recording"
+    assert _digests(out) == _digests(local_record)  # every episode, once, byte-identical
+    assert not list(out.glob("*.partial")) and [r["file"] for r in _rows(out)] == NAMES
+
+
+@pytest.mark.slow
+def test_a_data_dir_the_nodes_cannot_reach_is_one_named_error(cluster, tmp_path):
+    import ray
+
+    from pipeline.core.executor import check_data_dir
+
+    ray.init(address=cluster.address, log_to_driver=False)
+    try:
+        with pytest.raises(ConfigError, match=r"the Ray workers cannot reach it — on node .* does not exist"):
+            check_data_dir(tmp_path / "only_on_the_driver")
+        check_data_dir(tmp_path)
+    finally:
+        ray.shutdown()
+    assert Executor().kind == "local"
