@@ -20,7 +20,10 @@ are kept, ours are replaced) and prints every figure. Figures (single process, t
   (:mod:`sim.intention`; median, 10th and 90th percentile, share of decisions where the head turns first);
 * ``record_frames_per_s_1worker`` / ``_2workers`` — the record stage (expert driving, both cameras rendered,
   MCAP written) on ``record_episodes`` episodes of the bench scene, and ``record_mcap_share``, the share of
-  recording time spent writing MCAP; ``export_frames_per_s`` — the LeRobot export of that recording
+  recording time spent writing MCAP; ``record_frames_per_s_ray_1node`` / ``_2nodes`` — the same episodes as
+  Ray tasks (:mod:`pipeline.core.executor`) on a Ray instance the stage starts (1 node, 2 CPUs; its start-up is in
+  the wall time) and on a running two-node local cluster (1 CPU each), and ``record_ray_*_vs_local_pool`` their
+  ratios to the 2-worker local pool (``--ray false`` skips them); ``export_frames_per_s`` — the LeRobot export of that recording
   (reading MCAP, lerobot's writer incl. AV1 video and stats; the dataset doctor excluded);
 * ``chunk_load_ms_ours`` — stock lerobot reading one item with a 100-step action chunk (``chunk_load_steps``)
   (``LeRobotDataset(..., video_backend="pyav", delta_timestamps={"action": 100 steps})[i]``) of that export,
@@ -79,6 +82,8 @@ class BenchConfig(BaseStageConfig):
     sim: SimConfig = field(default_factory=SimConfig, metadata={"help": "the crowd world (camera resolution)"})
     bev: bool = field(default=True, metadata={"help": "measure the BEV encoder figures (pretrain.bench)"})
     rl: bool = field(default=True, metadata={"help": "measure the teacher PPO and policy inference figures (rl.bench)"})
+    ray: bool = field(default=True, metadata={"help": "also record the recorder figures' episodes on Ray (1 and 2 "
+                                                       "local nodes)"})
 
     def validate(self) -> None:
         super().validate()
@@ -191,12 +196,45 @@ def measure_recorder(cfg: BenchConfig) -> dict[str, float]:
             if workers == 1:
                 out["record_mcap_share"] = counts["mcap_share"]
                 out["record_frames"] = counts["frames"]
+        if cfg.ray:
+            out.update(_record_on_ray(cfg, Path(tmp)))
+            for k in ("1node", "2nodes"):
+                out[f"record_ray_{k}_vs_local_pool"] = (out[f"record_frames_per_s_ray_{k}"]
+                                                        / out["record_frames_per_s_2workers"])
         import lerobot.datasets.lerobot_dataset  # noqa: F401  (import cost is not export cost)
 
         files = sorted((Path(tmp) / "raw1").glob("*.mcap"))
         counts = write_dataset(files, Path(tmp) / "dataset", "bench/export", progress=False)
         out["export_frames_per_s"] = counts["frames_per_s"]
         out.update(measure_chunk_loading(Path(tmp) / "dataset", Path(tmp) / "chunk", seed=cfg.seed))
+    return out
+
+
+def _record_on_ray(cfg: BenchConfig, tmp: Path) -> dict[str, float]:
+    """The recorder figure's episodes as Ray tasks: on a Ray instance the stage starts on this machine (1 node, 2
+    CPUs; starting it is part of the wall time, as for a user) and on a running two-node local cluster (1 CPU each;
+    only connecting is timed). Same machine as the local pool: the ratios are the executor's overhead."""
+    import os
+
+    from ray.cluster_utils import Cluster
+
+    out: dict[str, float] = {}
+    rc = RecordConfig(data_dir=tmp, scenes=[cfg.scene], densities=[cfg.density], episodes=cfg.record_episodes,
+                      workers=2, sim=cfg.sim, seed=cfg.seed, executor="ray")
+    old = os.environ.pop("RAY_ADDRESS", None)
+    try:
+        out["record_frames_per_s_ray_1node"] = record_body(rc, tmp / "ray1")["frames_per_s"]
+        cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+        try:
+            cluster.add_node(num_cpus=1)
+            cluster.wait_for_nodes()
+            out["record_frames_per_s_ray_2nodes"] = record_body(
+                replace(rc, ray_address=cluster.address), tmp / "ray2")["frames_per_s"]
+        finally:
+            cluster.shutdown()
+    finally:
+        if old is not None:
+            os.environ["RAY_ADDRESS"] = old
     return out
 
 
