@@ -51,7 +51,7 @@ from pretrain.intention import (
     predict,
     split_samples,
 )
-from pretrain.model import BEVEncoder, BEVStream, EncoderConfig, PretextHeads
+from pretrain.model import LEGACY_ENCODER, BEVEncoder, BEVStream, EncoderConfig, PretextHeads
 from pretrain.train import FitConfig, fit
 
 
@@ -245,6 +245,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=12)
     ap.add_argument("--clips-per-batch", type=int, default=4)
     ap.add_argument("--clip-frames", type=int, default=8)
+    ap.add_argument("--legacy", action="store_true",
+                    help="also time the encoder as it was before the depth evidence, the BEV decoder and T = 5 "
+                         "(keys *_legacy)")
     ap.add_argument("--write-intention-samples", type=Path, help="collect the intention samples into this .npz")
     ap.add_argument("--intention-samples", type=Path, help="also time the intention model's fit on these samples")
     ap.add_argument("--intention-epochs", type=int, default=12)
@@ -255,8 +258,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.write_intention_samples:
             print(json.dumps(write_intention_samples(args.dataset, args.write_intention_samples)))
             return 0
-        out = measure_fit_steps(cameras_from_dataset(args.dataset), EncoderConfig(), devices,
-                                steps=args.steps, clips_per_batch=args.clips_per_batch, clip_frames=args.clip_frames)
+        cams = cameras_from_dataset(args.dataset)
+        kw = {"steps": args.steps, "clips_per_batch": args.clips_per_batch, "clip_frames": args.clip_frames}
+        out = measure_fit_steps(cams, EncoderConfig(), devices, **kw)
+        if args.legacy:
+            legacy = EncoderConfig(**{**LEGACY_ENCODER, "history_frames": 3})
+            out.update({f"{k}_legacy": v for k, v in measure_fit_steps(cams, legacy, devices, **kw).items()})
         if args.intention_samples:
             out.update(measure_intention_fit(args.intention_samples, devices, args.intention_epochs))
     except ICrowdNavError as e:
