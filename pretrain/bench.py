@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.core.device import resolve_device
+from pipeline.core.device import machine_facts, resolve_device
 from pipeline.core.errors import ICrowdNavError
 from pipeline.core.timing import time_call
 from pretrain.data import FrameStore
@@ -235,7 +235,6 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import json
     import os
-    import platform
     import sys
 
 
@@ -269,10 +268,7 @@ def main(argv: list[str] | None = None) -> int:
     except ICrowdNavError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    out.update({"cpu_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
-                **({"gpu": torch.cuda.get_device_name()} if torch.cuda.is_available() else {}),
-                "torch": torch.__version__})
-    print(json.dumps(out))
+    print(json.dumps(out | machine_facts()))
     return 0
 
 

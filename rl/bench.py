@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from pipeline.core.config import load_config
-from pipeline.core.device import resolve_device
+from pipeline.core.device import machine_facts, resolve_device
 from pipeline.core.errors import ICrowdNavError
 from pipeline.core.timing import time_call
 from pretrain.geometry import cameras_from_dataset
@@ -271,7 +271,6 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import json
     import os
-    import platform
     import sys
     from pathlib import Path
 
@@ -288,10 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     except ICrowdNavError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    out.update({"cpu_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
-                **({"gpu": torch.cuda.get_device_name()} if torch.cuda.is_available() else {}),
-                "torch": torch.__version__})
-    print(json.dumps(out))
+    print(json.dumps(out | machine_facts()))
     return 0
 
 

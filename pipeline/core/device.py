@@ -93,3 +93,12 @@ def start_method(device: torch.device | str) -> str:
     """The multiprocessing start method of worker processes that run a model on ``device``: ``spawn`` for CUDA (a
     forked child of a process that touched CUDA cannot use it), ``fork`` otherwise (fast, shares loaded modules)."""
     return "spawn" if torch.device(device).type == "cuda" else "fork"
+
+
+def machine_facts() -> dict[str, Any]:
+    """What a benchmark figure was measured on: torch's CPU threads, the processor, the GPU (when present), torch."""
+    import platform
+
+    return {"cpu_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
+            **({"gpu": torch.cuda.get_device_name()} if torch.cuda.is_available() else {}),
+            "torch": torch.__version__}
