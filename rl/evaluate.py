@@ -11,7 +11,7 @@ from typing import Any
 
 import torch
 
-from pipeline.core.executor import map_jobs
+from pipeline.core.executor import Executor, map_jobs
 from rl.baselines import BASELINES, baseline_module
 from rl.driver import PolicyDriver, process_cached
 from rl.policy import read_policy_json
@@ -55,12 +55,13 @@ def _episode(job: tuple[Path, str, SimConfig, str, float, int]) -> dict[str, Any
 
 
 def evaluate(policy_dir: Path, sim_cfg: SimConfig, cells: list[tuple[str, float]], seeds: list[int],
-             workers: int = 2, method: str | None = None, progress: bool = True) -> list[dict[str, Any]]:
-    """Every (scene, density) of ``cells`` x ``seeds`` (the same seeds for every method) in a process pool; one
-    metrics row per episode, named ``method`` (default: the checkpoint folder's name)."""
+             workers: int = 2, method: str | None = None, progress: bool = True,
+             executor: Executor | None = None) -> list[dict[str, Any]]:
+    """Every (scene, density) of ``cells`` x ``seeds`` (the same seeds for every method) in a process pool or on
+    Ray (``executor``); one metrics row per episode, named ``method`` (default: the checkpoint folder's name)."""
     name = method or Path(policy_dir).name
     jobs = [(Path(policy_dir), name, sim_cfg, s, d, k) for s, d in cells for k in seeds]
-    return map_jobs(_episode, jobs, workers, f"evaluate {name}", progress)
+    return map_jobs(_episode, jobs, workers, f"evaluate {name}", progress, executor=executor)
 
 
 def success_table(rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:

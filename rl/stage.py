@@ -56,6 +56,7 @@ from pipeline.core.artifacts import atomic_save_npz, atomic_write_json
 from pipeline.core.config import BaseStageConfig, dump_yaml
 from pipeline.core.device import device_counts, resolve_device, start_method
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.executor import Executor, check_executor
 from pretrain.checkpoint import read_encoder_json
 from pretrain.intention import FORECASTER_WEIGHTS, INTENTION_JSON, load_forecaster
 from rl.baselines import BASELINES, baseline_module
@@ -202,6 +203,10 @@ class TrainConfig(BaseStageConfig):
     sarl_om: SARLOMConfig = field(default_factory=SARLOMConfig)
     vint: ViNTConfig = field(default_factory=ViNTConfig)
     workers: int = 2  # processes for rollouts and evaluation
+    # where the acceptance episodes run: auto (Ray when RAY_ADDRESS is set) | local | ray (pipeline.core.executor;
+    # DAgger rollouts use the local pool); not in the config hash
+    executor: str = "auto"
+    ray_address: str = ""  # Ray cluster host:port (empty: RAY_ADDRESS, or a Ray instance started on this machine)
     threads: int = 0  # torch threads for cloning / PPO updates (0 = every core)
     # where cloning, PPO updates and the students' frozen encoder run: auto (CUDA when this machine has it, else the
     # CPU) | cpu | cuda | cuda:N (--device cuda); not in the config hash (a run resumes on another device); the
@@ -246,6 +251,7 @@ class TrainConfig(BaseStageConfig):
         for s in {*d.scenes, *self.acceptance.scenes, *(x for st in t.curriculum for x in st.scenes)}:
             load_scene(s)  # unknown scene -> ConfigError naming it
         resolve_device(self.device, "train.device")  # cuda without CUDA: one error, before anything is written
+        check_executor(self.executor, self.ray_address, "train")
 
 
 def policy_root(cfg: TrainConfig) -> Path:
@@ -324,7 +330,7 @@ def _acceptance(cfg: TrainConfig, policy_dir: Path, method: str) -> dict[str, An
     a = cfg.acceptance
     seeds = [10_000 + k for k in range(a.episodes)]
     rows = evaluate(policy_dir, cfg.sim, [(s, d) for s in a.scenes for d in a.densities], seeds,
-                    cfg.workers, method, cfg.progress)
+                    cfg.workers, method, cfg.progress, Executor.of(cfg))
     return {"seeds": [seeds[0], seeds[-1]], "table": success_table(rows), "episodes": rows}
 
 
