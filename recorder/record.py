@@ -192,8 +192,11 @@ def _stop_pool(pool: ProcessPoolExecutor, stop: mp.synchronize.Event, grace_s: f
 
 
 def _record_task(args: tuple) -> dict:
-    """One episode as a Ray task (:mod:`pipeline.core.executor`): a killed worker leaves ``*.mcap.partial``, the
-    retried task records the episode again under the same name."""
+    """One episode as a Ray task (:mod:`pipeline.core.executor`): a killed worker leaves ``*.mcap.partial``; the
+    retried task deletes that leftover of its own episode (the driver gives each episode to one task, and Ray reruns
+    it only once the worker is known dead) and records the episode again under the same name."""
+    _, job, out, _ = args
+    (Path(out) / f"{job.name}.mcap.partial").unlink(missing_ok=True)
     return record_one(*args)
 
 

@@ -154,11 +154,11 @@ def test_observer_full_variant_streams_the_encoder():
     obs_obs = StudentObserver("full", cams, enc, 6)
     frames, out = [], None
     o, _ = env.reset(seed=3)
-    for _ in range(4):
+    for _ in range(enc.frames + 1):
         frames.append(o)
         out = obs_obs(o)
         o, *_ = env.step(env.action_space.sample())
-    win = frames[-3:]
+    win = frames[-enc.frames:]
     rgb = torch.stack([torch.from_numpy(np.stack([f["rgb_left"], f["rgb_right"]])).permute(0, 3, 1, 2)
                        for f in win]).unsqueeze(0)
     depth = torch.stack([torch.from_numpy(np.stack([f["depth_left"], f["depth_right"]])) for f in win]).unsqueeze(0)
