@@ -47,34 +47,6 @@ def check_same_cameras(encoder_cams, dataset_cams, where: str) -> None:
                               f"than the encoder's ({a.width}x{a.height}); the encoder only fits its own cameras")
 
 
-@torch.no_grad()
-def iou_sweep(encoder, heads, store, slices, fov: np.ndarray, thresholds=THRESHOLDS, clip_frames: int = 8,
-              clips_per_batch: int = 4, pos_weight: list[float] | None = None) -> dict[str, dict[str, float]]:
-    """``{target: {threshold: IoU}}`` over the frames of ``slices`` (field of view, valid frames only).
-
-    With ``pos_weight`` (the training loss's per-target BCE weights, ``metrics.json``), one more column ``bayes``
-    uses the threshold ``w / (1 + w)``: a BCE weighted by ``w`` on positives learns ``w``-inflated odds, so this
-    is where the *unweighted* probability crosses 0.5 — the decision rule that does not depend on the weight.
-    """
-    fov_t = torch.from_numpy(fov)
-    cols = [f"{x:g}" for x in thresholds]
-    th = torch.tensor(thresholds, dtype=torch.float32).view(-1, 1).expand(-1, len(TARGETS))
-    if pos_weight is not None:
-        w = torch.tensor(pos_weight, dtype=torch.float32)
-        th = torch.cat([th, (w / (1 + w)).view(1, -1)], 0)
-        cols.append("bayes")
-    thresholds = cols
-    inter = torch.zeros(th.shape[0], len(TARGETS), dtype=torch.float64)
-    union = torch.zeros_like(inter)
-    for batch in make_batches(make_clips(store, slices, clip_frames, encoder.frames, None), clips_per_batch,
-                              encoder.frames):
-        i, u = iou_counts(*forward_batch(encoder, heads, store, batch), fov_t, th)
-        inter += i
-        union += u
-    iou = torch.where(union > 0, inter / union.clamp_min(1), torch.full_like(inter, float("nan")))
-    return {t: {x: float(iou[i, k]) for i, x in enumerate(thresholds)} for k, t in enumerate(TARGETS)}
-
-
 CAL_THRESHOLDS = tuple(round(0.05 * i, 2) for i in range(1, 20))  # 0.05 … 0.95: the calibration grid
 
 
@@ -82,14 +54,16 @@ CAL_THRESHOLDS = tuple(round(0.05 * i, 2) for i in range(1, 20))  # 0.05 … 0.9
 def episode_counts(encoder, heads, store, slices, fov: np.ndarray, thresholds=CAL_THRESHOLDS, clip_frames: int = 8,
                    clips_per_batch: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Intersection and union counts ``E x S x K`` per episode slice, threshold and target (field of view, valid
-    frames; on the encoder's device)."""
+    frames; on the encoder's device). ``thresholds``: ``S`` (the same for every target) or ``S x K``."""
     dev = next(encoder.parameters()).device
     fov_t = torch.from_numpy(fov).to(dev)
-    th = torch.tensor(thresholds, dtype=torch.float32, device=dev).view(-1, 1).expand(-1, len(TARGETS))
+    th = torch.as_tensor(thresholds, dtype=torch.float32).to(dev)
+    if th.dim() == 1:  # one threshold for every target
+        th = th.view(-1, 1).expand(-1, len(TARGETS))
     was = encoder.training, heads.training
     encoder.eval()
     heads.eval()
-    inter = np.zeros((len(slices), len(thresholds), len(TARGETS)))
+    inter = np.zeros((len(slices), th.shape[0], len(TARGETS)))
     union = np.zeros_like(inter)
     for e, sl in enumerate(slices):
         for batch in make_batches(make_clips(store, [sl], clip_frames, encoder.frames, None), clips_per_batch,
@@ -104,6 +78,25 @@ def episode_counts(encoder, heads, store, slices, fov: np.ndarray, thresholds=CA
 
 def _iou(inter: np.ndarray, union: np.ndarray) -> np.ndarray:
     return np.where(union > 0, inter / np.maximum(union, 1), np.nan)
+
+
+def iou_sweep(encoder, heads, store, slices, fov: np.ndarray, thresholds=THRESHOLDS, clip_frames: int = 8,
+              clips_per_batch: int = 4, pos_weight: list[float] | None = None) -> dict[str, dict[str, float]]:
+    """``{target: {threshold: IoU}}`` over the frames of ``slices`` (field of view, valid frames only).
+
+    With ``pos_weight`` (the training loss's per-target BCE weights, ``metrics.json``), one more column ``bayes``
+    uses the threshold ``w / (1 + w)``: a BCE weighted by ``w`` on positives learns ``w``-inflated odds, so this
+    is where the *unweighted* probability crosses 0.5 — the decision rule that does not depend on the weight.
+    """
+    cols = [f"{x:g}" for x in thresholds]
+    th = torch.tensor(thresholds, dtype=torch.float32).view(-1, 1).expand(-1, len(TARGETS))
+    if pos_weight is not None:
+        w = torch.tensor(pos_weight, dtype=torch.float32)
+        th = torch.cat([th, (w / (1 + w)).view(1, -1)], 0)
+        cols.append("bayes")
+    inter, union = episode_counts(encoder, heads, store, slices, fov, th, clip_frames, clips_per_batch)
+    iou = _iou(inter.sum(0), union.sum(0))
+    return {t: {x: float(iou[i, k]) for i, x in enumerate(cols)} for k, t in enumerate(TARGETS)}
 
 
 def calibrate(inter: np.ndarray, union: np.ndarray, thresholds=CAL_THRESHOLDS,

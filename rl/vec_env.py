@@ -163,7 +163,8 @@ def _serve(envs: list[gym.Env], keys: list[Any], cmd: str, data: Any) -> Any:
         return [is_wrapped(envs[i], wrapper_class) for i in idx]
     if cmd == "render":
         return [env.render() for env in envs]
-    raise NotImplementedError(f"BatchedSubprocVecEnv worker: unknown command {cmd!r}")
+    raise RuntimeError(f"BatchedSubprocVecEnv worker: unknown command {cmd!r} (a caller bug; the protocol is close, "
+                       "step, reset, get_spaces, env_method, get_attr, has_attr, set_attr, is_wrapped, render)")
 
 
 class BatchedSubprocVecEnv(VecEnv):
