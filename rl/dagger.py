@@ -41,7 +41,7 @@ from pipeline.core.errors import InputMissingError
 from recorder.export import export_run
 from recorder.mcap.writer import EpisodeWriter
 from recorder.schema import episode_meta_from_env, frame_from_env
-from rl.driver import cached_policy, cached_student_encoder, cached_student_forecaster
+from rl.driver import cached_policy, cached_student_encoder, cached_student_forecaster, cached_student_heads
 from rl.observe import observer_for_env
 from rl.policy import act, action_logits
 from sim.env import CrowdNavEnv, SimConfig
@@ -89,8 +89,11 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
     driver = _DaggerDriver(cached_policy(args["student"]), args["beta"], np.random.default_rng(args["seed"] + 7919))
     head = args.get("head", "mlp")
     forecaster = cached_student_forecaster(args["variant"], head, args.get("intention"))
+    map_cost = bool(args.get("map_cost", False))
     observer = observer_for_env(env, args["variant"], encoder, head, mirror=args.get("mirror", False),
-                                forecaster=forecaster)
+                                forecaster=forecaster, map_cost=map_cost,
+                                map_heads=cached_student_heads(args["variant"], head, map_cost, args["encoder"],
+                                                               encoder))
     steps = episode_steps(PrivilegedObservation(env), driver, args["seed"])
     first = next(steps)
     meta = episode_meta_from_env(env, args["seed"], f"dagger:{args['variant']}:iter{args['iteration']}:"

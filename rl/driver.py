@@ -16,7 +16,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from rl.observe import StudentObserver, load_student_encoder, load_student_forecaster, observer_for
+from rl.observe import (
+    StudentObserver,
+    load_student_encoder,
+    load_student_forecaster,
+    load_student_heads,
+    observer_for,
+)
 from rl.policy import act, load_policy, read_policy_json
 
 _CACHE: dict[str, Any] = {}
@@ -44,6 +50,13 @@ def cached_student_encoder(variant: str, encoder_ckpt: Path | str | None, device
                           lambda: load_student_encoder(variant, encoder_ckpt, device))
 
 
+def cached_student_heads(variant: str, head: str, map_cost: bool, encoder_ckpt: Path | str | None, encoder):
+    """The frozen pretext heads a student's lookahead head reads the BEV's occupancy with
+    (:func:`rl.observe.load_student_heads`; None when it reads none), once per process."""
+    return process_cached(f"heads:{variant}:{head}:{map_cost}:{encoder_ckpt}",
+                          lambda: load_student_heads(variant, head, map_cost, encoder_ckpt, encoder))
+
+
 def cached_student_forecaster(variant: str, head: str, intention_ckpt: Path | str | None):
     """The frozen intention model of a student (:func:`rl.observe.load_student_forecaster`; None when it has
     none), once per process."""
@@ -63,6 +76,9 @@ class PolicyDriver:
         self.head = self.desc.get("net", {}).get("head", "mlp")
         self.forecaster = (cached_student_forecaster(self.desc["variant"], self.head, self.desc.get("intention"))
                            if self.student else None)
+        self.map_cost = bool(self.desc.get("net", {}).get("map_cost", False))
+        self.map_heads = (cached_student_heads(self.desc["variant"], self.head, self.map_cost, self.desc.get("encoder"),
+                                               self.encoder) if self.student else None)
         self.observer: StudentObserver | None = None
         self.last_obs: dict[str, np.ndarray] | None = None
 
@@ -70,7 +86,8 @@ class PolicyDriver:
         if self.student:
             if self.observer is None:
                 self.observer = observer_for(info["cameras"], info["config"], self.desc["variant"], self.encoder,
-                                             self.head, forecaster=self.forecaster)
+                                             self.head, forecaster=self.forecaster, map_cost=self.map_cost,
+                                             map_heads=self.map_heads)
             self.observer.reset()
 
     def act(self, obs: dict[str, np.ndarray], info: dict[str, Any]):

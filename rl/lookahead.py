@@ -11,6 +11,13 @@ current step, x forward, y left, metres; times in seconds; angles in radians). A
 :data:`N_LINEAR` of them plus an MLP over all of them and a context vector from the embedding give each action's
 logit (:meth:`LookaheadHead.forward`).
 
+With an occupancy map in the observation (``map_key``: a student's ``bev_occ``, the pretrained BEV's predicted
+occupancy of static obstacles and of people now, at +0.5 s and at +1.0 s; or the ``w/o BEV`` ablation's ``occ``,
+the occupied cells of the current depth images) the head also samples the map along every arc, each lookahead time
+reading the people channel nearest to it, and adds :data:`N_MAP` features (:meth:`LookaheadHead.map_features`): a
+second linear cost over them (``map_cost``, fitted by convex regression on top of the inherited cost,
+:func:`rl.teacher.fit_map_cost`) and the scorer's input. Removing the BEV then removes what the decision reads.
+
 State-dict keys: the learned layers sit under the head's prefix (``<extractor>.lookahead.context.*``,
 ``.scorer.*``, ``.linear.*``); the rollout geometry is non-persistent (rebuilt from the policy's JSON), so it is in
 no checkpoint. Checkpoints from before the head was a module are mapped by :func:`rl.policy.upgrade_state_dict`.
@@ -18,10 +25,12 @@ no checkpoint. Checkpoints from before the head was a module are mapped by :func
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gymnasium as gym
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from pipeline.core.errors import ConfigError
@@ -38,6 +47,9 @@ HEADING_MODES = ("end", "best", "spin")  # the lookahead heading error (Lookahea
 SCAN_POINTS = 24  # nearest scan hits the lookahead measures obstacle clearance against
 N_LINEAR = 10  # rollout features of the linear cost (the last ones of action_features)
 NEAR_GOAL_M = 0.5  # closer than this to the goal, the cost rewards reaching it instead of the route's heading
+N_MAP = 4  # occupancy-map features per action (LookaheadHead.map_features)
+MAP_KEYS = ("bev_occ", "occ")  # the maps the head can read: the BEV's predicted occupancy, the depth occupancy
+MAP_PED_TIMES_S = (0.0, 0.5, 1.0)  # the times of the people channels 1.. of a ``bev_occ`` map (pretrain.model.TARGETS)
 
 
 def lookahead_times(dt_s: float) -> torch.Tensor:
@@ -69,7 +81,7 @@ class LookaheadHead(nn.Module):
     along each command's arc; ``end_heading`` ``A`` heading at the end of the arc (rad); ``spin`` ``A`` the turns on
     the spot (v = 0); ``disc`` ``S`` the discount on intrusions; ``ray_dir`` ``R x 2`` the scan's unit ray
     directions (robot frame, ray k at k·2π/R); with a ``path`` observation, ``path_s`` ``P`` the arc length (m) of
-    each path point. Sizes: ``n_actions`` = A, ``n_feat`` = F = 2·S + 20.
+    each path point. Sizes: ``n_actions`` = A, ``n_feat`` = F = 2·S + 20 (+ :data:`N_MAP` with a map).
 
     Learned: ``context`` (``base_dim`` embedding → ``context_dim``), ``scorer`` (MLP of ``F + context_dim`` →
     ``score_dim`` → ``score_dim`` → 1) and ``linear`` (the linear cost over the last :data:`N_LINEAR` features).
@@ -93,14 +105,24 @@ class LookaheadHead(nn.Module):
             (docs/notes/2026-11-lookahead-heading-modes.md).
         scorer_bound: with c, the MLP scorer's output is squashed to ``c · tanh(x / c)`` nats (a student's learned
             correction may re-rank actions, not override a predicted contact); ``None`` = unbounded.
+        map_key: the observation's occupancy map the head samples along the arcs (one of :data:`MAP_KEYS`, shape
+            ``C x X x Y`` over ``map_bounds``; channel 0 static, channels 1.. people at :data:`MAP_PED_TIMES_S`);
+            ``None`` = no map features (the teacher; students trained before the option).
+        map_bounds: ``((x_min, x_max), (y_min, y_max))`` of the map (m, robot frame; the BEV grid).
     """
 
     def __init__(self, observation_space: gym.spaces.Dict, robot: dict[str, Any] | None, dt_s: float,
                  path_spacing_m: float, base_dim: int, score_dim: int, context_dim: int, *, subgoal: bool,
-                 scan_range_m: float, heading: str = "end", scorer_bound: float | None = None) -> None:
+                 scan_range_m: float, heading: str = "end", scorer_bound: float | None = None,
+                 map_key: str | None = None, map_bounds: Any = None) -> None:
         super().__init__()
         if heading not in HEADING_MODES:
             raise ConfigError(f"lookahead heading: expected one of {list(HEADING_MODES)}, got {heading!r}")
+        if map_key is not None and map_key not in MAP_KEYS:
+            raise ConfigError(f"lookahead map_key: expected one of {list(MAP_KEYS)} or none, got {map_key!r}")
+        if map_key is not None and map_key not in observation_space.spaces:
+            raise ConfigError(f"lookahead map_key {map_key!r}: the observation has no such key "
+                              f"({sorted(observation_space.spaces)})")
         self.heading = heading
         self.subgoal = bool(subgoal)
         self.scan_range_m = float(scan_range_m)
@@ -127,13 +149,50 @@ class LookaheadHead(nn.Module):
         rays = observation_space["scan"].shape[0]
         ang = torch.arange(rays) * (2 * torch.pi / rays)
         self.register_buffer("ray_dir", torch.stack([torch.cos(ang), torch.sin(ang)], -1), persistent=False)
-        self.n_feat = 2 * len(times) + 4 + 4 + 2 + N_LINEAR
+        self.map_key = map_key
+        self.n_map = N_MAP if map_key else 0
+        if map_key:
+            self._init_map(observation_space[map_key].shape, map_bounds, arcs, times, rc.radius_m)
+        self.n_feat = 2 * len(times) + 4 + 4 + 2 + self.n_map + N_LINEAR
 
         # the learned part: a context vector from the embedding, the MLP scorer, the linear cost
         self.context = nn.Sequential(nn.Linear(base_dim, context_dim), nn.ReLU())
         self.scorer = mlp([self.n_feat + context_dim, score_dim, score_dim, 1], last_act=False)
         self.linear = nn.Linear(N_LINEAR, 1)  # the linear cost over the last N_LINEAR rollout features
+        if map_key:  # the linear cost over the map features (zero until fitted: the inherited cost unchanged)
+            self.map_cost = nn.Linear(N_MAP, 1, bias=False)
+            nn.init.zeros_(self.map_cost.weight)
         self.scorer_bound = float(scorer_bound) if scorer_bound else None
+
+    def _init_map(self, shape: tuple[int, ...], bounds: Any, arcs: torch.Tensor, times: torch.Tensor,
+                  radius_m: float) -> None:
+        """Buffers of the map sampling: ``map_uv`` ``1 x A x S x 2`` the arcs' points in ``grid_sample``
+        coordinates (the map's last axis is y, the one before it x; outside the map = unknown, read as free),
+        ``map_ped_ch`` ``S`` the people channel nearest in time to each lookahead time (none for a 1-channel map),
+        and the robot footprint's max-pool kernel in cells."""
+        try:
+            (x0, x1), (y0, y1) = ((float(a), float(b)) for a, b in bounds)
+        except (TypeError, ValueError):
+            raise ConfigError(f"lookahead map_bounds: expected ((x_min, x_max), (y_min, y_max)) in m, got {bounds!r}"
+                              ) from None
+        if not (x1 > x0 and y1 > y0):
+            raise ConfigError(f"lookahead map_bounds: expected max > min on both axes, got {bounds!r}")
+        c, nx, ny = shape
+        if not 1 <= c <= 1 + len(MAP_PED_TIMES_S):
+            raise ConfigError(f"lookahead map: expected 1 to {1 + len(MAP_PED_TIMES_S)} channels (static, then people "
+                              f"at {list(MAP_PED_TIMES_S)} s), got {c}")
+        u = 2.0 * (arcs[..., 1] - y0) / (y1 - y0) - 1.0
+        v = 2.0 * (arcs[..., 0] - x0) / (x1 - x0) - 1.0
+        self.register_buffer("map_uv", torch.stack([u, v], -1)[None], persistent=False)
+        cell = min((x1 - x0) / nx, (y1 - y0) / ny)
+        self.map_kernel = 2 * max(1, int(math.ceil(radius_m / cell - 0.5))) + 1  # cells within the robot's radius
+        if c > 1:
+            ped_t = torch.tensor(MAP_PED_TIMES_S[: c - 1])
+            ch = 1 + (times[:, None] - ped_t[None]).abs().argmin(-1)
+        else:
+            ch = torch.zeros(len(times), dtype=torch.long)
+        self.register_buffer("map_ped_ch", ch, persistent=False)
+        self.map_people = c > 1
 
     def forward(self, base: torch.Tensor, obs: dict[str, torch.Tensor],
                 action_features: torch.Tensor | None = None) -> torch.Tensor:
@@ -145,8 +204,34 @@ class LookaheadHead(nn.Module):
         learned = self.scorer(torch.cat([feats, ctx], -1))
         if self.scorer_bound:  # c · tanh(x / c): the learned part may re-rank actions, not override predicted contacts
             learned = self.scorer_bound * torch.tanh(learned / self.scorer_bound)
-        scores = SCORE_SCALE * self.linear(feats[..., -N_LINEAR:]) + learned
-        return scores.squeeze(-1)
+        return (SCORE_SCALE * self.fitted_cost(feats) + learned).squeeze(-1)
+
+    def fitted_cost(self, feats: torch.Tensor) -> torch.Tensor:
+        """``B x A x 1``: the linear cost over the last :data:`N_LINEAR` features, plus the map cost over the
+        :data:`N_MAP` before them when the head reads a map (in units of :data:`SCORE_SCALE` nats)."""
+        out = self.linear(feats[..., -N_LINEAR:])
+        if self.n_map:
+            out = out + self.map_cost(feats[..., -N_LINEAR - N_MAP:-N_LINEAR])
+        return out
+
+    @torch.no_grad()
+    def map_features(self, occ: torch.Tensor) -> torch.Tensor:
+        """``B x A x`` :data:`N_MAP` features of the occupancy map ``occ`` ``B x C x X x Y`` (probabilities or 0/1)
+        along every arc: the static channel's maximum and discounted mean over the lookahead times, the people
+        channels' (each time reading the nearest channel in time) maximum and discounted mean (zero for a
+        1-channel map). The map is max-pooled over the robot's footprint first."""
+        m = F.max_pool2d(occ.float(), self.map_kernel, stride=1, padding=self.map_kernel // 2)
+        b = m.shape[0]
+        a, s = self.map_uv.shape[1:3]
+        v = F.grid_sample(m, self.map_uv.expand(b, -1, -1, -1), mode="bilinear", padding_mode="zeros",
+                          align_corners=False)  # B C A S
+        w = self.disc / self.disc.sum()
+        static = v[:, 0]
+        if self.map_people:
+            people = torch.gather(v, 1, self.map_ped_ch.view(1, 1, 1, s).expand(b, 1, a, s))[:, 0]
+        else:
+            people = torch.zeros_like(static)
+        return torch.stack([static.amax(-1), (static * w).sum(-1), people.amax(-1), (people * w).sum(-1)], -1)
 
     @torch.no_grad()
     def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -232,6 +317,7 @@ class LookaheadHead(nn.Module):
                  torch.log1p(torch.stack([ped_contact, ped_comfort, obs_contact, obs_near], -1)),
                  torch.stack([torch.cos(err), torch.sin(err), goal_near.clamp_max(CLEAR_CAP_M), near], -1),
                  grid,
+                 *([self.map_features(obs[self.map_key])] if self.n_map else []),
                  # the terms of the linear cost (the last N_LINEAR features): predicted intrusions, progress along
                  # the route, heading error away from the goal, approach when near it, speed and turning
                  torch.stack([ped_contact.clamp_max(10.0), ped_comfort.clamp_max(10.0), obs_contact.clamp_max(10.0),

@@ -53,9 +53,10 @@ def teacher_extractor_class(encoder: str) -> type[BaseFeaturesExtractor]:
     return {"set": SetTeacherExtractor, "flat": TeacherExtractor, "lookahead": LookaheadTeacherExtractor}[encoder]
 
 
-def variant_keys(variant: str, head: str = "mlp") -> tuple[str, ...]:
+def variant_keys(variant: str, head: str = "mlp", map_cost: bool = False) -> tuple[str, ...]:
     """The observation keys a student variant consumes (with the ``lookahead`` head also its perceived ``scan`` and,
-    for variants with poses, the pedestrian tracks ``peds``: :mod:`rl.perceive`)."""
+    for variants with poses, the pedestrian tracks ``peds``: :mod:`rl.perceive`; with ``map_cost`` a variant with
+    ``bev`` also reads the BEV's predicted occupancy ``bev_occ``, ``no_bev`` its depth occupancy ``occ``)."""
 
     if variant not in VARIANTS:
         raise ConfigError(f"variant: expected one of {list(VARIANTS)}, got {variant!r}")
@@ -64,8 +65,17 @@ def variant_keys(variant: str, head: str = "mlp") -> tuple[str, ...]:
     keys = {"full": ("bev", "poses", "pose_mask", "state"), "no_i2": ("bev", "state"),
             "no_bev": ("occ", "poses", "pose_mask", "state")}[variant]
     if head == "lookahead":
-        keys += ("scan",) + (("peds",) if "poses" in keys else ())
+        keys += ("scan",) + (("peds",) if "poses" in keys else ()) + (("bev_occ",) if map_cost and "bev" in keys
+                                                                    else ())
     return keys
+
+
+def map_key(variant: str, map_cost: bool) -> str | None:
+    """The occupancy map a student's lookahead head samples along its arcs with ``map_cost``: the pretrained BEV's
+    prediction (``bev_occ``) for variants with it, the depth occupancy (``occ``, the ``w/o BEV`` substitute) else."""
+    if not map_cost:
+        return None
+    return "bev_occ" if "bev" in variant_keys(variant) else "occ"
 
 
 class ResBlock(nn.Module):
@@ -160,15 +170,17 @@ class StudentLookaheadExtractor(StudentExtractor):
 
     def __init__(self, observation_space: gym.spaces.Dict, variant: str = "full", robot: dict[str, Any] | None = None,
                  dt_s: float = 0.1, scan_range_m: float = 10.0, score_dim: int = 64, context_dim: int = 32,
-                 scorer_bound: float | None = None, heading: str = "end", **kwargs: Any) -> None:
+                 scorer_bound: float | None = None, heading: str = "end", map_cost: bool = False,
+                 map_bounds: Any = None, **kwargs: Any) -> None:
         super().__init__(observation_space, variant, **kwargs)
-        missing = [k for k in variant_keys(variant, "lookahead") if k not in observation_space.spaces]
+        missing = [k for k in variant_keys(variant, "lookahead", map_cost) if k not in observation_space.spaces]
         if missing:
             raise ConfigError(f"the lookahead head of variant {variant!r} needs observation keys {missing}")
         base_dim = self._features_dim
         self.lookahead = LookaheadHead(observation_space, robot, dt_s, 0.25, base_dim, score_dim, context_dim,
                                        subgoal=False, scan_range_m=scan_range_m, heading=heading,
-                                       scorer_bound=scorer_bound)
+                                       scorer_bound=scorer_bound, map_key=map_key(variant, map_cost),
+                                       map_bounds=map_bounds)
         self._features_dim = self.lookahead.n_actions + base_dim
 
     def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:

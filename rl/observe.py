@@ -18,6 +18,9 @@ state      5                    s = [g_x, g_y, d_g, v_x, v_y]
 peds       P x 6                ``head="lookahead"``, variants with poses: pedestrian tracks from the detected poses
                                 ([x, y, vx, vy, r, present], robot frame; :mod:`rl.perceive`)
 scan       R                    ``head="lookahead"``: nearest depth obstacle per bearing bin over 360° (with memory)
+bev_occ    4 x X/2 x Y/2        ``head="lookahead"`` with ``map_cost``, variants with ``bev``: the pretrained pretext
+                                heads' occupancy probabilities (static, people now, +0.5 s, +1.0 s; 2 x 2 max-pooled),
+                                sampled along the lookahead arcs (``no_bev`` reads its ``occ`` there instead)
 =========  ===================  ====================================================================================
 
 With ``mirror=True`` a ``bev`` variant's observer also returns ``bev_mirror``: ``s_bev`` of the *mirrored* world
@@ -47,7 +50,7 @@ import torch.nn.functional as F
 from pipeline.core.errors import ConfigError
 from pretrain.geometry import Camera, LiftGeometry, lift_splat, sample_depth
 from pretrain.intention import IntentionForecaster, load_forecaster
-from pretrain.model import BEVEncoder, BEVStream, EncoderConfig
+from pretrain.model import TARGETS, BEVEncoder, BEVStream, EncoderConfig, PretextHeads
 from rl.networks import variant_keys
 from rl.perceive import CameraView, Perception
 
@@ -97,13 +100,16 @@ class StudentObserver:
             (:func:`perception_params` of the env).
         forecaster: the pretrained intention model; with the lookahead head and a variant with poses it predicts
             the tracks (``peds_future``) instead of constant velocity.
+        map_cost: the lookahead head reads an occupancy map along its arcs (``bev_occ`` for variants with ``bev``).
+        map_heads: the encoder checkpoint's pretext heads (:func:`load_student_heads`), which make ``bev_occ``.
     """
 
     def __init__(self, variant: str, cameras: list[Camera], encoder: BEVEncoder | None, max_people: int,
                  mirror: bool = False, head: str = "mlp", perception: dict[str, Any] | None = None,
-                 forecaster: IntentionForecaster | None = None) -> None:
+                 forecaster: IntentionForecaster | None = None, map_cost: bool = False,
+                 map_heads: PretextHeads | None = None) -> None:
         self.variant = variant
-        self.keys = variant_keys(variant, head)
+        self.keys = variant_keys(variant, head, map_cost)
         self.cameras = cameras
         self.perception = None
         if head == "lookahead":
@@ -127,6 +133,11 @@ class StudentObserver:
             self.grid = (encoder.grid if encoder is not None else EncoderConfig().grid)
         if "occ" in self.keys:
             self.occ_geom = LiftGeometry(cameras, OCC_STRIDE_PX)
+        self.map_heads = None
+        if "bev_occ" in self.keys:
+            if map_heads is None:
+                raise ConfigError(f"variant {variant!r} with map_cost needs the encoder checkpoint's pretext heads")
+            self.map_heads = map_heads.to(self.device).eval()
         self.max_people = max_people
         self.mirror = bool(mirror) and "bev" in self.keys
         if self.mirror:
@@ -146,6 +157,8 @@ class StudentObserver:
             d["bev"] = gym.spaces.Box(-big, big, (self.encoder.cfg.bev_channels, px, py), np.float32)
         if "occ" in self.keys:
             d["occ"] = gym.spaces.Box(0.0, 1.0, (1, px, py), np.float32)
+        if "bev_occ" in self.keys:
+            d["bev_occ"] = gym.spaces.Box(0.0, 1.0, (len(TARGETS), px, py), np.float32)
         if "poses" in self.keys:
             d["poses"] = gym.spaces.Box(-big, big, (self.max_people, 17, 3), np.float32)
             d["pose_mask"] = gym.spaces.Box(0.0, 1.0, (self.max_people, 17), np.float32)
@@ -184,10 +197,14 @@ class StudentObserver:
                 first = None if first is None else first.expand(2)
             else:
                 depth_in = depth
-            s_bev = F.avg_pool2d(self.stream.step(rgb, depth_in, pose, first), BEV_POOL).cpu().numpy()
+            full = self.stream.step(rgb, depth_in, pose, first)
+            s_bev = F.avg_pool2d(full, BEV_POOL).cpu().numpy()
             out["bev"] = s_bev[0]
             if self.mirror:
                 out["bev_mirror"] = s_bev[1]
+            if self.map_heads is not None:  # occupancy probabilities of the real world (mirroring flips them in y)
+                occ = torch.sigmoid(self.map_heads(full[:1]))
+                out["bev_occ"] = F.max_pool2d(occ, BEV_POOL)[0].cpu().numpy()
         if "occ" in self.keys:
             out["occ"] = self.occupancy(depth)[0].cpu().numpy()
         if "poses" in self.keys:
@@ -215,17 +232,20 @@ def perception_params(sim_cfg) -> dict[str, Any]:
 
 
 def observer_for(camera_specs, sim_cfg, variant: str, encoder: BEVEncoder | None, head: str = "mlp",
-                 mirror: bool = False, forecaster: IntentionForecaster | None = None) -> StudentObserver:
+                 mirror: bool = False, forecaster: IntentionForecaster | None = None, map_cost: bool = False,
+                 map_heads: PretextHeads | None = None) -> StudentObserver:
     """The :class:`StudentObserver` of a student variant for the cameras and config an env reports at reset
     (``info["cameras"]``, ``info["config"]``)."""
     return StudentObserver(variant, cameras_of(camera_specs), encoder, sim_cfg.detector.max_people, mirror=mirror,
-                           head=head, perception=perception_params(sim_cfg), forecaster=forecaster)
+                           head=head, perception=perception_params(sim_cfg), forecaster=forecaster,
+                           map_cost=map_cost, map_heads=map_heads)
 
 
 def observer_for_env(env, variant: str, encoder: BEVEncoder | None, head: str = "mlp",
-                     mirror: bool = False, forecaster: IntentionForecaster | None = None) -> StudentObserver:
+                     mirror: bool = False, forecaster: IntentionForecaster | None = None, map_cost: bool = False,
+                     map_heads: PretextHeads | None = None) -> StudentObserver:
     """The :class:`StudentObserver` of a student variant on an (unwrapped) env."""
-    return observer_for(env.cameras, env.cfg, variant, encoder, head, mirror, forecaster)
+    return observer_for(env.cameras, env.cfg, variant, encoder, head, mirror, forecaster, map_cost, map_heads)
 
 
 def uses_forecaster(variant: str, head: str) -> bool:
@@ -266,7 +286,8 @@ class StudentEnv(gym.Wrapper):
     """
 
     def __init__(self, env: gym.Env, variant: str, encoder_ckpt: Path | None, threads: int = 1,
-                 head: str = "mlp", device: torch.device | str = "cpu", intention_ckpt: Path | None = None) -> None:
+                 head: str = "mlp", device: torch.device | str = "cpu", intention_ckpt: Path | None = None,
+                 map_cost: bool = False) -> None:
         super().__init__(env)
         torch.set_num_threads(threads)
         u = env.unwrapped
@@ -274,7 +295,9 @@ class StudentEnv(gym.Wrapper):
             raise ConfigError(f"StudentEnv needs obs_mode='visual', got {u.cfg.obs_mode!r}")
         encoder = load_student_encoder(variant, encoder_ckpt, device)
         self.observer = observer_for_env(u, variant, encoder, head,
-                                         forecaster=load_student_forecaster(variant, head, intention_ckpt))
+                                         forecaster=load_student_forecaster(variant, head, intention_ckpt),
+                                         map_cost=map_cost,
+                                         map_heads=load_student_heads(variant, head, map_cost, encoder_ckpt, encoder))
         self.observation_space = self.observer.observation_space
 
     def reset(self, **kwargs: Any):
@@ -299,3 +322,18 @@ def load_student_encoder(variant: str, encoder_ckpt: Path | None,
 
     return load_encoder(Path(encoder_ckpt), frozen=True).to(device)
 
+
+def load_student_heads(variant: str, head: str, map_cost: bool, encoder_ckpt: Path | str | None,
+                       encoder: BEVEncoder | None) -> PretextHeads | None:
+    """The frozen pretext heads of the encoder checkpoint, on the encoder's device, when the student's lookahead head
+    reads the BEV's predicted occupancy (``bev_occ``, :func:`rl.networks.variant_keys`); None otherwise."""
+    if "bev_occ" not in variant_keys(variant, head, map_cost):
+        return None
+    if encoder is None or encoder_ckpt is None:
+        raise ConfigError(f"variant {variant!r} with map_cost needs a pretrained encoder checkpoint (encoder_ckpt)")
+    from pretrain.checkpoint import load_heads  # lazy: torchvision (~3 s) only when an encoder is loaded
+
+    heads = load_heads(Path(encoder_ckpt), encoder)
+    for p in heads.parameters():
+        p.requires_grad_(False)
+    return heads.to(next(encoder.parameters()).device)

@@ -86,8 +86,8 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
     pi = list(net.get("pi", [256]))
     cls: type = StudentExtractor
     if net.get("head", "mlp") == "lookahead":  # the extractor scores the actions (rl.networks.StudentLookaheadExtractor)
-        ext.update({k: net[k] for k in ("robot", "dt_s", "scan_range_m", "score_dim", "context_dim", "scorer_bound", "heading")
-                    if k in net})
+        ext.update({k: net[k] for k in ("robot", "dt_s", "scan_range_m", "score_dim", "context_dim", "scorer_bound",
+                                        "heading", "map_cost", "map_bounds") if k in net})
         cls, pi = StudentLookaheadExtractor, []
     return {"features_extractor_class": cls,
             "features_extractor_kwargs": {"variant": variant, **ext},
@@ -97,9 +97,16 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
 
 def build_policy(kind: str, variant: str | None, obs_space: gym.spaces.Dict, net: dict[str, Any],
                  lr: float = 3e-4) -> ActorCriticPolicy:
-    """A fresh policy (random weights) for ``obs_space`` and the discrete action grid."""
-    return policy_class(kind, net)(obs_space, gym.spaces.Discrete(N_ACTIONS), lambda _: lr,
-                                   **policy_kwargs(kind, variant, net))
+    """A fresh policy (random weights) for ``obs_space`` and the discrete action grid. A lookahead head's map cost
+    starts at zero (SB3's orthogonal initialisation would give it random weights): until it is fitted, the map does
+    not change the inherited cost."""
+    policy = policy_class(kind, net)(obs_space, gym.spaces.Discrete(N_ACTIONS), lambda _: lr,
+                                     **policy_kwargs(kind, variant, net))
+    head = getattr(policy.features_extractor, "lookahead", None)
+    if head is not None and head.n_map:
+        with torch.no_grad():
+            head.map_cost.weight.zero_()
+    return policy
 
 
 def describe(kind: str, variant: str | None, obs_space: gym.spaces.Dict, net: dict[str, Any],

@@ -58,6 +58,7 @@ from pipeline.core.device import device_counts, resolve_device, start_method
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pipeline.core.executor import Executor, check_executor
 from pretrain.checkpoint import read_encoder_json
+from pretrain.geometry import BEVGrid
 from pretrain.intention import FORECASTER_WEIGHTS, INTENTION_JSON, load_forecaster
 from rl.baselines import BASELINES, baseline_module
 from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
@@ -74,6 +75,7 @@ from rl.observe import (
     env_cameras,
     load_student_encoder,
     load_student_forecaster,
+    load_student_heads,
     observer_for_env,
     uses_forecaster,
 )
@@ -88,6 +90,7 @@ from rl.policy import (
     save_policy,
 )
 from rl.teacher import (
+    FITTED_PREFIXES,
     CurriculumStage,
     SceneMixEnv,
     attach_lookahead_cache,
@@ -199,6 +202,10 @@ class TrainConfig(BaseStageConfig):
     # paper's MLP head on z alone (why the default differs: docs/notes/2026-11-paper-mlp-head-student.md)
     head: str = "lookahead"
     scorer_bound: float = 3.0  # lookahead head: its learned correction is bounded to ± this many nats (0 = unbounded)
+    # lookahead head: also sample an occupancy map along every arc, weighted by a convex-fitted cost (rl.lookahead):
+    # the pretrained BEV's predicted occupancy (static, people now / +0.5 s / +1.0 s) for full and no_i2, the depth
+    # occupancy (the w/o BEV substitute) for no_bev
+    map_cost: bool = False
     drl_vo: DRLVOConfig = field(default_factory=DRLVOConfig)  # the learned baselines (rl.baselines.<name>)
     sarl_om: SARLOMConfig = field(default_factory=SARLOMConfig)
     vint: ViNTConfig = field(default_factory=ViNTConfig)
@@ -241,6 +248,9 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError(f"train.head: expected one of {list(STUDENT_HEADS)}, got {self.head!r}")
         if self.scorer_bound < 0:
             raise ConfigError(f"train.scorer_bound: expected >= 0, got {self.scorer_bound}")
+        if self.map_cost and self.head != "lookahead":
+            raise ConfigError(f"train.map_cost: the occupancy map cost is part of the lookahead head; expected "
+                              f"train.head lookahead, got {self.head!r}")
         if d.linear_cost not in ("teacher", "fit"):
             raise ConfigError(f"train.dagger.linear_cost: expected 'teacher' or 'fit', got {d.linear_cost!r}")
         if not (0 <= d.beta0 <= 1 and 0 <= d.beta_decay <= 1):
@@ -468,8 +478,10 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     forecaster = load_student_forecaster(cfg.variant, cfg.head, int_dir)
     env = CrowdNavEnv(config=replace(cfg.sim, scene=d.scenes[0], obs_mode="state"))
     env.reset(seed=0)
-    space = observer_for_env(env, cfg.variant, encoder, cfg.head, forecaster=forecaster).observation_space
-    net = student_net(cfg)
+    observer = observer_for_env(env, cfg.variant, encoder, cfg.head, forecaster=forecaster, map_cost=cfg.map_cost,
+                                map_heads=load_student_heads(cfg.variant, cfg.head, cfg.map_cost, enc_dir, encoder))
+    space = observer.observation_space
+    net = student_net(cfg, observer.grid)
     extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir),
              "intention": str(int_dir) if int_dir else None}
     pairs = [(s, float(x)) for s in d.scenes for x in d.densities]
@@ -498,6 +510,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                  "seed": cfg.seed + 1000 * k + e, "variant": cfg.variant, "encoder": str(enc_dir) if enc_dir else None,
                  "teacher": str(teacher_dir), "student": str(student_dir) if student_dir else None, "beta": beta,
                  "iteration": k, "iter_dir": str(it), "mirror": d.mirror, "head": cfg.head, "device": str(device),
+                 "map_cost": cfg.map_cost,
                  "intention": str(int_dir) if int_dir else None}
                 for e in range(d.episodes_per_iter)]
         rows = run_iteration(it, jobs, cfg.workers, cfg.progress)
@@ -517,15 +530,17 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             cache = lookahead_feature_cache(policy, data, d.mirror, n_rot,
                                             (*space.spaces, *(("bev_mirror",) if d.mirror and "bev" in space.spaces
                                                               else ())))
-            if soft and not inherited:
+            map_head = policy.features_extractor.lookahead.n_map > 0
+            if soft and (not inherited or map_head):  # the map cost is fitted on top of an inherited linear cost
                 linear_fit = fit_lookahead_linear(policy, data, d.soft_tau, seed=cfg.seed + k, mirror=d.mirror,
-                                                  n_rot=n_rot, cache=cache)
-                log.info("student %s iteration %d: linear cost fit on %d frames, cross-entropy %.3f -> %.3f",
-                         cfg.variant, k, linear_fit["frames"], linear_fit["ce_before"], linear_fit["ce_after"])
+                                                  n_rot=n_rot, cache=cache, terms="map" if inherited else "all")
+                log.info("student %s iteration %d: %s cost fit on %d frames, cross-entropy %.3f -> %.3f%s",
+                         cfg.variant, k, "map" if inherited else "linear", linear_fit["frames"],
+                         linear_fit["ce_before"], linear_fit["ce_after"],
+                         f", map weights {linear_fit['map_weights']}" if map_head else "")
         hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, cfg.seed + k, progress=cfg.progress,
                                soft_tau=d.soft_tau if soft else 0.0, mirror=d.mirror, n_rot=n_rot,
-                               frozen=("features_extractor.lookahead.linear.",) if (linear_fit or inherited) else (),
-                               cache=cache)
+                               frozen=FITTED_PREFIXES if (linear_fit or inherited) else (), cache=cache)
         del cache
         after = bc_loss(policy, new)
         soft_ce = ({"soft_ce_new_before": soft_before, "soft_ce_new_after": bc_loss(policy, new, soft_tau=d.soft_tau)}
@@ -552,7 +567,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 "ppo_finetune_steps": 0}
     summary: dict[str, Any] = {"dagger": iters}
     if cfg.finetune.ppo_steps > 0:
-        policy, steps, rate = _finetune(cfg, out, policy, pairs, enc_dir, device)
+        policy, steps, rate = _finetune(cfg, out, policy, net, pairs, enc_dir, device)
         produced["ppo_finetune_steps"] = steps
         summary["finetune"] = {"steps": steps, "steps_per_s": rate}
     save_policy(out, policy, describe("student", cfg.variant, space, net, **extra, produced_by=produced))
@@ -575,15 +590,18 @@ def inherit_linear_cost(policy, teacher_dir: Path) -> None:
         dst.scorer[-1].bias.zero_()
 
 
-def student_net(cfg: TrainConfig) -> dict[str, Any]:
+def student_net(cfg: TrainConfig, grid: BEVGrid) -> dict[str, Any]:
     """The student's network description (saved in policy.json): ``cfg.net``, the head and, for the lookahead head,
-    what its rollouts need from the simulator (robot limits and radius, control period, scan range)."""
+    what its rollouts need from the simulator (robot limits and radius, control period, scan range) and, with
+    ``map_cost``, the extent of the occupancy map it samples (``grid``: the observer's BEV grid)."""
     from dataclasses import asdict
 
     net = {**cfg.net, "head": cfg.head}
     if cfg.head == "lookahead":
         net.update({"robot": asdict(cfg.sim.robot), "dt_s": cfg.sim.dt_s, "scan_range_m": cfg.sim.scan_range_m,
                     "scorer_bound": cfg.scorer_bound, "heading": teacher_heading(policy_root(cfg) / "teacher")})
+        if cfg.map_cost:
+            net.update({"map_cost": True, "map_bounds": [list(map(float, b[:2])) for b in (grid.x_bound, grid.y_bound)]})
     return net
 
 
@@ -597,19 +615,19 @@ def teacher_heading(teacher_dir: Path) -> str:
     return str(read_policy_json(teacher_dir)["net"].get("heading", "end"))
 
 
-def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir, device: torch.device):
+def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, enc_dir, device: torch.device):
     """PPO on the student (rendered envs, the paper's reward), starting from the distilled policy; the updates and
     each env's frozen encoder on ``device`` (env subprocesses spawned for CUDA)."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     f = cfg.finetune
-    sim, variant, head, dev = cfg.sim, cfg.variant, cfg.head, str(device)
+    sim, variant, head, dev, map_cost = cfg.sim, cfg.variant, cfg.head, str(device), cfg.map_cost
     int_dir = intention_dir(cfg)
 
     def make():  # captures plain values only: pickled into spawned subprocesses
         return StudentEnv(SceneMixEnv(sim, pairs, obs_mode="visual"), variant, enc_dir, head=head, device=dev,
-                          intention_ckpt=int_dir)
+                          intention_ckpt=int_dir, map_cost=map_cost)
 
     venv = (SubprocVecEnv([make] * f.n_envs, start_method=start_method(device)) if f.n_envs > 1
             else DummyVecEnv([make]))
@@ -618,7 +636,6 @@ def _finetune(cfg: TrainConfig, out: Path, policy, pairs, enc_dir, device: torch
     if last.exists():
         model = PPO.load(last, env=venv, device=device)
     else:
-        net = student_net(cfg)
         model = PPO(policy_class("student", net), venv, policy_kwargs=policy_kwargs("student", cfg.variant, net),
                     seed=cfg.seed, device=device, verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(f.ppo))
         model.policy.load_state_dict(policy.state_dict())

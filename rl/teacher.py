@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from pipeline.core.errors import ConfigError, InputMissingError
-from rl.lookahead import N_LINEAR, SCORE_SCALE
+from rl.lookahead import SCORE_SCALE
 from rl.policy import LOOKAHEAD_KEY, act, build_policy
 from rl.vec_env import BatchedSubprocVecEnv
 from sim.env import CrowdNavEnv, SimConfig
@@ -335,15 +335,20 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
 
 def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, max_frames: int = 20_000,
                          seed: int = 0, mirror: bool = True, n_rot: int = 21,
-                         cache: tuple[np.ndarray, np.ndarray | None] | None = None) -> dict[str, float]:
+                         cache: tuple[np.ndarray, np.ndarray | None] | None = None,
+                         terms: str = "all") -> dict[str, Any]:
     """Fits the linear path of a lookahead teacher (:class:`rl.networks.LookaheadTeacherExtractor`) to the expert's
     softmin targets by convex multinomial regression (L-BFGS), and zeroes the MLP scorer's output layer, so cloning
     starts from the best linear cost over the rollout features instead of from random logits (Adam would need
     thousands of steps to grow weights to the tens of nats the expert's costs span). With ``mirror`` the fit also
     sees every frame reflected. ``cache``: :func:`lookahead_feature_cache` of all of ``data`` (with the same
-    ``mirror``) when the caller has it; otherwise only the subsample's features are computed. Returns the
-    cross-entropy to the targets before and after. Runs on the policy's device."""
+    ``mirror``) when the caller has it; otherwise only the subsample's features are computed. ``terms``: ``"all"``
+    fits the linear cost and, when the head reads an occupancy map, its map cost; ``"map"`` only the map cost, on
+    top of the linear cost a student inherited from its teacher. Returns the cross-entropy to the targets before
+    and after (and the fitted map weights). Runs on the policy's device."""
     head = policy.features_extractor.lookahead  # rl.lookahead.LookaheadHead
+    if terms not in ("all", "map") or (terms == "map" and not head.n_map):
+        raise ConfigError(f"fit_lookahead_linear terms: expected 'all', or 'map' for a head with a map, got {terms!r}")
     dev = policy.device
     rng = np.random.default_rng(seed)
     n = len(data["action"])
@@ -364,14 +369,16 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
     target = torch.softmax(-(cost - cost.min(1, keepdim=True).values) / tau, -1)
 
     def ce() -> torch.Tensor:
-        logits = SCORE_SCALE * head.linear(feats[..., -N_LINEAR:]).squeeze(-1)
+        logits = SCORE_SCALE * head.fitted_cost(feats).squeeze(-1)
         return -(target * torch.log_softmax(logits, -1)).sum(-1).mean()
 
     with torch.no_grad():
         head.scorer[-1].weight.zero_()
         head.scorer[-1].bias.zero_()
         before = float(ce())
-    opt = torch.optim.LBFGS(head.linear.parameters(), lr=1.0, max_iter=200, line_search_fn="strong_wolfe")
+    params = [*(head.linear.parameters() if terms == "all" else ()),
+              *(head.map_cost.parameters() if head.n_map else ())]
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=200, line_search_fn="strong_wolfe")
 
     def closure() -> torch.Tensor:
         opt.zero_grad()
@@ -380,7 +387,13 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
         return loss
 
     opt.step(closure)
-    return {"frames": int(len(cost)), "ce_before": before, "ce_after": float(ce().detach())}
+    out: dict[str, Any] = {"frames": int(len(cost)), "ce_before": before, "ce_after": float(ce().detach())}
+    if head.n_map:  # nats per unit of each map feature (static max, static mean, people max, people mean)
+        out["map_weights"] = [round(float(w) * SCORE_SCALE, 3) for w in head.map_cost.weight.detach().view(-1)]
+    return out
+
+
+FITTED_PREFIXES = ("features_extractor.lookahead.linear.", "features_extractor.lookahead.map_cost.")
 
 
 def has_lookahead(policy) -> bool:
@@ -444,8 +457,9 @@ def mirror_batch(obs: dict[str, torch.Tensor], action: torch.Tensor, cost: torch
         out["subgoal"] = torch.where(f, obs["subgoal"] * obs["subgoal"].new_tensor([1.0, -1.0]), obs["subgoal"])
     if "path" in obs:  # P x [x, y]
         out["path"] = torch.where(f.unsqueeze(-1), obs["path"] * obs["path"].new_tensor([1.0, -1.0]), obs["path"])
-    if "occ" in obs:  # C x X x Y map on a grid symmetric in y: reverse the y axis
-        out["occ"] = torch.where(f.view(-1, 1, 1, 1), torch.flip(obs["occ"], [-1]), obs["occ"])
+    for key in ("occ", "bev_occ"):  # C x X x Y maps on a grid symmetric in y: reverse the y axis (bev_occ: the
+        if key in obs:  # predicted occupancy reflected, a stand-in for what the encoder would predict of the mirror)
+            out[key] = torch.where(f.view(-1, 1, 1, 1), torch.flip(obs[key], [-1]), obs[key])
     if "bev" in obs:  # the encoder's latent is not mirror-equivariant: the mirrored world's own s_bev is needed
         if "bev_mirror" not in obs:
             raise ValueError("mirror_batch: 'bev' needs 'bev_mirror' (StudentObserver(mirror=True))")

@@ -285,3 +285,126 @@ def test_the_lookahead_head_uses_the_intention_prediction(lobby):
 def test_a_student_without_poses_or_with_the_mlp_head_uses_no_intention_model():
     assert uses_forecaster("full", "lookahead") and uses_forecaster("no_bev", "lookahead")
     assert not uses_forecaster("no_i2", "lookahead") and not uses_forecaster("full", "mlp")
+
+
+# ------------------------------------------------------------------------ the occupancy map along the arcs (map_cost)
+BOUNDS = [[0.0, 6.0], [-4.8, 4.8]]  # the default BEV grid; maps of 30 x 48 cells of 0.2 m (s_bev pooled 2 x 2)
+STRAIGHT_FAST, STOP = 4 * 21 + 10, 10  # action indices: 1 m/s straight on, standing still
+
+
+def _block(occ, ch, x0, x1, y0, y1):
+    """Marks the cells of channel ``ch`` whose centres lie in [x0, x1] x [y0, y1] (m) occupied."""
+    xs = BOUNDS[0][0] + (np.arange(occ.shape[-2]) + 0.5) * 0.2
+    ys = BOUNDS[1][0] + (np.arange(occ.shape[-1]) + 0.5) * 0.2
+    occ[..., ch, :, :] += torch.from_numpy(((xs[:, None] >= x0) & (xs[:, None] <= x1)
+                                            & (ys[None] >= y0) & (ys[None] <= y1)).astype(np.float32))
+    return occ
+
+
+def _map_head(lobby, channels):
+    from dataclasses import asdict
+
+    import gymnasium as gym
+
+    from rl.lookahead import LookaheadHead
+
+    space = _student_space(lobby)
+    spaces = dict(space.spaces)
+    spaces["bev_occ"] = gym.spaces.Box(0.0, 1.0, (channels, 30, 48), np.float32)
+    c = lobby.cfg
+    return LookaheadHead(gym.spaces.Dict(spaces), asdict(c.robot), c.dt_s, 0.25, 8, 8, 4, subgoal=False,
+                         scan_range_m=c.scan_range_m, map_key="bev_occ", map_bounds=BOUNDS)
+
+
+def _map_obs(lobby, occ):
+    obs = _batch(_student_space(lobby), 1)
+    obs["peds"][..., 5] = 0.0  # nobody tracked, no scan hits: only the map speaks
+    obs["scan"][:] = 10.0
+    obs["bev_occ"] = occ
+    return obs
+
+
+def test_map_features_read_static_occupancy_along_each_arc(lobby):
+    head = _map_head(lobby, 4)
+    occ = _block(torch.zeros(1, 4, 30, 48), 0, 1.2, 1.8, -0.4, 0.4)  # a box 1.2-1.8 m straight ahead
+    f = head.action_features(_map_obs(lobby, occ))[0]
+    m = f[:, -N_LINEAR - 4:-N_LINEAR]  # static max, static mean, people max, people mean
+    assert m[STRAIGHT_FAST, 0] > 0.9 and m[STRAIGHT_FAST, 1] > 0.2  # driving into it
+    assert m[STOP, 0] == 0 and m[STOP, 1] == 0  # standing still touches nothing
+    assert m[:, 2:].abs().max() == 0  # no people in the map
+    empty = head.action_features(_map_obs(lobby, torch.zeros(1, 4, 30, 48)))[0]
+    assert empty[:, -N_LINEAR - 4:-N_LINEAR].abs().max() == 0
+    # everything but the map features is what the head without a map computes
+    plain = build_policy("student", "no_bev", _student_space(lobby), _net(lobby)).features_extractor.lookahead
+    g = plain.action_features(_map_obs(lobby, occ))[0]
+    assert torch.equal(torch.cat([f[:, :-N_LINEAR - 4], f[:, -N_LINEAR:]], -1), g)
+
+
+def test_map_people_channels_are_read_at_their_time(lobby):
+    """A person predicted 1 m ahead at +1.0 s is met by the 1 m/s straight arc (there at t = 1 s); the same
+    person in the "now" channel is not (the arc is at ≤ 0.25 m while "now" is read)."""
+    head = _map_head(lobby, 4)
+    future = _block(torch.zeros(1, 4, 30, 48), 3, 0.9, 1.1, -0.1, 0.1)
+    now = _block(torch.zeros(1, 4, 30, 48), 1, 0.9, 1.1, -0.1, 0.1)
+    f = head.action_features(_map_obs(lobby, future))[0, :, -N_LINEAR - 4:-N_LINEAR]
+    g = head.action_features(_map_obs(lobby, now))[0, :, -N_LINEAR - 4:-N_LINEAR]
+    assert f[STRAIGHT_FAST, 2] > 0.5 and g[STRAIGHT_FAST, 2] < 0.05
+    assert f[STOP, 2] == 0 and f[:, :2].abs().max() == 0  # the static channel stays empty
+
+
+def test_map_features_are_mirror_symmetric_and_the_map_cost_fits_on_top_of_the_inherited_cost(lobby):
+    """no_bev with map_cost reads its depth occupancy ``occ``; mirroring flips the map with the world; the convex fit
+    of the map cost leaves the inherited linear cost untouched and recovers the sign of the map weight."""
+    space = _student_space(lobby)
+    assert "occ" in space.spaces and "bev_occ" not in variant_keys("no_bev", "lookahead", map_cost=True)
+    assert "bev_occ" in variant_keys("full", "lookahead", map_cost=True)
+    net = {**_net(lobby), "map_cost": True, "map_bounds": BOUNDS}
+    torch.manual_seed(0)
+    policy = build_policy("student", "no_bev", space, net)
+    head = policy.features_extractor.lookahead
+    assert head.map_key == "occ" and head.n_feat == build_policy(
+        "student", "no_bev", space, _net(lobby)).features_extractor.lookahead.n_feat + 4
+    obs = _batch(space, 256, seed=4)
+    rng = np.random.default_rng(1)
+    obs["occ"] = torch.zeros_like(obs["occ"])
+    for i in range(256):  # one 0.6 m box per frame, somewhere ahead
+        x, y = rng.uniform(0.5, 3.0), rng.uniform(-1.5, 1.5)
+        _block(obs["occ"][i:i + 1], 0, x, x + 0.6, y, y + 0.6)
+    with torch.no_grad():  # the inherited cost (as in test_linear_cost_fits_the_teachers_distribution)
+        head.linear.weight.copy_(torch.tensor([[-3.0, -1.0, -2.0, -0.5, 1.0, 0.5, -0.3, 0.2, 0.1, -0.1]]) / 10.0)
+    flip = torch.ones(256, dtype=torch.bool)
+    mobs, _, _ = mirror_batch(obs, torch.zeros(256, dtype=torch.long), None, flip, 21)
+    mf = head.action_features(mobs)[..., -N_LINEAR - 4:-N_LINEAR].view(256, 5, 21, -1)
+    f = head.action_features(obs)[..., -N_LINEAR - 4:-N_LINEAR].view(256, 5, 21, -1)
+    assert torch.allclose(f, torch.flip(mf, [2]), atol=1e-4)
+    # targets from the inherited linear cost plus a map cost of -40 nats per unit of static maximum
+    feats = head.action_features(obs)
+    with torch.no_grad():
+        logits = 10.0 * head.linear(feats[..., -N_LINEAR:]).squeeze(-1) - 40.0 * feats[..., -N_LINEAR - 4]
+    data = {k: v.numpy() for k, v in obs.items()}
+    data["costs"], data["action"] = -logits.numpy(), logits.argmax(-1).numpy()
+    linear = head.linear.weight.detach().clone()
+    fit = fit_lookahead_linear(policy, data, soft_tau=1.0, mirror=True, terms="map",
+                               cache=lookahead_feature_cache(policy, data, mirror=True))
+    assert torch.equal(head.linear.weight, linear)
+    assert fit["ce_after"] < fit["ce_before"]
+    assert fit["map_weights"][0] == pytest.approx(-40.0, abs=2.0)  # recovered, in nats per unit
+    assert fit["map_weights"][2:] == [0.0, 0.0]  # a depth map has no people channels: their weights stay at zero
+
+
+def test_observer_makes_the_bev_occupancy_from_the_pretext_heads(lobby):
+    from pipeline.core.errors import ConfigError
+    from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
+    from rl.observe import env_cameras
+
+    torch.manual_seed(0)
+    enc = BEVEncoder(EncoderConfig(bev_channels=8, resnet_stages=1, lift_stride_px=4), env_cameras(lobby)).eval()
+    with pytest.raises(ConfigError, match="pretext heads"):
+        observer_for_env(lobby, "full", enc, head="lookahead", map_cost=True)
+    ob = observer_for_env(lobby, "full", enc, head="lookahead", map_cost=True, map_heads=PretextHeads(8))
+    o, _ = lobby.reset(seed=3)
+    out = ob(o)
+    nx, ny = enc.grid.shape
+    assert out["bev_occ"].shape == (4, nx // 2, ny // 2) == ob.observation_space["bev_occ"].shape
+    assert out["bev_occ"].min() >= 0.0 and out["bev_occ"].max() <= 1.0
+    assert "bev_occ" not in observer_for_env(lobby, "full", enc, head="lookahead").observation_space.spaces

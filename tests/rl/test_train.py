@@ -252,14 +252,19 @@ def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
     assert desc["intention"] == str(intention) and "peds_future" in desc["observation_space"]
     assert torch.equal(policy.features_extractor.lookahead.linear.weight,
                        teacher.features_extractor.lookahead.linear.weight)
-    # the alternatives: the linear cost fitted by convex regression to the teacher's distribution, and the
-    # constant-velocity ablation (no intention model)
-    run(_train_cfg(tmp_path, "no_bev", overwrite="true", **{**sizes, "dagger.linear_cost": "fit", "intention": ""}))
+    # the alternatives: the linear cost fitted by convex regression to the teacher's distribution, the
+    # constant-velocity ablation (no intention model), and the occupancy map along the arcs (map_cost: for no_bev
+    # its depth occupancy), whose cost is fitted with the linear one and used by the acceptance run
+    run(_train_cfg(tmp_path, "no_bev", overwrite="true", **{**sizes, "dagger.linear_cost": "fit", "intention": "",
+                                                              "map_cost": "true"}))
     it = json.loads((out / "metrics.json").read_text())["dagger"][0]
     assert it["linear_fit"]["ce_after"] < it["linear_fit"]["ce_before"]
+    assert len(it["linear_fit"]["map_weights"]) == 4
     assert it["soft_ce_new_after"] < it["soft_ce_new_before"]
-    _, desc = load_policy(out)
+    policy, desc = load_policy(out)
     assert desc["intention"] is None and "peds_future" not in desc["observation_space"]
+    assert desc["net"]["map_cost"] and policy.features_extractor.lookahead.map_key == "occ"
+    assert json.loads((out / "metrics.json").read_text())["acceptance"]["table"]["hallway@0.1"]["n"] == 1
 
 
 def tiny_intention_checkpoint(out):
@@ -291,6 +296,11 @@ def test_missing_encoder_is_one_clear_error(tmp_path, teacher_dir):
     with pytest.raises(InputMissingError, match="no BEV encoder checkpoint"):
         run(_train_cfg(tmp_path, "full"))
     assert not (tmp_path / "checkpoints" / "policy" / "full").exists()
+
+
+def test_map_cost_needs_the_lookahead_head(tmp_path):
+    with pytest.raises(ConfigError, match="train.map_cost"):
+        _train_cfg(tmp_path, "full", head="mlp", map_cost="true")
 
 
 def test_missing_teacher_is_one_clear_error(tmp_path):
