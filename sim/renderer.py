@@ -33,7 +33,10 @@ class WorldRenderer:
             self.client = -1
 
     def __del__(self) -> None:  # pragma: no cover - best effort
-        self.close()
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - at interpreter exit pybullet's module may be torn down (pb.error None)
+            pass
 
     def build(self, obstacles: list[Obstacle], bounds: tuple[float, float, float, float],
               floor_color: tuple[float, float, float], half_extents: np.ndarray, colors: np.ndarray) -> None:
