@@ -102,9 +102,17 @@ def cluster():
     ray = pytest.importorskip("ray")
     from ray.cluster_utils import Cluster
 
-    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
-    c.add_node(num_cpus=1)
-    c.wait_for_nodes()
+    for attempt in range(2):  # Ray gives a raylet 30 s to register (hard-coded): a loaded machine can miss it once
+        c = Cluster(initialize_head=False)
+        try:
+            c.add_node(num_cpus=1, include_dashboard=False)
+            c.add_node(num_cpus=1)
+            c.wait_for_nodes()
+            break
+        except Exception:
+            c.shutdown()
+            if attempt:
+                raise
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("RAY_ADDRESS", c.address)
         yield c
