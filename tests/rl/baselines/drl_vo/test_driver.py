@@ -30,7 +30,7 @@ def test_reloads_in_a_fresh_process_and_reproduces_its_actions(trained):
     torch.set_num_threads(1)
     outcome, actions = drive(trained["ckpt"], trained["scene"], 123)
     res = subprocess.run([sys.executable, "-c", _DRIVE_SCRIPT, str(trained["ckpt"]), trained["scene"], "123"],
-                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+                         capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     outcome2, actions2 = json.loads(res.stdout.strip().splitlines()[-1])
     assert outcome2 == outcome

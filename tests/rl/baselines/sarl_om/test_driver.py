@@ -55,7 +55,7 @@ def test_driver_in_a_fresh_process_reproduces_the_actions(trained, tmp_path):
         "    a = drv.act(obs, info); acts.append(a); obs, _, _, _, info = env.step(a)\n"
         "print(json.dumps(acts))\n"
     )
-    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout.strip().splitlines()[-1]) == mine
 
