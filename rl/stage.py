@@ -204,7 +204,7 @@ class TrainConfig(BaseStageConfig):
     scorer_bound: float = 3.0  # lookahead head: its learned correction is bounded to ± this many nats (0 = unbounded)
     # lookahead head: also sample an occupancy map along every arc, weighted by a convex-fitted cost (rl.lookahead):
     # the pretrained BEV's predicted occupancy (static, people now / +0.5 s / +1.0 s) for full and no_i2, the depth
-    # occupancy (the w/o BEV substitute) for no_bev
+    # occupancy (the w/o BEV substitute) for no_bev; the mlp head has no costs and ignores it
     map_cost: bool = False
     drl_vo: DRLVOConfig = field(default_factory=DRLVOConfig)  # the learned baselines (rl.baselines.<name>)
     sarl_om: SARLOMConfig = field(default_factory=SARLOMConfig)
@@ -248,9 +248,6 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError(f"train.head: expected one of {list(STUDENT_HEADS)}, got {self.head!r}")
         if self.scorer_bound < 0:
             raise ConfigError(f"train.scorer_bound: expected >= 0, got {self.scorer_bound}")
-        if self.map_cost and self.head != "lookahead":
-            raise ConfigError(f"train.map_cost: the occupancy map cost is part of the lookahead head; expected "
-                              f"train.head lookahead, got {self.head!r}")
         if d.linear_cost not in ("teacher", "fit"):
             raise ConfigError(f"train.dagger.linear_cost: expected 'teacher' or 'fit', got {d.linear_cost!r}")
         if not (0 <= d.beta0 <= 1 and 0 <= d.beta_decay <= 1):

@@ -298,11 +298,6 @@ def test_missing_encoder_is_one_clear_error(tmp_path, teacher_dir):
     assert not (tmp_path / "checkpoints" / "policy" / "full").exists()
 
 
-def test_map_cost_needs_the_lookahead_head(tmp_path):
-    with pytest.raises(ConfigError, match="train.map_cost"):
-        _train_cfg(tmp_path, "full", head="mlp", map_cost="true")
-
-
 def test_missing_teacher_is_one_clear_error(tmp_path):
     from pipeline.verbs.train import run
 
