@@ -8,6 +8,9 @@ the profile's cameras).
   temporal model; ``bev_recompute_ms_per_step`` — :meth:`BEVEncoder.forward` on the whole window of T frames (what
   a policy without the cache would do each step); ``bev_stream_speedup_vs_recompute`` their ratio;
 * ``bev_stream_hz`` — streaming steps per second; ``bev_backbone_ms`` — the image backbone alone on one frame pair.
+* ``bev_stream_ms_per_step_fuse_pool2`` / ``bev_stream_speedup_fuse_pool2`` — the same streaming step with the
+  temporal model and decoder on the 2 x 2 pooled grid (``encoder.fuse_pool: 2``), timed in alternation with the
+  profile's encoder on the same frames (only when the profile's encoder fuses at full resolution).
 * ``pretrain_step_ms_<device>`` — one optimisation step of :func:`pretrain.train.fit` (forward, masked BCE,
   backward, AdamW; the profile's ``clips_per_batch`` x ``clip_frames``) on a synthetic frame store of the cameras'
   size, every thread the machine has, median of the steps after the first two (:func:`measure_fit_step`); with a
@@ -120,6 +123,16 @@ def measure_bev(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg
             if not torch.allclose(s, batch, atol=1e-4, rtol=1e-4):
                 raise RuntimeError("streaming encoder disagrees with the batch forward")
             out["bev_stream_ms_per_step"] = _ms(lambda: stream.step(*window[-1]), seconds / 2)
+            if encoder_cfg.fuse_pool == 1 and all(n % 2 == 0 for n in enc.grid.shape):
+                pooled = BEVStream(BEVEncoder(replace(encoder_cfg, fuse_pool=2), cameras).eval())
+                for w in window:
+                    pooled.step(*w)
+                full_ms, pooled_ms = [], []
+                for _ in range(3):  # alternating: a drifting machine speed hits both alike
+                    full_ms.append(_ms(lambda: stream.step(*window[-1]), seconds / 6))
+                    pooled_ms.append(_ms(lambda: pooled.step(*window[-1]), seconds / 6))
+                out["bev_stream_ms_per_step_fuse_pool2"] = float(np.median(pooled_ms))
+                out["bev_stream_speedup_fuse_pool2"] = float(np.median(full_ms) / np.median(pooled_ms))
         out["bev_stream_speedup_vs_recompute"] = out["bev_recompute_ms_per_step"] / out["bev_stream_ms_per_step"]
         out["bev_stream_hz"] = 1000.0 / out["bev_stream_ms_per_step"]
         out["bev_grid_cells"] = float(np.prod(enc.grid.shape))
@@ -247,6 +260,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--legacy", action="store_true",
                     help="also time the encoder as it was before the depth evidence, the BEV decoder and T = 5 "
                          "(keys *_legacy)")
+    ap.add_argument("--fuse-pool", type=int, default=0,
+                    help="also time the encoder with this encoder.fuse_pool (keys *_fuse_pool<N>)")
     ap.add_argument("--write-intention-samples", type=Path, help="collect the intention samples into this .npz")
     ap.add_argument("--intention-samples", type=Path, help="also time the intention model's fit on these samples")
     ap.add_argument("--intention-epochs", type=int, default=12)
@@ -259,10 +274,16 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         cams = cameras_from_dataset(args.dataset)
         kw = {"steps": args.steps, "clips_per_batch": args.clips_per_batch, "clip_frames": args.clip_frames}
+        pooled = EncoderConfig(fuse_pool=args.fuse_pool) if args.fuse_pool else None
+        if pooled is not None:
+            pooled.validate()
         out = measure_fit_steps(cams, EncoderConfig(), devices, **kw)
         if args.legacy:
             legacy = EncoderConfig(**{**LEGACY_ENCODER, "history_frames": 3})
             out.update({f"{k}_legacy": v for k, v in measure_fit_steps(cams, legacy, devices, **kw).items()})
+        if pooled is not None:
+            out.update({f"{k}_fuse_pool{args.fuse_pool}": v
+                        for k, v in measure_fit_steps(cams, pooled, devices, **kw).items()})
         if args.intention_samples:
             out.update(measure_intention_fit(args.intention_samples, devices, args.intention_epochs))
     except ICrowdNavError as e:

@@ -15,7 +15,10 @@ hits, rays that crossed the cell: :func:`lift_evidence`) → ``x_bev``. Over the
 warped into the newest frame by ego-motion (:func:`warp_bev`), the T maps are stacked in time and a FIERY-style
 temporal model (causal 3D convolutions with kernel ``2 x 3 x 3``, T−1 of them, plus a 2D skip from the newest map)
 fuses them; with ``decoder: unet`` a BEV encoder-decoder (:class:`BEVDecoder`, three stride-2 stages, receptive
-field ≈ 5 m) follows, residual to its input; the result is ``s_bev``. The first frames of an episode have no
+field ≈ 5 m) follows, residual to its input; the result is ``s_bev``. With ``fuse_pool: p > 1`` the warp, the
+temporal model and the decoder run on the ``p x p`` average-pooled maps (``p²`` fewer cells: the dearest part of a
+streaming step, ~70 % of it at ``p = 1``), and a 3x3 refinement of the bilinearly upsampled result concatenated with
+the newest full-resolution map brings ``s_bev`` back to the lift's resolution (the students pool it 2 x 2 anyway). The first frames of an episode have no
 history: the earliest available frame is repeated (the same rule in training, batch and streaming inference).
 """
 
@@ -51,7 +54,7 @@ TARGETS = ("static", "ped_t", "ped_t+0.5s", "ped_t+1.0s")
 
 DECODERS = ("unet", "none")
 # what an encoder.json written before a key existed means (the architecture it was trained with)
-LEGACY_ENCODER = {"evidence": False, "decoder": "none"}
+LEGACY_ENCODER = {"evidence": False, "decoder": "none", "fuse_pool": 1}
 
 
 @dataclass
@@ -68,6 +71,7 @@ class EncoderConfig:
     backbone_weights: str = ""  # optional torchvision resnet18 state dict (.pth/.safetensors) to start from
     evidence: bool = True  # add the depth's per-cell evidence (hits / floor / free rays) to x_bev
     decoder: str = "unet"  # after the temporal model: "unet" (BEVDecoder, ~5 m receptive field) | "none"
+    fuse_pool: int = 1  # warp + temporal model + decoder on p x p pooled maps, then refined back (module docstring)
 
     def validate(self) -> None:
         self.grid.validate("encoder")
@@ -77,14 +81,25 @@ class EncoderConfig:
             raise ConfigError(f"encoder.decoder: expected one of {list(DECODERS)}, got {self.decoder!r}")
         if not isinstance(self.evidence, bool):
             raise ConfigError(f"encoder.evidence: expected true or false, got {self.evidence!r}")
-        for k in ("bev_channels", "lift_stride_px", "history_frames"):
+        for k in ("bev_channels", "lift_stride_px", "history_frames", "fuse_pool"):
             v = getattr(self, k)
-            if not isinstance(v, int) or v < 1:
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ConfigError(f"encoder.{k}: expected an integer >= 1, got {v!r}")
+        shape = self.grid.shape
+        if any(n % self.fuse_pool for n in shape):
+            raise ConfigError(f"encoder.fuse_pool: expected a divisor of both BEV grid sizes {list(shape)}, "
+                              f"got {self.fuse_pool}")
 
     @property
     def grid(self) -> BEVGrid:
         return BEVGrid(tuple(self.x_bound), tuple(self.y_bound), tuple(self.z_bound))
+
+    @property
+    def fuse_grid(self) -> BEVGrid:
+        """The grid the temporal model and the decoder run on (``grid`` with ``fuse_pool`` times larger cells)."""
+        p = self.fuse_pool
+        return BEVGrid((self.x_bound[0], self.x_bound[1], self.x_bound[2] * p),
+                       (self.y_bound[0], self.y_bound[1], self.y_bound[2] * p), tuple(self.z_bound))
 
 
 def _resnet18_trunk(stages: int) -> nn.Sequential:
@@ -191,6 +206,9 @@ class BEVEncoder(nn.Module):
             self.evidence = nn.Conv2d(len(EVIDENCE_CHANNELS), cfg.bev_channels, 1)
         if cfg.decoder == "unet":
             self.decoder = BEVDecoder(cfg.bev_channels)
+        self.fuse_grid = cfg.fuse_grid
+        if cfg.fuse_pool > 1:
+            self.refine = _conv_bn(2 * cfg.bev_channels, cfg.bev_channels)
         self.geom = LiftGeometry(self.cameras, cfg.lift_stride_px)
         self.register_buffer("mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
@@ -250,12 +268,19 @@ class BEVEncoder(nn.Module):
         b, t = maps.shape[:2]
         if t != self.frames:
             raise ValueError(f"expected a window of {self.frames} frames, got {t}")
+        p = self.cfg.fuse_pool
+        window = maps if p == 1 else F.avg_pool2d(maps.flatten(0, 1), p).view(b, t, maps.shape[2], *self.fuse_grid.shape)
         newest = poses[:, -1:].expand(b, t - 1, 3)
         rel = relative_pose(poses[:, :-1].double(), newest.double()).float()
-        past = warp_bev(maps[:, :-1].flatten(0, 1), rel.flatten(0, 1), self.grid) if t > 1 else maps[:, :0]
-        aligned = torch.cat([past.view(b, t - 1, *maps.shape[2:]), maps[:, -1:]], 1)
+        past = warp_bev(window[:, :-1].flatten(0, 1), rel.flatten(0, 1), self.fuse_grid) if t > 1 else window[:, :0]
+        aligned = torch.cat([past.view(b, t - 1, *window.shape[2:]), window[:, -1:]], 1)
         s_bev = self.temporal(aligned)
-        return self.decoder(s_bev) if self.cfg.decoder == "unet" else s_bev
+        if self.cfg.decoder == "unet":
+            s_bev = self.decoder(s_bev)
+        if p == 1:
+            return s_bev
+        up = F.interpolate(s_bev, size=tuple(self.grid.shape), mode="bilinear", align_corners=False)
+        return self.refine(torch.cat([up, maps[:, -1]], 1))
 
     def forward(self, rgb: torch.Tensor, depth: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """Batch forward: ``B x T`` windows (full-resolution depth) → ``s_bev`` ``B x C x X x Y``."""

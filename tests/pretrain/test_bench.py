@@ -5,15 +5,18 @@ from __future__ import annotations
 import json
 import math
 
+import pytest
+
 from pretrain.bench import main, measure_fit_steps
 from pretrain.geometry import cameras_from_dataset
 from pretrain.model import EncoderConfig
 from tests.pretrain.test_train import ENC
 
 
-def test_fit_step_figures_on_the_cpu(tiny_dataset) -> None:
-    out = measure_fit_steps(cameras_from_dataset(tiny_dataset.root), EncoderConfig(**ENC), ["cpu"], steps=1,
-                            clips_per_batch=1, clip_frames=2)
+@pytest.mark.parametrize("fuse_pool", [1, 2])
+def test_fit_step_figures_on_the_cpu(tiny_dataset, fuse_pool) -> None:
+    out = measure_fit_steps(cameras_from_dataset(tiny_dataset.root), EncoderConfig(**ENC, fuse_pool=fuse_pool),
+                            ["cpu"], steps=1, clips_per_batch=1, clip_frames=2)
     assert set(out) == {"pretrain_step_ms_cpu"} and math.isfinite(out["pretrain_step_ms_cpu"]) and out[
         "pretrain_step_ms_cpu"] > 0
 
@@ -28,6 +31,10 @@ def test_cli_asks_for_cuda_without_it_is_a_named_error(tiny_dataset, capsys, mon
     assert main(["--dataset", str(tiny_dataset.root), "--devices", "cpu", "--steps", "1", "--clips-per-batch", "1",
                  "--clip-frames", "2"]) == 0
     assert json.loads(capsys.readouterr().out)["pretrain_step_ms_cpu"] > 0
+    # a pooled fusion that does not fit the grid is named before anything is timed
+    assert main(["--dataset", str(tiny_dataset.root), "--devices", "cpu", "--fuse-pool", "7"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: encoder.fuse_pool: expected a divisor of both BEV grid sizes [60, 96], got 7"]
 
 
 def test_intention_fit_figures_from_a_samples_file(tmp_path) -> None:

@@ -134,3 +134,27 @@ def test_rewriting_a_listed_checkpoint_in_place_drops_the_stale_manifest(ckpt: P
     save_safetensors(_model(seed=5), ckpt / "w.safetensors")
     assert not (ckpt / MANIFEST_NAME).exists()
     load_safetensors(_model(), ckpt / "w.safetensors")
+
+
+def test_a_pooled_fusion_encoder_round_trips_through_its_checkpoint(tmp_path: Path) -> None:
+    """An encoder with ``fuse_pool: 2`` (its refinement layer included) is rebuilt from ``encoder.json`` and its
+    weights, and gives the same s_bev."""
+    from pretrain.checkpoint import load_encoder, write_encoder_checkpoint
+    from pretrain.model import BEVEncoder, BEVStream, EncoderConfig, PretextHeads
+    from tests.pretrain.test_model import cameras, sequence
+
+    torch.manual_seed(0)
+    cfg = EncoderConfig(bev_channels=8, x_bound=[0.0, 4.0, 0.2], y_bound=[-3.2, 3.2, 0.2], history_frames=3,
+                        fuse_pool=2)
+    enc = BEVEncoder(cfg, cameras()).eval()
+    out = tmp_path / "bev"
+    out.mkdir()
+    write_encoder_checkpoint(out, enc, PretextHeads(8), {})
+    _finish(out)
+    loaded = load_encoder(out)
+    assert loaded.cfg.fuse_pool == 2 and hasattr(loaded, "refine")
+    rgb, depth, poses = sequence(1, seed=3)
+    a, b = BEVStream(enc), BEVStream(loaded)
+    for k in range(3):
+        torch.testing.assert_close(a.step(rgb[:, k], depth[:, k], poses[:, k]),
+                                   b.step(rgb[:, k], depth[:, k], poses[:, k]))

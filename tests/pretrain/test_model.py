@@ -1,5 +1,6 @@
 """Tests of pretrain.model: the causal time convolution, batch vs streaming encoder, stream resets, shapes and
-config validation (tiny 64 x 48 cameras, an 8-channel 20 x 32 grid, eval mode)."""
+config validation (tiny 64 x 48 cameras, an 8-channel 20 x 32 grid, eval mode). The encoder's tests run for
+``fuse_pool`` 1 and 2 (temporal model and decoder on the full or the 2 x 2 pooled grid)."""
 
 from __future__ import annotations
 
@@ -48,10 +49,10 @@ def randomise_norms(module: torch.nn.Module, gen: torch.Generator) -> None:
             m.bias.data.copy_(0.1 * torch.randn(c, generator=gen))
 
 
-@pytest.fixture(scope="module")
-def encoder() -> BEVEncoder:
+@pytest.fixture(scope="module", params=[1, 2], ids=["fuse_pool1", "fuse_pool2"])
+def encoder(request) -> BEVEncoder:
     torch.manual_seed(0)
-    enc = BEVEncoder(tiny_config(), cameras())
+    enc = BEVEncoder(tiny_config(fuse_pool=request.param), cameras())
     randomise_norms(enc, torch.Generator().manual_seed(1))
     return enc.eval()
 
@@ -229,7 +230,8 @@ def test_forward_rejects_a_wrong_window_length(encoder):
 
 @pytest.mark.parametrize("kw", [{"resnet_stages": 5}, {"resnet_stages": 0}, {"bev_channels": 0},
                                 {"lift_stride_px": 0}, {"history_frames": 0}, {"bev_channels": 8.5},
-                                {"x_bound": [0.0, 4.05, 0.2]}])
+                                {"x_bound": [0.0, 4.05, 0.2]}, {"fuse_pool": 0}, {"fuse_pool": 3},
+                                {"fuse_pool": True}])
 def test_encoder_config_validate_rejects(kw):
     """EncoderConfig.validate raises ConfigError for out-of-range architecture values and bad grids."""
     with pytest.raises(ConfigError):
@@ -239,6 +241,36 @@ def test_encoder_config_validate_rejects(kw):
 def test_encoder_config_default_is_valid():
     EncoderConfig().validate()
     tiny_config().validate()
+
+
+def test_fuse_pool_error_names_the_grid():
+    """A pool that does not divide the grid is named with the grid's sizes."""
+    with pytest.raises(ConfigError, match=r"^encoder\.fuse_pool: expected a divisor of both BEV grid sizes \[20, 32\], "
+                                          r"got 3$"):
+        tiny_config(fuse_pool=3).validate()
+
+
+def test_fuse_pool_runs_the_temporal_model_on_the_pooled_grid_and_keeps_full_resolution():
+    """With fuse_pool 2 the temporal model sees 10 x 16 maps, s_bev is 20 x 32 again, and the newest frame's
+    full-resolution map reaches it through the refinement (a change confined to one fine cell of it changes s_bev
+    most within that cell's 3 x 3 neighbourhood, the refinement's kernel)."""
+    torch.manual_seed(0)
+    enc = BEVEncoder(tiny_config(fuse_pool=2), cameras()).eval()
+    assert enc.fuse_grid.shape == (10, 16) and enc.grid.shape == (20, 32)
+    seen = []
+    hook = enc.temporal.register_forward_hook(lambda m, a, y: seen.append(tuple(a[0].shape)))
+    maps = torch.randn(1, 3, 8, 20, 32)
+    poses = torch.zeros(1, 3, 3, dtype=torch.float64)
+    with torch.no_grad():
+        y0 = enc.fuse(maps, poses)
+        bumped = maps.clone()
+        bumped[0, -1, :, 7, 11] += 5.0
+        y1 = enc.fuse(bumped, poses)
+    hook.remove()
+    assert seen[0] == (1, 3, 8, 10, 16) and tuple(y0.shape) == (1, 8, 20, 32)
+    change = (y1 - y0).abs().sum(1)[0]
+    i, j = divmod(int(change.argmax()), 32)
+    assert abs(i - 7) <= 1 and abs(j - 11) <= 1
 
 
 def test_pretext_heads_shape():

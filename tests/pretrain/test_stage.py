@@ -206,6 +206,10 @@ def test_an_encoder_json_from_before_the_evidence_and_decoder_loads_as_trained(t
     enc = encoder_from_json(old)
     assert not enc.cfg.evidence and enc.cfg.decoder == "none"
     assert not hasattr(enc, "evidence") and not hasattr(enc, "decoder")
+    # one written before ``fuse_pool`` (with evidence and decoder) fuses at full resolution
+    newer = {**desc, "encoder": {k: v for k, v in desc["encoder"].items() if k != "fuse_pool"}}
+    enc = encoder_from_json(newer)
+    assert enc.cfg.fuse_pool == 1 and enc.cfg.decoder == "unet" and not hasattr(enc, "refine")
 
 
 def test_backbone_initialised_from_a_user_weights_file(tmp_path: Path) -> None:
