@@ -26,7 +26,8 @@
   ``student_encoder_ms_<device>_b<B>`` — the frozen BEV encoder's streaming step on B streams at once (2 = one env
   with its mirrored world, as DAgger records; 16 = eight such envs); the CUDA / CPU ratios when both are measured
   (:func:`measure_student_devices`; ``python -m rl.bench --dataset ROOT --devices cpu,cuda`` on a GPU machine, no
-  simulator needed: the cameras come from ``ROOT/meta/info.json``).
+  simulator needed: the cameras come from ``ROOT/meta/info.json``); with ``--fuse-pool P`` also the encoder with
+  ``encoder.fuse_pool: P`` (keys ``..._fuse_pool<P>``).
 
 Weights are random (speed does not depend on them); the encoder has the profile's ``pretrain.encoder`` architecture,
 the frames are rendered from the bench scene at the profile's resolution.
@@ -225,12 +226,13 @@ def measure_student_update(cameras, train_cfg: Any, device: str, frames: int = 2
     return 1e6 * (time.perf_counter() - t) / (frames * epochs)
 
 
-def measure_student_encoder(cameras, device: str, streams: int, steps: int = 20, seed: int = 0) -> float:
-    """Milliseconds per :meth:`pretrain.model.BEVStream.step` of the default encoder on ``streams`` streams at once
-    (random frames of the cameras' size; median after two warm-up steps)."""
+def measure_student_encoder(cameras, device: str, streams: int, steps: int = 20, seed: int = 0,
+                            encoder_cfg: EncoderConfig | None = None) -> float:
+    """Milliseconds per :meth:`pretrain.model.BEVStream.step` of the encoder (default: the default architecture) on
+    ``streams`` streams at once (random frames of the cameras' size; median after two warm-up steps)."""
     dev = resolve_device(device, "device")
     torch.manual_seed(seed)
-    enc = BEVEncoder(EncoderConfig(), cameras).eval().requires_grad_(False).to(dev)
+    enc = BEVEncoder(encoder_cfg or EncoderConfig(), cameras).eval().requires_grad_(False).to(dev)
     stream = BEVStream(enc)
     c0, n = cameras[0], len(cameras)
     g = torch.Generator().manual_seed(seed)
@@ -248,14 +250,22 @@ def measure_student_encoder(cameras, device: str, streams: int, steps: int = 20,
     return 1e3 * float(np.median(times[2:]))
 
 
-def measure_student_devices(cameras, train_cfg: Any, devices: list[str], frames: int = 2048) -> dict[str, float]:
-    """The student's update and encoder figures for each device, with the CUDA / CPU ratios (module docstring)."""
+def measure_student_devices(cameras, train_cfg: Any, devices: list[str], frames: int = 2048,
+                            fuse_pool: int = 0) -> dict[str, float]:
+    """The student's update and encoder figures for each device, with the CUDA / CPU ratios (module docstring);
+    ``fuse_pool`` > 0 adds the encoder with that ``encoder.fuse_pool``."""
+    pooled = EncoderConfig(fuse_pool=fuse_pool) if fuse_pool else None
+    if pooled is not None:
+        pooled.validate()
     out: dict[str, float] = {}
     for d in devices:
         key = d.split(":")[0]
         out[f"student_clone_ms_per_kframe_{key}"] = round(measure_student_update(cameras, train_cfg, d, frames), 1)
         for b in (2, 16):
             out[f"student_encoder_ms_{key}_b{b}"] = round(measure_student_encoder(cameras, d, b), 2)
+            if pooled is not None:
+                out[f"student_encoder_ms_{key}_b{b}_fuse_pool{fuse_pool}"] = round(
+                    measure_student_encoder(cameras, d, b, encoder_cfg=pooled), 2)
     if "student_clone_ms_per_kframe_cpu" in out and "student_clone_ms_per_kframe_cuda" in out:
         out["student_clone_speedup_cuda_vs_cpu"] = round(out["student_clone_ms_per_kframe_cpu"]
                                                          / out["student_clone_ms_per_kframe_cuda"], 2)
@@ -279,11 +289,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--devices", default="cpu,cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--profile", default="default")
     ap.add_argument("--frames", type=int, default=2048)
+    ap.add_argument("--fuse-pool", type=int, default=0, help="also time the encoder with this encoder.fuse_pool")
     args = ap.parse_args(argv)
     torch.set_num_threads(os.cpu_count() or 1)
     try:
         out = measure_student_devices(cameras_from_dataset(args.dataset), load_config(TrainConfig, "train", args.profile),
-                                      args.devices.split(","), args.frames)
+                                      args.devices.split(","), args.frames, args.fuse_pool)
     except ICrowdNavError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

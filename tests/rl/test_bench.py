@@ -5,6 +5,8 @@ Speed itself is never asserted here (figures, not timed tests: `make bench` prin
 import math
 from dataclasses import replace
 
+import pytest
+
 from rl.bench import measure_teacher
 from rl.stage import TrainConfig
 from rl.vec_env import usable_cores
@@ -40,3 +42,13 @@ def test_student_device_figures_on_the_cpu(tiny_dataset):
     out = measure_student_devices(cameras_from_dataset(tiny_dataset.root), TrainConfig(), ["cpu"], frames=64)
     assert set(out) == {"student_clone_ms_per_kframe_cpu", "student_encoder_ms_cpu_b2", "student_encoder_ms_cpu_b16"}
     assert all(math.isfinite(v) and v > 0 for v in out.values())
+
+
+def test_student_device_figures_name_a_pooled_fusion_that_does_not_fit_before_timing_anything(tiny_dataset):
+    from pipeline.core.errors import ConfigError
+    from pretrain.geometry import cameras_from_dataset
+    from rl.bench import measure_student_devices
+
+    with pytest.raises(ConfigError, match=r"^encoder\.fuse_pool: expected a divisor of both BEV grid sizes"):
+        measure_student_devices(cameras_from_dataset(tiny_dataset.root), TrainConfig(), ["cpu"], frames=64,
+                                fuse_pool=7)
