@@ -254,4 +254,9 @@ def test_evaluate_checkpoint_sweeps_thresholds(trained, tiny_dataset, tmp_path: 
     for row in res["iou"].values():
         assert set(row) == {"0.3", "0.4", "0.5", "0.6", "0.7", "0.8", "0.9", "bayes"}
         assert all(v != v or 0.0 <= v <= 1.0 for v in row.values())  # NaN when a target never occurs
+    # the visible-people IoU counts the same cells as the sweep when nobody is left out, and never fewer seen ones
+    vis = res["visible_people"]
+    for t, v in vis["all"].items():
+        assert v == pytest.approx(res["iou"]["ped_t"][t], nan_ok=True)
+    assert 0.0 <= vis["unseen_share_of_label_cells"] <= 1.0 and vis["label_cells"] > 0
     assert main([str(out), "--episodes", "7"]) == 2
