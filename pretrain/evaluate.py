@@ -62,9 +62,11 @@ CAL_THRESHOLDS = tuple(round(0.05 * i, 2) for i in range(1, 20))  # 0.05 … 0.9
 
 @torch.no_grad()
 def episode_counts(encoder, heads, store, slices, fov: np.ndarray, thresholds=CAL_THRESHOLDS, clip_frames: int = 8,
-                   clips_per_batch: int = 4) -> tuple[np.ndarray, np.ndarray]:
+                   clips_per_batch: int = 4, on_batch=None) -> tuple[np.ndarray, np.ndarray]:
     """Intersection and union counts ``E x S x K`` per episode slice, threshold and target (field of view, valid
-    frames; on the encoder's device). ``thresholds``: ``S`` (the same for every target) or ``S x K``."""
+    frames; on the encoder's device). ``thresholds``: ``S`` (the same for every target) or ``S x K``.
+    ``on_batch(batch, logits, labels, valid)``, if given, sees every batch's forward pass too (one pass serves
+    several metrics, e.g. :class:`SeenPeopleCounts`)."""
     dev = next(encoder.parameters()).device
     fov_t = torch.from_numpy(fov).to(dev)
     th = torch.as_tensor(thresholds, dtype=torch.float32).to(dev)
@@ -78,7 +80,10 @@ def episode_counts(encoder, heads, store, slices, fov: np.ndarray, thresholds=CA
     for e, sl in enumerate(slices):
         for batch in make_batches(make_clips(store, [sl], clip_frames, encoder.frames, None), clips_per_batch,
                                   encoder.frames):
-            i, u = iou_counts(*forward_batch(encoder, heads, store, batch), fov_t, th)
+            out = forward_batch(encoder, heads, store, batch)
+            i, u = iou_counts(*out, fov_t, th)
+            if on_batch is not None:
+                on_batch(batch, *out)
             inter[e] += i.cpu().numpy()
             union[e] += u.cpu().numpy()
     encoder.train(was[0])
@@ -91,7 +96,8 @@ def _iou(inter: np.ndarray, union: np.ndarray) -> np.ndarray:
 
 
 def iou_sweep(encoder, heads, store, slices, fov: np.ndarray, thresholds=THRESHOLDS, clip_frames: int = 8,
-              clips_per_batch: int = 4, pos_weight: list[float] | None = None) -> dict[str, dict[str, float]]:
+              clips_per_batch: int = 4, pos_weight: list[float] | None = None,
+              on_batch=None) -> dict[str, dict[str, float]]:
     """``{target: {threshold: IoU}}`` over the frames of ``slices`` (field of view, valid frames only).
 
     With ``pos_weight`` (the training loss's per-target BCE weights, ``metrics.json``), one more column ``bayes``
@@ -104,7 +110,7 @@ def iou_sweep(encoder, heads, store, slices, fov: np.ndarray, thresholds=THRESHO
         w = torch.tensor(pos_weight, dtype=torch.float32)
         th = torch.cat([th, (w / (1 + w)).view(1, -1)], 0)
         cols.append("bayes")
-    inter, union = episode_counts(encoder, heads, store, slices, fov, th, clip_frames, clips_per_batch)
+    inter, union = episode_counts(encoder, heads, store, slices, fov, th, clip_frames, clips_per_batch, on_batch)
     iou = _iou(inter.sum(0), union.sum(0))
     return {t: {x: float(iou[i, k]) for i, x in enumerate(cols)} for k, t in enumerate(TARGETS)}
 
@@ -190,44 +196,44 @@ def seen_people_mask(people: np.ndarray, hits: np.ndarray) -> np.ndarray:
     return np.isin(blobs, seen[seen > 0])
 
 
-@torch.no_grad()
-def visible_people_iou(encoder, heads, store, slices, fov: np.ndarray, thresholds=THRESHOLDS, clip_frames: int = 8,
-                       clips_per_batch: int = 4) -> dict:
-    """The "pedestrians now" IoU with and without the cells of unseen people (module docstring), per threshold."""
-    dev = next(encoder.parameters()).device
-    was = encoder.training, heads.training
-    encoder.eval()
-    heads.eval()
-    th = np.asarray(thresholds, dtype=np.float32)
-    inter = np.zeros((2, len(th)))
-    union = np.zeros_like(inter)
-    label_cells = unseen_cells = 0
-    for batch in make_batches(make_clips(store, slices, clip_frames, encoder.frames, None), clips_per_batch,
-                              encoder.frames):
-        logits, labels, valid = forward_batch(encoder, heads, store, batch)
+class SeenPeopleCounts:
+    """The "pedestrians now" IoU with and without the cells of unseen people (module docstring), per threshold,
+    accumulated from forward passes made elsewhere: pass it as ``on_batch`` to :func:`episode_counts` /
+    :func:`iou_sweep`, then read :meth:`result`."""
+
+    def __init__(self, encoder, store, fov: np.ndarray, thresholds=THRESHOLDS):
+        self.encoder, self.store, self.fov = encoder, store, fov
+        self.cols = [f"{x:g}" for x in thresholds]
+        self.th = np.asarray(thresholds, dtype=np.float32)
+        self.inter = np.zeros((2, len(self.th)))
+        self.union = np.zeros_like(self.inter)
+        self.label_cells = self.unseen_cells = 0
+
+    def __call__(self, batch, logits, labels, valid) -> None:
+        fov, th = self.fov, self.th
         prob = torch.sigmoid(logits[:, PEOPLE_NOW]).cpu().numpy()
         people = (labels[:, PEOPLE_NOW] > 0.5).cpu().numpy()
         ok = valid[:, PEOPLE_NOW].cpu().numpy()
-        depth = torch.from_numpy(store.depth[batch.targets]).to(dev)
-        hits = (lift_evidence(depth, encoder.geom, encoder.grid)[:, 0] > 0).cpu().numpy()
+        depth = torch.from_numpy(self.store.depth[batch.targets]).to(logits.device)
+        hits = (lift_evidence(depth, self.encoder.geom, self.encoder.grid)[:, 0] > 0).cpu().numpy()
         for p in np.flatnonzero(ok):
             true = people[p] & fov
             seen = seen_people_mask(true, hits[p])
             keep = fov & ~(true & ~seen)
-            label_cells += int(true.sum())
-            unseen_cells += int((true & ~seen).sum())
+            self.label_cells += int(true.sum())
+            self.unseen_cells += int((true & ~seen).sum())
             pred = prob[p][None] > th[:, None, None]
             for row, (m, t) in enumerate(((fov, true), (keep, seen))):
                 pm = pred & m
-                inter[row] += (pm & t).sum((1, 2))
-                union[row] += (pm | t).sum((1, 2))
-    encoder.train(was[0])
-    heads.train(was[1])
-    iou = _iou(inter, union)
-    cols = [f"{x:g}" for x in thresholds]
-    return {"all": {c: float(iou[0, i]) for i, c in enumerate(cols)},
-            "seen_only": {c: float(iou[1, i]) for i, c in enumerate(cols)},
-            "unseen_share_of_label_cells": unseen_cells / max(label_cells, 1), "label_cells": label_cells}
+                self.inter[row] += (pm & t).sum((1, 2))
+                self.union[row] += (pm | t).sum((1, 2))
+
+    def result(self) -> dict:
+        iou = _iou(self.inter, self.union)
+        return {"all": {c: float(iou[0, i]) for i, c in enumerate(self.cols)},
+                "seen_only": {c: float(iou[1, i]) for i, c in enumerate(self.cols)},
+                "unseen_share_of_label_cells": self.unseen_cells / max(self.label_cells, 1),
+                "label_cells": self.label_cells}
 
 
 def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str = "val",
@@ -269,8 +275,10 @@ def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str =
     mpath = Path(ckpt) / "metrics.json"
     if mpath.is_file():
         pos_weight = json.loads(mpath.read_text()).get("pos_weight")
-    sweep = iou_sweep(encoder, heads, store, store.episode_slices, fov, thresholds, pos_weight=pos_weight)
-    visible = visible_people_iou(encoder, heads, store, store.episode_slices, fov, thresholds)
+    seen = SeenPeopleCounts(encoder, store, fov, thresholds)  # fed by the sweep's forward passes
+    sweep = iou_sweep(encoder, heads, store, store.episode_slices, fov, thresholds, pos_weight=pos_weight,
+                      on_batch=seen)
+    visible = seen.result()
     return {"checkpoint": str(ckpt), "dataset": str(dataset), "episodes": eps, "frames": len(store),
             "iou": sweep, "visible_people": visible, "note": "dataset-level IoU, field-of-view cells, valid frames"}
 
