@@ -255,6 +255,14 @@ class BEVEncoder(nn.Module):
         """Full-resolution depth ``... x H x W`` → depth at the lift pixels ``... x h x w``."""
         return sample_depth(depth, self.cfg.lift_stride_px)
 
+    def pool(self, maps: torch.Tensor) -> torch.Tensor:
+        """``... x C x X x Y`` maps → the same on :attr:`fuse_grid` (``fuse_pool`` x ``fuse_pool`` averages; the
+        maps themselves when ``fuse_pool`` is 1). Per frame, so a stream can pool each frame once and cache it."""
+        p = self.cfg.fuse_pool
+        if p == 1:
+            return maps
+        return F.avg_pool2d(maps.flatten(0, -4), p).view(*maps.shape[:-2], *self.fuse_grid.shape)
+
     def fuse(self, maps: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """Warps a window of maps into its newest frame and runs the temporal model.
 
@@ -265,22 +273,25 @@ class BEVEncoder(nn.Module):
         Returns:
             ``B x C x X x Y`` = ``s_bev``.
         """
-        b, t = maps.shape[:2]
+        return self.fuse_pooled(self.pool(maps), maps[:, -1], poses)
+
+    def fuse_pooled(self, window: torch.Tensor, newest: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        """:meth:`fuse` on a window already :meth:`pool`-ed (``B x T x C x X' x Y'``) and the newest frame's
+        full-resolution map ``newest`` ``B x C x X x Y`` (used only when ``fuse_pool`` > 1)."""
+        b, t = window.shape[:2]
         if t != self.frames:
             raise ValueError(f"expected a window of {self.frames} frames, got {t}")
-        p = self.cfg.fuse_pool
-        window = maps if p == 1 else F.avg_pool2d(maps.flatten(0, 1), p).view(b, t, maps.shape[2], *self.fuse_grid.shape)
-        newest = poses[:, -1:].expand(b, t - 1, 3)
-        rel = relative_pose(poses[:, :-1].double(), newest.double()).float()
+        newest_pose = poses[:, -1:].expand(b, t - 1, 3)
+        rel = relative_pose(poses[:, :-1].double(), newest_pose.double()).float()
         past = warp_bev(window[:, :-1].flatten(0, 1), rel.flatten(0, 1), self.fuse_grid) if t > 1 else window[:, :0]
         aligned = torch.cat([past.view(b, t - 1, *window.shape[2:]), window[:, -1:]], 1)
         s_bev = self.temporal(aligned)
         if self.cfg.decoder == "unet":
             s_bev = self.decoder(s_bev)
-        if p == 1:
+        if self.cfg.fuse_pool == 1:
             return s_bev
         up = F.interpolate(s_bev, size=tuple(self.grid.shape), mode="bilinear", align_corners=False)
-        return self.refine(torch.cat([up, maps[:, -1]], 1))
+        return self.refine(torch.cat([up, newest], 1))
 
     def forward(self, rgb: torch.Tensor, depth: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """Batch forward: ``B x T`` windows (full-resolution depth) → ``s_bev`` ``B x C x X x Y``."""
@@ -296,14 +307,15 @@ class BEVEncoder(nn.Module):
 class BEVStream:
     """Step-wise inference: encodes only the newest frame and reuses the cached history.
 
-    The cache holds the last T−1 maps *in their own frames* with their poses; every step warps them into the new
-    frame (one ``grid_sample``), so the result equals :meth:`BEVEncoder.forward` on the same window exactly, and
-    warping errors never accumulate. Works for a batch of B independent streams (vectorised environments).
+    The cache holds the last T−1 maps *in their own frames* with their poses, already pooled to the encoder's
+    fusion grid (each frame pooled once, when it arrives); every step warps them into the new frame (one
+    ``grid_sample``), so the result equals :meth:`BEVEncoder.forward` on the same window exactly, and warping errors
+    never accumulate. Works for a batch of B independent streams (vectorised environments).
     """
 
     def __init__(self, encoder: BEVEncoder) -> None:
         self.encoder = encoder
-        self.maps: torch.Tensor | None = None  # B x (T-1) x C x X x Y
+        self.maps: torch.Tensor | None = None  # B x (T-1) x C x X' x Y' (pooled: BEVEncoder.pool)
         self.poses: torch.Tensor | None = None  # B x (T-1) x 3
 
     def reset(self) -> None:
@@ -326,7 +338,8 @@ class BEVStream:
         """
         enc = self.encoder
         pose = pose.to(torch.float64)
-        x = enc.encode_frames(rgb, enc.lift_depth(depth))  # B C X Y
+        full = enc.encode_frames(rgb, enc.lift_depth(depth))  # B C X Y
+        x = enc.pool(full)  # B C X' Y'
         b, t = x.shape[0], enc.frames
         rep_maps = x.unsqueeze(1).expand(b, t - 1, *x.shape[1:])
         rep_poses = pose.unsqueeze(1).expand(b, t - 1, 3)
@@ -337,7 +350,7 @@ class BEVStream:
             self.poses = torch.where(first.view(b, 1, 1), rep_poses, self.poses)
         window = torch.cat([self.maps, x.unsqueeze(1)], 1)
         poses = torch.cat([self.poses, pose.unsqueeze(1)], 1)
-        out = enc.fuse(window, poses)
+        out = enc.fuse_pooled(window, full, poses)
         self.maps, self.poses = window[:, 1:], poses[:, 1:]
         return out
 
