@@ -13,32 +13,36 @@ Iteration ``k`` (β_k = ``beta0 · beta_decay^k``; β_0 = 1 means the teacher dr
    aggregate of all iterations, each sample mirrored left-right with probability 1/2 (``dagger.mirror``; ``bev``
    variants cache the mirrored world's ``s_bev`` as ``bev_mirror`` for this).
 
-Everything an iteration writes is in ``dagger/iter_<k>/``; a finished iteration has ``done.json``. A killed run
-resumes at the first unfinished episode of the first unfinished iteration.
+Everything an iteration writes is in ``dagger/iter_<k>/``; a finished iteration has ``done.json``. An episode is
+finished when its ``features/<episode>.npz`` exists (written last, atomically); an unfinished one starts over and
+first removes what a killed attempt left (its MCAP or ``.partial``). So a killed run resumes at the first unfinished
+episode of the first unfinished iteration, and a rollout retried on another Ray worker rewrites the same files.
 
-The students' frozen encoder runs on a job's ``device`` (``train.device``; the teacher and the student act on the
-CPU); workers that encode on CUDA are spawned, not forked (:func:`pipeline.core.device.start_method`).
+The rollouts run where ``train.executor`` says (:mod:`pipeline.core.executor`: the local process pool, or Ray tasks
+writing into the shared data directory), with the same seeds and files either way. The students' frozen encoder
+runs on a job's ``device`` (``train.device``; the teacher and the student act on the CPU); local workers that encode
+on CUDA are spawned, not forked (:func:`pipeline.core.device.start_method`); Ray tasks get no GPU, so rollouts on
+Ray encode on the CPU.
 """
 
 from __future__ import annotations
 
 import itertools
 import json
-import multiprocessing
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.device import start_method
 from pipeline.core.errors import InputMissingError
+from pipeline.core.executor import Executor, map_jobs
 from recorder.export import export_run
+from recorder.mcap.layout import partial_path_of
 from recorder.mcap.writer import EpisodeWriter
 from recorder.schema import episode_meta_from_env, frame_from_env
 from rl.driver import cached_policy, cached_student_encoder, cached_student_forecaster, cached_student_heads
@@ -82,6 +86,8 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
     name = episode_name(args["scene"], args["density"], args["seed"])
     raw, feat = Path(args["iter_dir"]) / "raw", Path(args["iter_dir"]) / "features"
     t0 = time.perf_counter()
+    for stale in (raw / f"{name}.mcap", partial_path_of(raw / f"{name}.mcap"), feat / f"{name}.tmp.npz"):
+        stale.unlink(missing_ok=True)  # a killed attempt's files (the features file, written last, is not there)
     env = CrowdNavEnv(config=replace(sim_cfg, scene=args["scene"], density=args["density"], obs_mode="visual",
                                      info_level="full", action_type="discrete"))
     encoder = cached_student_encoder(args["variant"], args["encoder"], args.get("device", "cpu"))
@@ -129,9 +135,10 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
             "seconds": round(time.perf_counter() - t0, 2)}
 
 
-def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, progress: bool = True) -> list[dict]:
-    """Runs the iteration's episodes that have no ``features/<name>.npz`` yet (process pool; spawned workers when the
-    jobs encode on CUDA); returns all rows."""
+def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, progress: bool = True,
+                  executor: Executor | None = None) -> list[dict]:
+    """Runs the iteration's episodes that have no ``features/<name>.npz`` yet (``executor``: the local process pool
+    when None or local — spawned workers when the jobs encode on CUDA — or Ray tasks); returns all rows."""
     iter_dir = Path(iter_dir)
     for sub in ("raw", "features"):
         (iter_dir / sub).mkdir(parents=True, exist_ok=True)
@@ -143,23 +150,18 @@ def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, prog
             if (iter_dir / "features" / f"{r['episode']}.npz").exists():
                 done_rows[r["episode"]] = r
     todo = [j for j in jobs if episode_name(j["scene"], j["density"], j["seed"]) not in done_rows]
-    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=f"dagger {iter_dir.name}", unit="ep",
-               disable=not progress, dynamic_ncols=True)
+    on_ray = executor is not None and executor.kind == "ray"
+    if on_ray:  # Ray tasks are given CPUs only (module docstring)
+        todo = [{**j, "device": "cpu"} for j in todo]
     with open(rows_path, "a") as f:
-        if workers <= 1:
-            results = map(dagger_episode, todo)
-        else:
-            method = start_method(todo[0].get("device", "cpu") if todo else "cpu")
-            pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method))
-            results = pool.map(dagger_episode, todo)
-        for r in results:
+        def finished(_: int, r: dict[str, Any]) -> None:
             done_rows[r["episode"]] = r
             f.write(json.dumps(r) + "\n")
             f.flush()
-            bar.update(1)
-        if workers > 1:
-            pool.shutdown()
-    bar.close()
+
+        desc = f"dagger {iter_dir.name}" + (f" ({len(jobs) - len(todo)} done before)" if len(todo) < len(jobs) else "")
+        map_jobs(dagger_episode, todo, workers, desc, progress, executor=executor if on_ray else None,
+                 on_result=finished, start=start_method(todo[0].get("device", "cpu")) if todo else "fork")
     return [done_rows[episode_name(j["scene"], j["density"], j["seed"])] for j in jobs]
 
 

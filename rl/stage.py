@@ -210,8 +210,8 @@ class TrainConfig(BaseStageConfig):
     sarl_om: SARLOMConfig = field(default_factory=SARLOMConfig)
     vint: ViNTConfig = field(default_factory=ViNTConfig)
     workers: int = 2  # processes for rollouts and evaluation
-    # where the acceptance episodes run: auto (Ray when RAY_ADDRESS is set) | local | ray (pipeline.core.executor;
-    # DAgger rollouts use the local pool); not in the config hash
+    # where the DAgger rollouts and acceptance episodes run: auto (Ray when RAY_ADDRESS is set) | local | ray
+    # (pipeline.core.executor; the same seeds give the same files either way); not in the config hash
     executor: str = "auto"
     ray_address: str = ""  # Ray cluster host:port (empty: RAY_ADDRESS, or a Ray instance started on this machine)
     threads: int = 0  # torch threads for cloning / PPO updates (0 = every core)
@@ -510,7 +510,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                  "map_cost": cfg.map_cost,
                  "intention": str(int_dir) if int_dir else None}
                 for e in range(d.episodes_per_iter)]
-        rows = run_iteration(it, jobs, cfg.workers, cfg.progress)
+        rows = run_iteration(it, jobs, cfg.workers, cfg.progress, Executor.of(cfg))
         counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress)
         new = load_features([it])
         data = load_features([out / "dagger" / f"iter_{j}" for j in range(k + 1)])

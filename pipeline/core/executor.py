@@ -207,10 +207,11 @@ class Executor:
 
 def map_jobs(fn: Callable[[J], Any], jobs: Sequence[J], workers: int, desc: str, progress: bool = True,
              unit: str = "ep", executor: Executor | None = None,
-             on_result: Callable[[int, Any], None] | None = None) -> list[Any]:
-    """``[fn(j) for j in jobs]`` in job order: in this process (``workers <= 1``), a fork process pool of
-    ``workers``, or Ray tasks (``executor.kind == "ray"``; inside :meth:`Executor.session` or starting one).
-    ``on_result(i, result)`` is called as each job finishes (in completion order), e.g. to record progress."""
+             on_result: Callable[[int, Any], None] | None = None, start: str = "fork") -> list[Any]:
+    """``[fn(j) for j in jobs]`` in job order: in this process (``workers <= 1``), a process pool of ``workers``
+    (started with ``start``: ``fork``, or ``spawn`` for workers that use CUDA), or Ray tasks (``executor.kind ==
+    "ray"``; inside :meth:`Executor.session` or starting one). ``on_result(i, result)`` is called as each job
+    finishes (in completion order with Ray, in job order otherwise), e.g. to record progress."""
     if executor is not None and executor.kind == "ray":
         if not jobs:
             return []
@@ -223,7 +224,7 @@ def map_jobs(fn: Callable[[J], Any], jobs: Sequence[J], workers: int, desc: str,
             if on_result is not None:
                 on_result(i, out[-1])
         return out
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context(start)) as pool:
         out = []
         for i, r in enumerate(tqdm(pool.map(fn, jobs, chunksize=1), total=len(jobs), desc=desc, unit=unit,
                                    disable=not progress, dynamic_ncols=True)):

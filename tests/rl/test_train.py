@@ -100,6 +100,34 @@ def test_teacher_ppo_learns_a_trivial_scene(tmp_path):
     assert after >= before + 5, (before, after)
 
 
+def _dagger_jobs(it: Path, teacher_dir: Path) -> list[dict]:
+    return [{"sim": TINY_SIM, "scene": "hallway", "density": 0.1, "seed": s, "variant": "no_bev", "encoder": None,
+             "teacher": str(teacher_dir), "student": None, "beta": 1.0, "iteration": 0, "iter_dir": str(it)}
+            for s in (1, 2)]
+
+
+@pytest.mark.slow
+def test_dagger_rollouts_on_ray_equal_the_local_pool(tmp_path, teacher_dir):
+    """The same DAgger jobs as Ray tasks (a Ray instance on this machine) and in the local pool: the same rows,
+    byte-identical MCAP logs and equal feature caches."""
+    pytest.importorskip("ray")
+    from pipeline.core.executor import Executor
+    from rl.dagger import run_iteration
+
+    its = {ex: tmp_path / ex / "iter_0" for ex in ("local", "ray")}
+    rows = {ex: run_iteration(it, _dagger_jobs(it, teacher_dir), workers=2, progress=False,
+                              executor=Executor(ex, "", tmp_path)) for ex, it in its.items()}
+    assert [{k: v for k, v in r.items() if k != "seconds"} for r in rows["ray"]] == \
+        [{k: v for k, v in r.items() if k != "seconds"} for r in rows["local"]]
+    for name in ("hallway_d0.1_s1", "hallway_d0.1_s2"):
+        assert (its["ray"] / "raw" / f"{name}.mcap").read_bytes() == (its["local"] / "raw" / f"{name}.mcap").read_bytes()
+        with np.load(its["ray"] / "features" / f"{name}.npz") as a, \
+                np.load(its["local"] / "features" / f"{name}.npz") as b:
+            assert sorted(a.files) == sorted(b.files)
+            for k in a.files:
+                np.testing.assert_array_equal(a[k], b[k])
+
+
 def test_dagger_iteration_writes_a_loadable_dataset_and_lowers_bc_loss(tmp_path, teacher_dir):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -108,10 +136,13 @@ def test_dagger_iteration_writes_a_loadable_dataset_and_lowers_bc_loss(tmp_path,
     from sim.env import CrowdNavEnv
 
     it = tmp_path / "iter_0"
-    jobs = [{"sim": TINY_SIM, "scene": "hallway", "density": 0.1, "seed": s, "variant": "no_bev", "encoder": None,
-             "teacher": str(teacher_dir), "student": None, "beta": 1.0, "iteration": 0, "iter_dir": str(it)}
-            for s in (1, 2)]
+    jobs = _dagger_jobs(it, teacher_dir)
+    # what a killed attempt leaves (an episode is finished only when its features file exists): started over
+    (it / "raw").mkdir(parents=True)
+    (it / "raw" / "hallway_d0.1_s1.mcap.partial").write_bytes(b"killed mid-episode")
+    (it / "raw" / "hallway_d0.1_s2.mcap").write_bytes(b"killed before the features were written")
     rows = run_iteration(it, jobs, workers=1, progress=False)
+    assert not list((it / "raw").glob("*.partial"))
     assert [r["student_steps"] for r in rows] == [0, 0]  # beta = 1: the teacher drove
     assert sorted(p.name for p in (it / "raw").glob("*.mcap")) == ["hallway_d0.1_s1.mcap", "hallway_d0.1_s2.mcap"]
     counts = export_iteration(it, "icrowdnav/dagger_test", progress=False)
