@@ -41,3 +41,32 @@ def plot_training(log_csv: Path, out: Path, title: str) -> None:
 
     save_figure(fig, out, 110)
     plt.close(fig)
+
+
+def plot_learning_curve(rows: list[dict], out: Path, title: str) -> None:
+    """Acceptance SR per cell and pooled against the training budget (``rows``: :func:`rl.stage.learning_curve`)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not rows:
+        return
+    xs = [max(r["budget"], 1) for r in rows]
+    fig, ax = plt.subplots(figsize=(6.0, 3.6))
+    for cell in rows[-1]["table"]:
+        ax.plot(xs, [r["table"].get(cell, {}).get("sr", float("nan")) for r in rows], marker=".", alpha=0.7,
+                label=cell)
+    ax.plot(xs, [r["pooled_sr"] for r in rows], marker="o", color="k", lw=2, label="pooled")
+    if len(set(xs)) > 1 and max(xs) / min(xs) > 20:
+        ax.set_xscale("log")
+    ax.set_xlabel(f"{rows[-1]['unit']} (the first point: {rows[0]['budget']})")
+    ax.set_ylabel("acceptance SR")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    n = sum(c["n"] for c in rows[-1]["table"].values())
+    ax.set_title(f"{title}: learning curve (N = {n} per point, the same seeds)", fontsize=10)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, out, 110)
+    plt.close(fig)

@@ -61,13 +61,14 @@ from pretrain.checkpoint import read_encoder_json
 from pretrain.geometry import BEVGrid
 from pretrain.intention import FORECASTER_WEIGHTS, INTENTION_JSON, load_forecaster
 from rl.baselines import BASELINES, baseline_module
+from rl.baselines.common import curve_points
 from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
 from rl.baselines.sarl_om.configuration import Config as SARLOMConfig
 from rl.baselines.vint.configuration import Config as ViNTConfig
 from rl.callbacks import checkpoint_callback, progress_callback
 from rl.dagger import bev_stats, export_iteration, load_features, run_iteration, write_done
 from rl.evaluate import evaluate, success_table
-from rl.figures import plot_training
+from rl.figures import plot_learning_curve, plot_training
 from rl.networks import STUDENT_HEADS, VARIANTS
 from rl.observe import (
     StudentEnv,
@@ -650,6 +651,23 @@ def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, e
 
 
 # -------------------------------------------------------------------------------------------------------- the stage
+def learning_curve(cfg: TrainConfig, points: list[tuple[int, str, Path]], final_budget: dict[str, Any],
+                   final_acc: dict[str, Any]) -> list[dict[str, Any]]:
+    """The acceptance table at every learning-curve point (:func:`rl.baselines.common.curve_points`), then the
+    final checkpoint's (already run: ``final_acc``, at ``final_budget[unit]``), each with its pooled SR."""
+    def row(budget: int, unit: str, table: dict[str, Any]) -> dict[str, Any]:
+        n = sum(r["n"] for r in table.values())
+        return {"budget": budget, "unit": unit, "pooled_sr": sum(r["sr"] * r["n"] for r in table.values()) / n,
+                "table": table}
+
+    rows = [row(b, unit, _acceptance(cfg, d, f"{cfg.variant}@{b}")["table"]) for b, unit, d in points]
+    unit = points[-1][1]
+    final = int(final_budget.get(unit, -1))
+    if final > points[-1][0]:
+        rows.append(row(final, unit, final_acc["table"]))
+    return rows
+
+
 def body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     dump_yaml(cfg, out / "config.yaml")
     t0 = time.perf_counter()
@@ -669,6 +687,10 @@ def body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         # the same episodes for the imitation policy before PPO: does PPO help? (reported, never hidden)
         pre = _acceptance(cfg, out / "imitation" / f"{cfg.teacher.dagger_iterations:02d}", "teacher_imitation")
         metrics["acceptance_before_ppo"] = {k: v for k, v in pre.items() if k != "episodes"}
+    points = curve_points(out)
+    if points:  # a baseline trained with a learning curve: the same acceptance episodes at every saved budget
+        metrics["learning_curve"] = learning_curve(cfg, points, summary.get("budget", {}), acc)
+        plot_learning_curve(metrics["learning_curve"], out / "learning_curve.png", cfg.variant)
     atomic_write_json(out / "metrics.json", metrics)
     with open(out / "acceptance_episodes.jsonl", "w") as fh:
         for r in acc["episodes"]:

@@ -71,6 +71,31 @@ def save_baseline(out: Path, name: str, model: torch.nn.Module, net: dict[str, A
     atomic_write_text(out / POLICY_JSON, json.dumps(desc, indent=2, sort_keys=True, default=_json) + "\n")
 
 
+CURVE_DIR = "curve"  # <checkpoint>/curve/<point>/: the learning curve's intermediate checkpoints
+
+
+def save_curve_point(out: Path, name: str, model: torch.nn.Module, net: dict[str, Any], inputs: dict[str, Any],
+                     produced_by: dict[str, Any], budget: int, unit: str, **extra: Any) -> Path:
+    """Saves an intermediate checkpoint of a baseline's training at ``budget`` ``unit`` (e.g. 65,536
+    ``ppo_env_steps``) into ``out/curve/<unit>_<budget>`` (once: an existing point is kept, so a resumed run does
+    not overwrite it); ``train`` evaluates every point (:func:`curve_points`). Returns its directory."""
+    d = Path(out) / CURVE_DIR / f"{unit}_{budget:09d}"
+    if not (d / POLICY_JSON).is_file():
+        save_baseline(d, name, model, net, inputs, {**produced_by, "curve_budget": int(budget), "curve_unit": unit},
+                      **extra)
+    return d
+
+
+def curve_points(out: Path) -> list[tuple[int, str, Path]]:
+    """The learning-curve checkpoints under ``out/curve``: ``(budget, unit, directory)`` sorted by budget."""
+    points = []
+    for f in sorted((Path(out) / CURVE_DIR).glob(f"*/{POLICY_JSON}")):
+        produced = json.loads(f.read_text()).get("produced_by", {})
+        if "curve_budget" in produced:
+            points.append((int(produced["curve_budget"]), str(produced["curve_unit"]), f.parent))
+    return sorted(points)
+
+
 def _json(o: Any) -> Any:
     if isinstance(o, np.generic):
         return o.item()

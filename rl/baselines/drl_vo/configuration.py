@@ -58,6 +58,9 @@ class Config:
     bc_lr: float = 1e-3
     ppo_steps: int = 16_384  # PPO env steps after the warm start (the critic warm-up included)
     critic_warmup_steps: int = 4096  # first PPO steps train only the value head (the actor is frozen)
+    # the learning curve: the policy is also saved after the warm start and at these PPO step counts (curve/), and
+    # ``train`` runs the acceptance episodes on each (metrics.json "learning_curve", learning_curve.png)
+    curve_steps: list[int] = field(default_factory=list)
     n_envs: int = 4  # vectorised envs
     subprocess: bool = True  # rl.vec_env.BatchedSubprocVecEnv (a worker per core) instead of DummyVecEnv
     ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 128, "batch_size": 128, "n_epochs": 4,
@@ -86,6 +89,10 @@ class Config:
         if self.ppo_steps < 0 or self.critic_warmup_steps < 0:
             raise ConfigError(f"drl_vo.ppo_steps / critic_warmup_steps: expected >= 0, got {self.ppo_steps} / "
                               f"{self.critic_warmup_steps}")
+        if any(not isinstance(n, int) or isinstance(n, bool) or not 0 < n < self.ppo_steps for n in self.curve_steps) \
+                or sorted(set(self.curve_steps)) != list(self.curve_steps):
+            raise ConfigError(f"drl_vo.curve_steps: expected increasing PPO step counts in (0, ppo_steps = "
+                              f"{self.ppo_steps}), got {self.curve_steps}")
         if self.reward.vo_headings < 2 or self.reward.vo_range_m <= 0:
             raise ConfigError(f"drl_vo.reward: expected vo_headings >= 2 and vo_range_m > 0, got "
                               f"{self.reward.vo_headings}, {self.reward.vo_range_m}")

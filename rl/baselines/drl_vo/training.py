@@ -23,7 +23,13 @@ from tqdm import tqdm
 
 from pipeline.core.artifacts import atomic_save_npz
 from pipeline.core.device import resolve_device
-from rl.baselines.common import collect_expert_episodes, load_baseline, save_baseline, training_pairs
+from rl.baselines.common import (
+    collect_expert_episodes,
+    load_baseline,
+    save_baseline,
+    save_curve_point,
+    training_pairs,
+)
 from rl.baselines.drl_vo.configuration import NAME, Config, RewardConfig
 from rl.baselines.drl_vo.model import build_policy, describe_inputs, policy_kwargs
 from rl.baselines.drl_vo.observation import Observer
@@ -165,6 +171,18 @@ def _log_callback(log):
     return Curves()
 
 
+def _curve_callback(budgets: list[int], save) -> BaseCallback:
+    """Calls ``save(policy, steps)`` once the PPO step count reaches each of ``budgets`` (the learning curve)."""
+    class Curve(BaseCallback):
+        def _on_step(self) -> bool:
+            for b in budgets:
+                if self.num_timesteps >= b and self.num_timesteps - self.model.n_envs < b:
+                    save(self.model.policy, b)
+            return True
+
+    return Curve()
+
+
 def train(cfg, out: Path, log) -> dict[str, Any]:
     """Trains DRL-VO into ``out`` (package docstring: warm start, then PPO; resumable) and writes the final
     checkpoint. Returns the summary with its ``budget``."""
@@ -212,6 +230,15 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
                                                                         "expert_frames": frames}, bc=summary["bc"],
                       observer=sensors)
         del data
+    robot = cfg.sim.robot
+    extra = {"observer": sensors, "robot": {"v_max_mps": robot.v_max_mps, "omega_max_radps": robot.omega_max_radps},
+             "reward": asdict(c.reward)}
+
+    def curve_point(p: ActorCriticPolicy, steps: int) -> None:
+        save_curve_point(out, NAME, p, net, describe_inputs(p), {"expert_episodes": episodes, "expert_frames": frames,
+                                                                  "ppo_env_steps": steps}, steps, "ppo_env_steps",
+                         **extra)
+
     ppo_steps = 0
     if c.ppo_steps > 0:
         sim_cfg = cfg.sim
@@ -227,9 +254,12 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
                         verbose=0, **ppo)
             model.policy.load_state_dict(policy.state_dict())
         done = model.num_timesteps
+        if c.curve_steps and done == 0:
+            curve_point(model.policy, 0)  # the warm start: the curve's first point
         t0 = time.perf_counter()
         cb = [curriculum_callback(cfg.teacher.curriculum, c.ppo_steps), checkpoint_callback(out / "ppo", model, 5_000),
-              progress_callback(c.ppo_steps, "drl_vo PPO", cfg.progress), _log_callback(log)]
+              progress_callback(c.ppo_steps, "drl_vo PPO", cfg.progress), _log_callback(log),
+              _curve_callback(c.curve_steps, curve_point)]
         warm = min(c.critic_warmup_steps, c.ppo_steps)
         if done < warm:  # the cloned critic is poor: fit it on-policy before the actor moves (measured below)
             frozen = freeze_actor(model.policy)
@@ -247,9 +277,6 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
         policy.set_training_mode(False)
     budget = {"expert_episodes": episodes, "expert_frames": frames, "bc_epochs": c.bc_epochs if episodes else 0,
               "ppo_env_steps": ppo_steps, "wall_s": wall}
-    robot = cfg.sim.robot
-    save_baseline(out, NAME, policy, net, describe_inputs(policy), budget, observer=sensors,
-                  robot={"v_max_mps": robot.v_max_mps, "omega_max_radps": robot.omega_max_radps},
-                  reward=asdict(c.reward))
+    save_baseline(out, NAME, policy, net, describe_inputs(policy), budget, **extra)
     summary["budget"] = budget
     return summary

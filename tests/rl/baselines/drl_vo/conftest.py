@@ -23,7 +23,7 @@ def trained(tmp_path_factory):
     sim = replace(SimConfig(), max_episode_s=8.0)
     teacher = TeacherConfig(bc_episodes=8, curriculum=[CurriculumStage(1.0, [str(scene)], [0.0])])
     c = replace(drl_vo.Config(), width=8, features_dim=64, pi=[64], vf=[64], bc_epochs=30, bc_batch=32, bc_lr=1e-3,
-                ppo_steps=256, critic_warmup_steps=128, n_envs=2, subprocess=False,
+                ppo_steps=256, critic_warmup_steps=128, n_envs=2, subprocess=False, curve_steps=[128],
                 ppo={"n_steps": 128, "batch_size": 128, "n_epochs": 2, "learning_rate": 5e-5})
     cfg = TrainConfig(variant="drl_vo", sim=sim, teacher=teacher, drl_vo=c, workers=1, threads=1, progress=False)
     torch.manual_seed(0)
@@ -33,4 +33,5 @@ def trained(tmp_path_factory):
                   robot={"v_max_mps": 1.0, "omega_max_radps": 2.0})
     log = Rows()
     summary = drl_vo.train(cfg, tmp / "drl_vo", log)
-    return {"scene": str(scene), "ckpt": tmp / "drl_vo", "untrained": untrained, "summary": summary, "log": log}
+    return {"scene": str(scene), "ckpt": tmp / "drl_vo", "untrained": untrained, "summary": summary, "log": log,
+            "cfg": cfg}
