@@ -3,7 +3,7 @@ of its joint state."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from pipeline.core.errors import ConfigError
 
@@ -50,6 +50,9 @@ class Config:
     epsilon_decay_episodes: int = 300
     capacity: int = 100_000  # replay memory (transitions)
     checkpoint_every: int = 5  # iterations between checkpoints in out/rl/ (resume)
+    # the learning curve: the value network is also saved after imitation and once these many RL episodes are done
+    # (curve/), and ``train`` runs the acceptance episodes on each (metrics.json "learning_curve")
+    curve_episodes: list[int] = field(default_factory=list)
 
     def validate(self) -> None:
         """Raises ConfigError naming the first bad field."""
@@ -67,6 +70,11 @@ class Config:
         if self.il_episodes < 0 or self.rl_iterations < 0:
             raise ConfigError(f"sarl_om: il_episodes and rl_iterations must be >= 0, got {self.il_episodes}, "
                               f"{self.rl_iterations}")
+        total = self.rl_iterations * self.episodes_per_iter
+        if any(not isinstance(n, int) or isinstance(n, bool) or not 0 < n < total for n in self.curve_episodes) \
+                or sorted(set(self.curve_episodes)) != list(self.curve_episodes):
+            raise ConfigError(f"sarl_om.curve_episodes: expected increasing RL episode counts in (0, rl_iterations x "
+                              f"episodes_per_iter = {total}), got {self.curve_episodes}")
         if self.om_rays < self.om_sectors:
             raise ConfigError(f"sarl_om.om_rays: expected >= om_sectors ({self.om_sectors}), got {self.om_rays}")
         if not 0.0 < self.gamma <= 1.0:

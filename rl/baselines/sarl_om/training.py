@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from pipeline.core.errors import CorruptArtifactError
-from rl.baselines.common import collect_expert_episodes, save_baseline, training_pairs
+from rl.baselines.common import collect_expert_episodes, save_baseline, save_curve_point, training_pairs
 from rl.baselines.sarl_om.configuration import KEYS, NAME, RUNTIME_FIELDS, Config
 from rl.baselines.sarl_om.lookahead import Lookahead
 from rl.baselines.sarl_om.model import SarlOMValue, build, to_tensors
@@ -298,6 +298,14 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
         c = {"iteration": 0, "episodes": 0, "env_steps": 0, "updates": 0, "since_target": 0,
              "wall_s": time.time() - t0, "il_loss": il_loss, **stats}
         _save_state(rl_dir, model, target, opt, replay, c)
+    def curve_point(episodes: int) -> None:
+        save_curve_point(out, NAME, model, model.spec, observation_description(oc),
+                         {"expert_episodes": c["expert_episodes"], "expert_frames": c["expert_frames"],
+                          "il_epochs": oc.il_epochs, "rl_episodes": c["episodes"], "rl_env_steps": c["env_steps"]},
+                         episodes, "rl_episodes", config={f.name: getattr(oc, f.name) for f in fields(oc)})
+
+    if oc.curve_episodes and c["episodes"] == 0:
+        curve_point(0)  # after imitation: the curve's first point
     rng = np.random.default_rng(cfg.seed + 7)
     t_start = time.time() - c["wall_s"]  # wall time accumulates over resumed runs
     pool = None
@@ -338,6 +346,9 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
                 target.load_state_dict(model.state_dict())
                 c["since_target"] = 0
             c["iteration"] += 1
+            for b in oc.curve_episodes:  # the first iteration that reaches b saves the point b
+                if c["episodes"] - len(eps_out) < b <= c["episodes"]:
+                    curve_point(b)
             outcomes = [e["outcome"] for e in eps_out]
             log.add("rl", c["episodes"], td_loss=float(np.mean(losses)), epsilon=jobs[-1][3],
                     success_rate=outcomes.count("success") / len(outcomes),

@@ -41,3 +41,35 @@ def test_learns_a_trivial_scene(trained):
     assert b["expert_episodes"] == 40 and b["rl_episodes"] == 0
     assert {p for p, _, _ in log.rows} == {"imitation"}
     assert (ckpt / "rl" / "state.pt").is_file() and (ckpt / "rl" / "replay.npz").is_file()
+
+
+def test_learning_curve_points_after_imitation_and_at_the_rl_episode_counts(trained, tmp_path):
+    """``curve_episodes: [2]`` saves the value network after imitation (0) and once 2 RL episodes are done; each
+    point is a checkpoint the driver loads, saying what produced it."""
+    from rl.baselines.common import curve_points
+    from rl.stage import TrainConfig
+
+    _, sim_cfg, _, _ = trained
+    cfg = TrainConfig(variant="sarl_om", sim=sim_cfg, workers=1, threads=1, progress=False, seed=0)
+    cfg.teacher.curriculum = trained_curriculum(sim_cfg)
+    cfg.teacher.bc_episodes = 4
+    cfg.sarl_om = replace(S.Config(), il_epochs=2, rl_iterations=2, episodes_per_iter=2, train_batches=2,
+                          target_update_episodes=2, checkpoint_every=1, curve_episodes=[2])
+
+    class Log:
+        def add(self, *_, **__):
+            pass
+
+    S.train(cfg, tmp_path / "sarl_om", Log())
+    points = curve_points(tmp_path / "sarl_om")
+    assert [(b, unit) for b, unit, _ in points] == [(0, "rl_episodes"), (2, "rl_episodes")]
+    for b, _, d in points:
+        produced = json.loads((d / "policy.json").read_text())["produced_by"]
+        assert produced["rl_episodes"] == b and produced["expert_episodes"] == 4
+        S.Driver(d)  # loads
+
+
+def trained_curriculum(sim_cfg):
+    from rl.teacher import CurriculumStage
+
+    return [CurriculumStage(until=1.0, scenes=[sim_cfg.scene], densities=[0.0])]
