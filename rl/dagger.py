@@ -160,8 +160,8 @@ def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, prog
             f.flush()
 
         desc = f"dagger {iter_dir.name}" + (f" ({len(jobs) - len(todo)} done before)" if len(todo) < len(jobs) else "")
-        map_jobs(dagger_episode, todo, workers, desc, progress, executor=executor if on_ray else None,
-                 on_result=finished, start=start_method(todo[0].get("device", "cpu")) if todo else "fork")
+        start = start_method(todo[0].get("device", "cpu")) if todo else "fork"
+        map_jobs(dagger_episode, todo, workers, desc, progress, executor=executor, on_result=finished, start=start)
     return [done_rows[episode_name(j["scene"], j["density"], j["seed"])] for j in jobs]
 
 

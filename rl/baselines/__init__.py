@@ -8,7 +8,10 @@ the contract is in :mod:`rl.baselines.common`); this table is what the pipeline 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+
+from pipeline.core.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -32,3 +35,11 @@ def baseline_module(name: str):
     import importlib
 
     return importlib.import_module(f"rl.baselines.{name}")
+
+
+def check_curve_budgets(budgets: Sequence[int], total: int, key: str, what: str, bound: str) -> None:
+    """Config check of a learning-curve option (``key``, e.g. ``drl_vo.curve_steps``): strictly increasing integer
+    budgets (``what``, e.g. "PPO step counts") in (0, ``total``), ``bound`` naming where ``total`` comes from."""
+    if any(not isinstance(n, int) or isinstance(n, bool) or not 0 < n < total for n in budgets) \
+            or sorted(set(budgets)) != list(budgets):
+        raise ConfigError(f"{key}: expected increasing {what} in (0, {bound} = {total}), got {budgets}")

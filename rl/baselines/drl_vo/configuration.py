@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from pipeline.core.errors import ConfigError
+from rl.baselines import check_curve_budgets
 from rl.teacher import ppo_kwargs
 
 NAME = "drl_vo"
@@ -89,10 +90,7 @@ class Config:
         if self.ppo_steps < 0 or self.critic_warmup_steps < 0:
             raise ConfigError(f"drl_vo.ppo_steps / critic_warmup_steps: expected >= 0, got {self.ppo_steps} / "
                               f"{self.critic_warmup_steps}")
-        if any(not isinstance(n, int) or isinstance(n, bool) or not 0 < n < self.ppo_steps for n in self.curve_steps) \
-                or sorted(set(self.curve_steps)) != list(self.curve_steps):
-            raise ConfigError(f"drl_vo.curve_steps: expected increasing PPO step counts in (0, ppo_steps = "
-                              f"{self.ppo_steps}), got {self.curve_steps}")
+        check_curve_budgets(self.curve_steps, self.ppo_steps, "drl_vo.curve_steps", "PPO step counts", "ppo_steps")
         if self.reward.vo_headings < 2 or self.reward.vo_range_m <= 0:
             raise ConfigError(f"drl_vo.reward: expected vo_headings >= 2 and vo_range_m > 0, got "
                               f"{self.reward.vo_headings}, {self.reward.vo_range_m}")

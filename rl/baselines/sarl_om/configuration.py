@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from pipeline.core.errors import ConfigError
+from rl.baselines import check_curve_budgets
 
 NAME = "sarl_om"
 SELF_DIM = 6
@@ -70,11 +71,8 @@ class Config:
         if self.il_episodes < 0 or self.rl_iterations < 0:
             raise ConfigError(f"sarl_om: il_episodes and rl_iterations must be >= 0, got {self.il_episodes}, "
                               f"{self.rl_iterations}")
-        total = self.rl_iterations * self.episodes_per_iter
-        if any(not isinstance(n, int) or isinstance(n, bool) or not 0 < n < total for n in self.curve_episodes) \
-                or sorted(set(self.curve_episodes)) != list(self.curve_episodes):
-            raise ConfigError(f"sarl_om.curve_episodes: expected increasing RL episode counts in (0, rl_iterations x "
-                              f"episodes_per_iter = {total}), got {self.curve_episodes}")
+        check_curve_budgets(self.curve_episodes, self.rl_iterations * self.episodes_per_iter, "sarl_om.curve_episodes",
+                            "RL episode counts", "rl_iterations x episodes_per_iter")
         if self.om_rays < self.om_sectors:
             raise ConfigError(f"sarl_om.om_rays: expected >= om_sectors ({self.om_sectors}), got {self.om_rays}")
         if not 0.0 < self.gamma <= 1.0:
