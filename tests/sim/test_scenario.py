@@ -122,20 +122,22 @@ def test_distance_trigger_fires_when_the_robot_comes_within_the_distance():
 
 
 def test_time_trigger_and_head_lead_before_a_scripted_turn():
-    """crossing_turn: the head turns toward the new direction lead_s before the walking direction follows."""
+    """crossing_turn: the walker starts when the robot has driven to its trigger distance, and its head turns
+    toward the new direction lead_s before the walking direction follows."""
     env = _env("crossing_turn")
-    env.reset(seed=0)
+    _reset_facing_east(env, 0)
     i = env.crowd.n_random
-    lead = load_scenario("crossing_turn").pedestrians[0].lead_s
+    ped = load_scenario("crossing_turn").pedestrians[0]
     turn_dir = -math.pi / 2  # the turn across the robot's path: south
-    head, walk, events = [], [], []
+    head, walk = [], []
     for _k in range(120):
-        env.step(env.encode_command(0.0, 0.0))
+        env.step(env.encode_command(0.6, 0.0))  # straight along y = 4 at 0.6 m/s
         head.append(float(env.bodies.head_yaw[i]))
         walk.append(math.atan2(env.crowd.vel[i, 1], env.crowd.vel[i, 0]))
     events = [e for e in env.crowd.events if e["ped"] == i]
     assert [e["kind"] for e in events] == ["start", "turn"]
-    assert events[0]["t_s"] == 0.0  # no trigger: walks from the start
+    travelled = math.hypot(*(np.array(ped.trigger_point) - np.array([1.5, 4.0]))) - ped.trigger_within_m
+    assert events[0]["t_s"] == pytest.approx(travelled / 0.6, abs=0.25)  # fires at the distance asked
     t = np.arange(1, 121) * 0.1
 
     def first(series, within):
@@ -143,7 +145,21 @@ def test_time_trigger_and_head_lead_before_a_scripted_turn():
 
     head_turned, walk_turned = first(head, math.radians(45)), first(walk, math.radians(45))
     assert events[1]["t_s"] < head_turned < walk_turned
-    assert walk_turned - head_turned >= 0.5 * lead  # the head leads the walking direction by about lead_s
+    assert walk_turned - head_turned >= 0.5 * ped.lead_s  # the head leads the walking direction by about lead_s
+
+
+@pytest.mark.parametrize("speed", [0.8, 0.9])
+def test_crossing_turn_is_a_collision_course_for_a_robot_that_does_not_react(speed):
+    """The walker's trigger times its turn to the robot: driving straight at a cruise speed, the robot hits the
+    walker or grazes it (the scenario tests reacting to the turn, not only passing a parallel walker)."""
+    env = _env("crossing_turn")
+    _reset_facing_east(env, 0)
+    done = False
+    while not done:
+        _, _, term, trunc, _ = env.step(env.encode_command(speed, 0.0))
+        done = term or trunc
+    m = scenario_metrics(env.trace(), env.crowd.scripted, env.crowd.events)
+    assert m["min_clearance_scripted_m"] <= 0.1
 
 
 def test_trials_differ_in_heading_and_walker_speed_within_the_jitter():
