@@ -26,6 +26,10 @@ leave a dataset with footer-less parquet files or an episode-index gap. Hence th
 5. renames the staging directory into place (with ``overwrite``, the old dataset stays until the new one is
    complete).
 
+With ``shards > 1`` (``icrowdnav export --workers N``), step 2 runs on contiguous blocks of episodes in parallel,
+each into its own LeRobot dataset inside the staging directory, and lerobot's ``aggregate_datasets`` merges them
+(:func:`_write_sharded`): the same dataset frame for frame, stats equal up to float rounding (docs/scale-out.md).
+
 Why the per-episode facts are in a side file: lerobot 0.4.4's ``meta/episodes`` parquet is written from an internal
 dict (``LeRobotDataset.save_episode`` takes no extra per-episode columns), so they live in
 ``meta/icrowdnav_episodes.jsonl``, which stock lerobot ignores and its dataset tools drop; what our readers need
@@ -59,6 +63,7 @@ from tqdm import tqdm
 
 from pipeline.core.artifacts import OutputDir, atomic_write_json, atomic_write_text
 from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
+from pipeline.core.executor import Executor, map_jobs
 from pipeline.core.keys import NEXT_DONE, NEXT_REWARD
 from recorder.dataset_info import ICROWDNAV_EPISODES, ICROWDNAV_META
 from recorder.doctor_dataset import check_dataset
@@ -80,7 +85,7 @@ from recorder.features import (
     observation_features,
     step_features,
 )
-from recorder.mcap.reader import read_episode
+from recorder.mcap.reader import count_frames, read_episode
 from recorder.schema import CAMERA_NAMES, EpisodeMeta, Frame
 
 log = logging.getLogger("icrowdnav")
@@ -303,58 +308,66 @@ def _no_image_embedding(features: dict[str, dict]) -> Iterator[None]:
         lds.embed_images = original
 
 
-def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | None = None, *,
-                  max_people: int | None = None, n_max: int = N_MAX_PEDESTRIANS,
-                  local_map: LocalMapSpec | None = None, progress: bool = True,
-                  vcodec: str = VCODEC) -> dict[str, Any]:
-    """Writes episodes into a new LeRobot dataset at ``root`` (no staging, no validation: the caller's job).
+@dataclass
+class _Written:
+    """What :func:`_write_episodes` wrote: the per-episode rows of ``meta/icrowdnav_episodes.jsonl`` and the spec the
+    dataset was built with (all picklable: a shard's result comes back from a worker process)."""
 
-    Use :func:`export_dataset` unless the caller already provides a crash-safe directory (e.g. a stage body
-    writing into its :class:`pipeline.core.artifacts.OutputDir`).
+    rows: list[dict[str, Any]]
+    spec: ExportSpec
+    first_meta: EpisodeMeta
+    fps: int
+    frames: int
 
-    Args:
-        inputs: MCAP paths and/or Episode-like objects (``.meta``, ``.occupancy``, ``.frames``), in order.
-        root: the dataset directory; must not exist or be an empty directory.
-        repo_id: the LeRobot repo id (``owner/name``) stored in the metadata.
-        fps: frames per second; must equal ``1 / dt_s`` of the episodes (default: taken from the first).
-        max_people: ``K``, detections per frame (default: the first frame's, i.e. the detector's setting).
-        n_max, local_map: sizes of the padded arrays (:class:`recorder.features.ExportSpec`).
-        progress: show a tqdm bar (frames).
-        vcodec: the video codec lerobot encodes with.
 
-    Returns:
-        ``{"episodes", "frames", "seconds", "frames_per_s"}``.
+def _first_episode_spec(inputs: list[Any], fps: int | None, max_people: int | None, n_max: int,
+                        local_map: LocalMapSpec | None) -> tuple[ExportSpec, EpisodeMeta, int]:
+    """The dataset's spec, first episode's metadata and fps, from the first input (read up to its first frame)."""
+    src = next(_sources(inputs[:1]), None)
+    if src is None:
+        raise InputMissingError("no episodes to export: the input list is empty")
+    meta, _occ, frames = src.open()
+    fps = _resolve_fps(fps, meta, src.name)
+    _frames, k_first, labels = _peek_first(frames, src)
+    max_people = k_first if max_people is None else max_people
+    return ExportSpec.from_meta(meta, max_people, n_max, local_map, src.name, labels), meta, fps
 
-    Raises:
-        FeatureError: a frame or episode does not fit the spec (names file, field, expected, actual).
-        CorruptArtifactError: an input cannot be read.
-        InputMissingError: there is no episode at all.
-    """
+
+def _write_episodes(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | None, *,
+                    max_people: int | None, n_max: int, local_map: LocalMapSpec | None, progress: bool,
+                    vcodec: str, fixed: tuple[ExportSpec, EpisodeMeta] | None = None,
+                    first_index: int = 0, bar_position: int | None = None) -> _Written:
+    """The LeRobot part of an export: ``create`` → ``add_frame``/``save_episode`` per episode → ``finalize`` at
+    ``root`` (which must not exist). ``fixed``: the dataset's spec and first episode's metadata, decided by the
+    caller (an export shard checks every one of its episodes against them, as the serial export checks episodes
+    after the first); otherwise both come from the first input. ``first_index``: the dataset-wide index of the
+    first input (its rows' ``episode_index``)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    root = Path(root)
-    if root.is_dir() and not any(root.iterdir()):
-        root.rmdir()  # lerobot creates the root itself and refuses an existing one
-    t0 = time.monotonic()
     ds = None
-    spec: ExportSpec | None = None
+    spec, first_meta = fixed if fixed is not None else (None, None)
     features: dict[str, dict] = {}
     scalar_keys: list[str] = []
-    first_meta: EpisodeMeta | None = None
     rows: list[dict[str, Any]] = []
     n_frames = 0
-    bar = tqdm(desc=f"export {Path(root).name}", unit="frame", disable=not progress, dynamic_ncols=True)
+    bar = tqdm(desc=f"export {Path(root).name}", unit="frame", disable=not progress, dynamic_ncols=True,
+               position=bar_position, leave=bar_position is None)
     try:
-        for ep_index, src in enumerate(_sources(inputs)):
+        for k, src in enumerate(_sources(inputs)):
+            ep_index = first_index + k
             meta, occ, frames = src.open()
             if ds is None:
-                fps = _resolve_fps(fps, meta, src.name)
-                frames, k_first, labels = _peek_first(frames, src)
-                max_people = k_first if max_people is None else max_people
-                spec = ExportSpec.from_meta(meta, max_people, n_max, local_map, src.name, labels)
+                if spec is None:
+                    fps = _resolve_fps(fps, meta, src.name)
+                    frames, k_first, labels = _peek_first(frames, src)
+                    max_people = k_first if max_people is None else max_people
+                    spec = ExportSpec.from_meta(meta, max_people, n_max, local_map, src.name, labels)
+                    first_meta = meta
+                else:
+                    assert fps is not None and first_meta is not None
+                    _check_same_spec(meta, first_meta, spec, fps, src.name)
                 features = spec.features()
-                scalar_keys = [k for k, ft in features.items() if tuple(ft["shape"]) == (1,)]
-                first_meta = meta
+                scalar_keys = [key for key, ft in features.items() if tuple(ft["shape"]) == (1,)]
                 ds = LeRobotDataset.create(repo_id, fps, features, root=root, robot_type=ROBOT_TYPE,
                                            use_videos=True, vcodec=vcodec, video_backend="pyav")
                 ds.meta.update_chunk_settings(data_files_size_in_mb=DATA_FILE_MB)
@@ -380,7 +393,7 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
             with quiet_lerobot(), _no_image_embedding(features):
                 ds.save_episode(parallel_encoding=False)
             n_frames += length
-            bar.set_postfix(episodes=ep_index + 1)
+            bar.set_postfix(episodes=k + 1)
             rows.append({"episode_index": ep_index, "source": src.label, "recorded_frames": length + 1,
                          "source_bytes": src.path.stat().st_size if src.path is not None else None,
                          "length": length, "duration_s": round(length / fps, 6), "outcome": outcome,
@@ -390,8 +403,6 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
         if ds is None:
             raise InputMissingError("no episodes to export: the input list is empty")
         ds.finalize()
-        _sort_stats(root)
-        _annotate_info(root, feature_info(spec, cameras_of(first_meta)))
     except BaseException:
         if ds is not None:
             with contextlib.suppress(Exception):
@@ -399,22 +410,243 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
         raise
     finally:
         bar.close()
+    assert spec is not None and first_meta is not None and fps is not None
+    return _Written(rows, spec, first_meta, fps, n_frames)
+
+
+def _finish(root: Path, repo_id: str, w: _Written, seconds: float) -> dict[str, Any]:
+    """What every export adds to lerobot's files: sorted stats, our feature ``info``, the side files; its counts."""
+    _sort_stats(root)
+    _annotate_info(root, feature_info(w.spec, cameras_of(w.first_meta)))
     remove_empty_images_dir(root)
-    seconds = time.monotonic() - t0
-    assert spec is not None and first_meta is not None
     info = {
-        "repo_id": repo_id, "fps": fps, "dt_s": 1.0 / fps, "task": TASK,
-        "robot_type": ROBOT_TYPE, "total_episodes": len(rows), "total_frames": n_frames,
+        "repo_id": repo_id, "fps": w.fps, "dt_s": 1.0 / w.fps, "task": TASK,
+        "robot_type": ROBOT_TYPE, "total_episodes": len(w.rows), "total_frames": w.frames,
         FORMAT_KEY: FORMAT_VERSION, "action_convention": ACTION_CONVENTION,
-        "cameras": cameras_of(first_meta), "spec": spec.describe(),
-        "sources": [r["source"] for r in rows],
+        "cameras": cameras_of(w.first_meta), "spec": w.spec.describe(),
+        "sources": [r["source"] for r in w.rows],
         "episode_facts": f"{ICROWDNAV_EPISODES}: one JSON row per episode_index",
         "lerobot_load": "LeRobotDataset(repo_id, root=..., video_backend='pyav')",
     }
     atomic_write_json(root / ICROWDNAV_META, info)
-    atomic_write_text(root / ICROWDNAV_EPISODES, "".join(json.dumps(_json_safe(r)) + "\n" for r in rows))
-    return {"episodes": len(rows), "frames": n_frames, "seconds": round(seconds, 3),
-            "frames_per_s": round(n_frames / seconds, 2) if seconds > 0 else 0.0}
+    atomic_write_text(root / ICROWDNAV_EPISODES, "".join(json.dumps(_json_safe(r)) + "\n" for r in w.rows))
+    return {"episodes": len(w.rows), "frames": w.frames, "seconds": round(seconds, 3),
+            "frames_per_s": round(w.frames / seconds, 2) if seconds > 0 else 0.0}
+
+
+def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | None = None, *,
+                  max_people: int | None = None, n_max: int = N_MAX_PEDESTRIANS,
+                  local_map: LocalMapSpec | None = None, progress: bool = True,
+                  vcodec: str = VCODEC, shards: int = 1, executor: Executor | None = None) -> dict[str, Any]:
+    """Writes episodes into a new LeRobot dataset at ``root`` (no staging, no validation: the caller's job).
+
+    Use :func:`export_dataset` unless the caller already provides a crash-safe directory (e.g. a stage body
+    writing into its :class:`pipeline.core.artifacts.OutputDir`).
+
+    Args:
+        inputs: MCAP paths and/or Episode-like objects (``.meta``, ``.occupancy``, ``.frames``), in order.
+        root: the dataset directory; must not exist or be an empty directory.
+        repo_id: the LeRobot repo id (``owner/name``) stored in the metadata.
+        fps: frames per second; must equal ``1 / dt_s`` of the episodes (default: taken from the first).
+        max_people: ``K``, detections per frame (default: the first frame's, i.e. the detector's setting).
+        n_max, local_map: sizes of the padded arrays (:class:`recorder.features.ExportSpec`).
+        progress: show a tqdm bar (frames; shards when ``shards > 1``).
+        vcodec: the video codec lerobot encodes with.
+        shards: split the episodes into this many contiguous blocks, export each as its own LeRobot dataset in
+            parallel (``executor``: a local process pool or Ray tasks) and merge them with lerobot's
+            ``aggregate_datasets`` (:func:`_write_sharded`); 1, one episode or in-memory episodes (which cannot
+            be handed to workers) export in this process.
+        executor: where shards run (:mod:`pipeline.core.executor`; default the local pool).
+
+    Returns:
+        ``{"episodes", "frames", "seconds", "frames_per_s"}`` (+ ``"shards"``, ``"merge_seconds"`` when sharded).
+
+    Raises:
+        FeatureError: a frame or episode does not fit the spec (names file, field, expected, actual).
+        CorruptArtifactError: an input cannot be read.
+        InputMissingError: there is no episode at all.
+    """
+    root = Path(root)
+    if root.is_dir() and not any(root.iterdir()):
+        root.rmdir()  # lerobot creates the root itself and refuses an existing one
+    t0 = time.monotonic()
+    items = list(inputs) if shards > 1 else inputs
+    if shards > 1 and len(items) > 1 and all(isinstance(it, str | os.PathLike) for it in items):
+        w, extra = _write_sharded(items, root, repo_id, fps, shards, max_people=max_people, n_max=n_max,
+                                  local_map=local_map, progress=progress, vcodec=vcodec, executor=executor)
+    else:
+        w = _write_episodes(items, root, repo_id, fps, max_people=max_people, n_max=n_max, local_map=local_map,
+                            progress=progress, vcodec=vcodec)
+        extra = {}
+    return {**_finish(root, repo_id, w, time.monotonic() - t0), **extra}
+
+
+def shard_blocks(sizes: list[int], shards: int) -> list[tuple[int, int]]:
+    """Contiguous ``[start, stop)`` blocks of the episodes with about equal total size (e.g. frames) each (episode order is the
+    dataset's order, so blocks are never interleaved); at most ``shards`` blocks, none empty."""
+    n = len(sizes)
+    shards = max(1, min(shards, n))
+    total = float(sum(sizes)) or float(n)
+    weights = [float(s) if sum(sizes) else 1.0 for s in sizes]
+    blocks, start, acc = [], 0, 0.0
+    for i, s in enumerate(weights):
+        acc += s
+        left_blocks = shards - len(blocks) - 1
+        if left_blocks == 0:
+            break
+        # close the block once it holds its share, leaving at least one episode per remaining block
+        if acc >= total * (len(blocks) + 1) / shards and n - (i + 1) >= left_blocks:
+            blocks.append((start, i + 1))
+            start = i + 1
+    blocks.append((start, n))
+    return blocks
+
+
+def _export_shard(job: tuple) -> _Written:
+    """One shard (a worker's job): its episodes as a LeRobot dataset at its own root."""
+    items, root, repo_id, fps, spec, first_meta, first_index, vcodec, progress, position = job
+    return _write_episodes(items, root, repo_id, fps, max_people=spec.max_people, n_max=spec.n_max,
+                           local_map=spec.local_map, progress=progress, vcodec=vcodec, fixed=(spec, first_meta),
+                           first_index=first_index, bar_position=position)
+
+
+def _aggregate_data_arrow(src_meta: Any, dst_meta: Any, data_idx: dict, data_files_size_in_mb: float,
+                          chunk_size: int) -> dict:
+    """lerobot 0.4.4's ``aggregate.aggregate_data`` done in pyarrow: the same contract (copy every data file of
+    ``src_meta`` into the destination with ``episode_index`` / ``index`` shifted by what the destination already
+    holds and ``task_index`` mapped by task name, rotate to a new file when the size limit is reached, return
+    ``data_idx`` with the ``src_to_dst`` file mapping), but without its pandas round trip — ``pd.read_parquet``
+    turns our multi-dimensional features (``datasets`` ``Array2D``/``Array3D`` columns, e.g. the depth images) into
+    an extension dtype that ``DataFrame.to_parquet`` cannot write back ("ArrowTypeError: Did not pass numpy.dtype
+    object"). Columns and the schema's ``huggingface`` features metadata are kept as they are."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from lerobot.datasets.utils import DEFAULT_DATA_PATH, update_chunk_file_indices
+
+    pairs = sorted(set(zip(src_meta.episodes["data/chunk_index"], src_meta.episodes["data/file_index"],
+                           strict=True)))
+    task_map = np.array([int(dst_meta.tasks.loc[name, "task_index"]) for name in src_meta.tasks.index],
+                        dtype=np.int64)
+    src_to_dst: dict[tuple[int, int], tuple[int, int]] = {}
+    for c, f in pairs:
+        src = src_meta.root / DEFAULT_DATA_PATH.format(chunk_index=c, file_index=f)
+        table = pq.read_table(src)
+        shifts = {"episode_index": dst_meta.info["total_episodes"], "index": dst_meta.info["total_frames"]}
+        for name, shift in shifts.items():
+            col = table.column(name)
+            table = table.set_column(table.schema.get_field_index(name), table.schema.field(name),
+                                     pa.array(col.to_numpy() + shift, type=col.type))
+        col = table.column("task_index")
+        table = table.set_column(table.schema.get_field_index("task_index"), table.schema.field("task_index"),
+                                 pa.array(task_map[col.to_numpy()], type=col.type))
+        dst = dst_meta.root / DEFAULT_DATA_PATH.format(chunk_index=data_idx["chunk"], file_index=data_idx["file"])
+        if dst.exists():
+            if src.stat().st_size + dst.stat().st_size < data_files_size_in_mb * 1024 * 1024:
+                raise CorruptArtifactError(f"{dst}: the export merges shards one data file per episode "
+                                           f"(data_files_size_in_mb={data_files_size_in_mb}); appending is not "
+                                           "implemented")
+            data_idx["chunk"], data_idx["file"] = update_chunk_file_indices(data_idx["chunk"], data_idx["file"],
+                                                                            chunk_size)
+            dst = dst_meta.root / DEFAULT_DATA_PATH.format(chunk_index=data_idx["chunk"],
+                                                           file_index=data_idx["file"])
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        pq.write_table(table, dst)
+        src_to_dst[(c, f)] = (data_idx["chunk"], data_idx["file"])
+    data_idx["src_to_dst"] = src_to_dst
+    return data_idx
+
+
+def _shift_index_stats(root: Path, episodes: int, frames: int) -> None:
+    """Makes a shard's statistics of ``episode_index`` and ``index`` those of its place in the merged dataset (its
+    first episode is the dataset's ``episodes``-th, its first frame the ``frames``-th): lerobot 0.4.4's aggregation
+    shifts the data columns but copies these per-episode stats (``meta/episodes``) and the shard's
+    ``meta/stats.json`` unchanged, so a merge of shards would say episode indices end at the last shard's local
+    maximum. Location statistics move with the shift; ``std`` and ``count`` do not."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    def moves(stat: str) -> bool:
+        return stat in ("min", "max", "mean") or (stat.startswith("q") and stat[1:].isdigit())
+
+    shift = {"episode_index": episodes, "index": frames}
+    for path in sorted((root / "meta" / "episodes").rglob("*.parquet")):
+        table = pq.read_table(path)
+        for i, name in enumerate(table.column_names):
+            parts = name.split("/")
+            if len(parts) == 3 and parts[0] == "stats" and parts[1] in shift and moves(parts[2]):
+                col = table.column(i)
+                values = [[v + shift[parts[1]] for v in row] for row in col.to_pylist()]
+                table = table.set_column(i, table.schema.field(i), pa.array(values, type=col.type))
+        pq.write_table(table, path)
+    path = root / "meta" / "stats.json"
+    stats = json.loads(path.read_text())
+    for feature, k in shift.items():
+        for stat, value in stats.get(feature, {}).items():
+            if moves(stat):
+                stats[feature][stat] = (np.asarray(value) + k).tolist()
+    atomic_write_text(path, json.dumps(stats, indent=4))
+
+
+@contextlib.contextmanager
+def _arrow_data_aggregation() -> Iterator[None]:
+    """Inside lerobot's ``aggregate_datasets``: its data step replaced by :func:`_aggregate_data_arrow` (the video,
+    episode-metadata, task and stats steps stay lerobot's own)."""
+    import lerobot.datasets.aggregate as agg
+
+    original = agg.aggregate_data
+    agg.aggregate_data = _aggregate_data_arrow
+    try:
+        yield
+    finally:
+        agg.aggregate_data = original
+
+
+def _write_sharded(items: list[Any], root: Path, repo_id: str, fps: int | None, shards: int, *,
+                   max_people: int | None, n_max: int, local_map: LocalMapSpec | None, progress: bool,
+                   vcodec: str, executor: Executor | None) -> tuple[_Written, dict[str, Any]]:
+    """Exports contiguous blocks of episodes as separate LeRobot datasets in parallel, then merges them with lerobot's
+    own ``aggregate_datasets`` into ``root``.
+
+    The spec (cameras, ``K``, sizes) and fps are decided once from the first episode and handed to every shard, so
+    a shard checks each of its episodes against the dataset's first one exactly as the serial export does (the same
+    named errors). Shards live in ``root/.shards/`` while they are written and are merged into
+    ``root/.shards/merged`` (lerobot creates its output root itself), whose files are then moved up into ``root``:
+    everything stays inside the caller's staging directory, so a killed export leaves nothing outside it. The merge
+    copies each shard's parquet files as they are (``data_files_size_in_mb`` keeps one file per episode) and
+    concatenates the shards' mp4 files per camera without re-encoding; ``meta/stats.json`` is lerobot's
+    ``aggregate_stats`` over the shards — the same weighted combination the serial export applies episode by
+    episode, so equal up to float rounding (tests/recorder/test_export.py compares both frame for frame)."""
+    import shutil
+
+    from lerobot.datasets.aggregate import aggregate_datasets
+
+    spec, first_meta, fps = _first_episode_spec(items, fps, max_people, n_max, local_map)
+    # balanced by frames (the export's cost is per frame; bytes per frame vary with the crowd): from each file's
+    # summary, without decompressing it
+    blocks = shard_blocks([count_frames(Path(it)) for it in items], shards)
+    work = root / ".shards"
+    work.mkdir(parents=True)
+    roots = [work / f"shard_{i:03d}" for i in range(len(blocks))]
+    jobs = [(items[a:b], r, repo_id, fps, spec, first_meta, a, vcodec, progress, i)
+            for i, ((a, b), r) in enumerate(zip(blocks, roots, strict=True))]
+    # progress: one frame bar per shard (tqdm positions), none for the shards themselves
+    parts: list[_Written] = map_jobs(_export_shard, jobs, len(jobs), "export shards", progress=False,
+                                     unit="shard", executor=executor)
+    t0 = time.monotonic()
+    first_frame = 0
+    for r, part, (a, _b) in zip(roots, parts, blocks, strict=True):
+        _shift_index_stats(r, a, first_frame)
+        first_frame += part.frames
+    merged = work / "merged"
+    with quiet_lerobot(), _arrow_data_aggregation():
+        aggregate_datasets([repo_id] * len(roots), repo_id, roots=roots, aggr_root=merged,
+                           data_files_size_in_mb=DATA_FILE_MB)
+    for child in merged.iterdir():
+        os.rename(child, root / child.name)
+    shutil.rmtree(work)
+    rows = [r for p in parts for r in p.rows]
+    w = _Written(rows, spec, first_meta, fps, sum(p.frames for p in parts))
+    return w, {"shards": len(blocks), "merge_seconds": round(time.monotonic() - t0, 3)}
 
 
 def _annotate_info(root: Path, infos: dict[str, dict[str, Any]]) -> None:
@@ -453,7 +685,8 @@ def _json_safe(obj: Any) -> Any:
 def export_dataset(inputs: Iterable[Any], out_dir: Path, repo_id: str, fps: int | None = None,
                    overwrite: bool = False, *, max_people: int | None = None,
                    n_max: int = N_MAX_PEDESTRIANS, local_map: LocalMapSpec | None = None,
-                   progress: bool = True, vcodec: str = VCODEC) -> dict[str, Any]:
+                   progress: bool = True, vcodec: str = VCODEC, shards: int = 1,
+                   executor: Executor | None = None) -> dict[str, Any]:
     """Exports episodes into a validated LeRobot dataset at ``out_dir``, atomically.
 
     Args:
@@ -463,7 +696,7 @@ def export_dataset(inputs: Iterable[Any], out_dir: Path, repo_id: str, fps: int 
         repo_id: LeRobot repo id (``owner/name``).
         fps: frames per second; must equal ``1 / dt_s`` (default: from the first episode).
         overwrite: replace an existing ``out_dir`` (kept until the new dataset is complete and valid).
-        max_people, n_max, local_map, progress, vcodec: see :func:`write_dataset`.
+        max_people, n_max, local_map, progress, vcodec, shards, executor: see :func:`write_dataset`.
 
     Returns:
         ``{"episodes", "frames", "seconds", "frames_per_s", "doctor_seconds"}``.
@@ -479,7 +712,8 @@ def export_dataset(inputs: Iterable[Any], out_dir: Path, repo_id: str, fps: int 
     out_dir = Path(out_dir)
     with OutputDir(out_dir, "overwrite" if overwrite else "new") as od:
         counts = write_dataset(inputs, od.path, repo_id, fps, max_people=max_people, n_max=n_max,
-                               local_map=local_map, progress=progress, vcodec=vcodec)
+                               local_map=local_map, progress=progress, vcodec=vcodec, shards=shards,
+                               executor=executor)
         t0 = time.monotonic()
         problems = check_dataset(od.path)
         counts["doctor_seconds"] = round(time.monotonic() - t0, 3)

@@ -24,6 +24,7 @@ from pathlib import Path
 from pipeline.core import layout
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.executor import Executor, check_executor
 from pipeline.core.manifest import MANIFEST_NAME
 from recorder.doctor_dataset import check_dataset
 from recorder.export import write_dataset
@@ -38,10 +39,19 @@ class ExportConfig(BaseStageConfig):
     run_name: str = field(default="expert", metadata={"help": "recording to export: DATA_DIR/raw/<run_name>/"})
     repo_id: str = field(default="icrowdnav/expert",
                          metadata={"help": "LeRobot repo id (owner/name); output DATA_DIR/datasets/<repo_id>/"})
+    workers: int = field(default=2, metadata={"help": "export shards written in parallel, then merged by lerobot's "
+                                                      "aggregate_datasets (1: one process, no merge)"})
+    executor: str = field(default="auto", metadata={"help": "where shards run: auto (Ray when RAY_ADDRESS is set) | "
+                                                            "local | ray (pipeline.core.executor)"})
+    ray_address: str = field(default="", metadata={"help": "Ray cluster address host:port (empty: RAY_ADDRESS, or "
+                                                           "a Ray instance started on this machine)"})
 
     def validate(self) -> None:
         super().validate()
         check_run_name(self.run_name)
+        check_executor(self.executor, self.ray_address, "export")
+        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 1:
+            raise ConfigError(f"export: config key 'workers': expected an int >= 1, got {self.workers!r}")
         if not _REPO_ID.match(self.repo_id) or ".." in self.repo_id.split("/"):
             raise ConfigError(f"repo_id: expected 'owner/name' (letters, digits, ._-), got {self.repo_id!r}")
 
@@ -74,7 +84,7 @@ def body(cfg: ExportConfig, out: Path) -> dict:
         raise InputMissingError(f"recording {raw_dir(cfg)} lists missing episode file(s): {', '.join(missing[:3])}")
     if not files:
         raise InputMissingError(f"no episode in {raw_dir(cfg)}")
-    counts = write_dataset(files, out, cfg.repo_id)
+    counts = write_dataset(files, out, cfg.repo_id, shards=cfg.workers, executor=Executor.of(cfg))
     problems = check_dataset(out)
     if problems:
         raise CorruptArtifactError(f"exported dataset failed validation, nothing published: {problems[0]}"

@@ -24,7 +24,9 @@ are kept, ours are replaced) and prints every figure. Figures (single process, t
   Ray tasks (:mod:`pipeline.core.executor`) on a Ray instance the stage starts (1 node, 2 CPUs; its start-up is in
   the wall time) and on a running two-node local cluster (1 CPU each), and ``record_ray_*_vs_local_pool`` their
   ratios to the 2-worker local pool (``--ray false`` skips them); ``export_frames_per_s`` — the LeRobot export of that recording
-  (reading MCAP, lerobot's writer incl. AV1 video and stats; the dataset doctor excluded);
+  (reading MCAP, lerobot's writer incl. AV1 video and stats; the dataset doctor excluded), one process;
+  ``export_frames_per_s_2shards`` the same export in 2 parallel shards merged by lerobot's ``aggregate_datasets``
+  (``export_merge_seconds_2shards`` of it the merge) and ``export_speedup_2shards`` the ratio;
 * ``chunk_load_ms_ours`` — stock lerobot reading one item with a 100-step action chunk (``chunk_load_steps``)
   (``LeRobotDataset(..., video_backend="pyav", delta_timestamps={"action": 100 steps})[i]``) of that export,
   median of 8 seeded items; ``chunk_load_ms_stock_shaped`` the same on a stock-shaped dataset of the same length
@@ -206,6 +208,10 @@ def measure_recorder(cfg: BenchConfig) -> dict[str, float]:
         files = sorted((Path(tmp) / "raw1").glob("*.mcap"))
         counts = write_dataset(files, Path(tmp) / "dataset", "bench/export", progress=False)
         out["export_frames_per_s"] = counts["frames_per_s"]
+        sharded = write_dataset(files, Path(tmp) / "dataset_sharded", "bench/export", progress=False, shards=2)
+        out["export_frames_per_s_2shards"] = sharded["frames_per_s"]
+        out["export_merge_seconds_2shards"] = sharded["merge_seconds"]
+        out["export_speedup_2shards"] = sharded["frames_per_s"] / counts["frames_per_s"]
         out.update(measure_chunk_loading(Path(tmp) / "dataset", Path(tmp) / "chunk", seed=cfg.seed))
     return out
 
