@@ -239,6 +239,9 @@ BAD = [
                  id="repo-id-escaping"),
     pytest.param(lambda d: [*export_argv(d), "--profile", "nope"], ["unknown profile 'nope'"],
                  id="unknown-profile"),
+    pytest.param(lambda d: [*export_argv(d), "--workers", "0"], ["workers", "expected an int >= 1", "got 0"],
+                 id="zero-workers"),
+    pytest.param(lambda d: [*export_argv(d), "--executor", "dask"], ["executor", "'dask'"], id="unknown-executor"),
 ]
 
 
