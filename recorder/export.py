@@ -469,6 +469,9 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
     root = Path(root)
     if root.is_dir() and not any(root.iterdir()):
         root.rmdir()  # lerobot creates the root itself and refuses an existing one
+    # SVT-AV1 prints its ~20-line config banner to stderr for every encoded episode unless its log level says
+    # errors only (it reads SVT_LOG when an encoder starts; forked shard workers inherit it); a user's value wins
+    os.environ.setdefault("SVT_LOG", "1")
     t0 = time.monotonic()
     items = list(inputs) if shards > 1 else inputs
     if shards > 1 and len(items) > 1 and all(isinstance(it, str | os.PathLike) for it in items):
