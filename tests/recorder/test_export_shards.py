@@ -30,7 +30,8 @@ def five_mcaps(tmp_path_factory, tiny_mcap_dir) -> list[Path]:
 def serial_and_sharded(tmp_path_factory, five_mcaps) -> tuple[Path, Path, dict]:
     out = tmp_path_factory.mktemp("shards")
     write_dataset(five_mcaps, out / "serial", "icrowdnav/shards", progress=False)
-    counts = write_dataset(five_mcaps, out / "sharded", "icrowdnav/shards", progress=False, shards=3)
+    counts = write_dataset(five_mcaps, out / "sharded", "icrowdnav/shards", progress=False, shards=3,
+                           min_shard_frames=0)
     return out / "serial", out / "sharded", counts
 
 
@@ -45,6 +46,19 @@ def test_shard_blocks_are_contiguous_balanced_and_never_empty():
             blocks = shard_blocks(sizes, k)
             assert blocks[0][0] == 0 and blocks[-1][1] == len(sizes) and len(blocks) <= k
             assert all(a < b for a, b in blocks) and all(b == c for (_, b), (c, _) in zip(blocks, blocks[1:], strict=False))
+
+
+def test_small_recordings_are_exported_in_fewer_shards(tmp_path, five_mcaps):
+    """A shard's fixed cost outweighs its gain below min_shard_frames frames per shard: fewer shards, down to one."""
+    from recorder.mcap.reader import count_frames
+
+    total = sum(count_frames(p) for p in five_mcaps)
+    one = write_dataset(five_mcaps, tmp_path / "one", "icrowdnav/x", progress=False, shards=3,
+                        min_shard_frames=total + 1)
+    assert "shards" not in one  # the one-process export
+    two = write_dataset(five_mcaps, tmp_path / "two", "icrowdnav/x", progress=False, shards=3,
+                        min_shard_frames=total // 2)
+    assert two["shards"] == 2
 
 
 def test_sharded_export_passes_the_doctor_and_counts(serial_and_sharded):
@@ -122,7 +136,8 @@ def test_a_bad_episode_in_a_later_shard_is_the_serial_exports_error(tmp_path, fi
     errors = []
     for shards in (1, 3):
         with pytest.raises(FeatureError, match=r"ep_003\.mcap.*cameras\[left\]\[hfov_deg\]") as e:
-            export_dataset(files, tmp_path / f"out{shards}", "icrowdnav/x", progress=False, shards=shards)
+            export_dataset(files, tmp_path / f"out{shards}", "icrowdnav/x", progress=False, shards=shards,
+                           min_shard_frames=0)
         errors.append(str(e.value))
         assert not (tmp_path / f"out{shards}").exists()
     assert errors[0] == errors[1]
@@ -141,7 +156,7 @@ def test_export_shards_on_ray_equal_the_local_pool(tmp_path, five_mcaps, serial_
     _, local, _ = serial_and_sharded
     out = tmp_path / "ray"
     counts = write_dataset(five_mcaps, out, "icrowdnav/shards", progress=False, shards=3,
-                           executor=Executor("ray", "", tmp_path))
+                           executor=Executor("ray", "", tmp_path), min_shard_frames=0)
     assert counts["shards"] == 3 and check_dataset(out) == []
     files = sorted(p.relative_to(local) for p in local.rglob("*") if p.is_file())
     assert files == sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
