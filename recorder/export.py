@@ -323,6 +323,17 @@ class _Written:
     frames: int
 
 
+def _spec_of_first(src: _Source, meta: EpisodeMeta, frames: Iterator[Frame], fps: int | None,
+                   max_people: int | None, n_max: int, local_map: LocalMapSpec | None
+                   ) -> tuple[ExportSpec, int, Iterator[Frame]]:
+    """The dataset's spec and fps from its first episode (``K`` from the first frame unless ``max_people`` says);
+    the episode's frames are given back unconsumed."""
+    fps = _resolve_fps(fps, meta, src.name)
+    frames, k_first, labels = _peek_first(frames, src)
+    max_people = k_first if max_people is None else max_people
+    return ExportSpec.from_meta(meta, max_people, n_max, local_map, src.name, labels), fps, frames
+
+
 def _first_episode_spec(inputs: list[Any], fps: int | None, max_people: int | None, n_max: int,
                         local_map: LocalMapSpec | None) -> tuple[ExportSpec, EpisodeMeta, int]:
     """The dataset's spec, first episode's metadata and fps, from the first input (read up to its first frame)."""
@@ -330,10 +341,8 @@ def _first_episode_spec(inputs: list[Any], fps: int | None, max_people: int | No
     if src is None:
         raise InputMissingError("no episodes to export: the input list is empty")
     meta, _occ, frames = src.open()
-    fps = _resolve_fps(fps, meta, src.name)
-    _frames, k_first, labels = _peek_first(frames, src)
-    max_people = k_first if max_people is None else max_people
-    return ExportSpec.from_meta(meta, max_people, n_max, local_map, src.name, labels), meta, fps
+    spec, fps, _frames = _spec_of_first(src, meta, frames, fps, max_people, n_max, local_map)
+    return spec, meta, fps
 
 
 def _write_episodes(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | None, *,
@@ -361,10 +370,7 @@ def _write_episodes(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | 
             meta, occ, frames = src.open()
             if ds is None:
                 if spec is None:
-                    fps = _resolve_fps(fps, meta, src.name)
-                    frames, k_first, labels = _peek_first(frames, src)
-                    max_people = k_first if max_people is None else max_people
-                    spec = ExportSpec.from_meta(meta, max_people, n_max, local_map, src.name, labels)
+                    spec, fps, frames = _spec_of_first(src, meta, frames, fps, max_people, n_max, local_map)
                     first_meta = meta
                 else:
                     assert fps is not None and first_meta is not None
@@ -483,7 +489,7 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
     frames: list[int] = []
     if shards > 1 and len(items) > 1 and all(isinstance(it, str | os.PathLike) for it in items):
         # frames per episode from each file's summary (no decompression): the shards' sizes
-        frames = [count_frames(Path(check_inputs([Path(it)])[0])) for it in items]
+        frames = [count_frames(p) for p in check_inputs(items)]
         if min_shard_frames > 0:
             shards = min(shards, max(1, sum(frames) // min_shard_frames))
     if shards > 1 and frames:
@@ -497,12 +503,12 @@ def write_dataset(inputs: Iterable[Any], root: Path, repo_id: str, fps: int | No
 
 
 def shard_blocks(sizes: list[int], shards: int) -> list[tuple[int, int]]:
-    """Contiguous ``[start, stop)`` blocks of the episodes with about equal total size (e.g. frames) each (episode order is the
-    dataset's order, so blocks are never interleaved); at most ``shards`` blocks, none empty."""
+    """Contiguous ``[start, stop)`` blocks of the episodes with about equal total size (e.g. frames) each (episode
+    order is the dataset's order, so blocks are never interleaved); at most ``shards`` blocks, none empty."""
     n = len(sizes)
     shards = max(1, min(shards, n))
-    total = float(sum(sizes)) or float(n)
-    weights = [float(s) if sum(sizes) else 1.0 for s in sizes]
+    weights = sizes if sum(sizes) > 0 else [1] * n  # all empty: balance by count
+    total = float(sum(weights))
     blocks, start, acc = [], 0, 0.0
     for i, s in enumerate(weights):
         acc += s
@@ -630,7 +636,7 @@ def _write_sharded(items: list[Any], frames: list[int], root: Path, repo_id: str
     copies each shard's parquet files as they are (``data_files_size_in_mb`` keeps one file per episode) and
     concatenates the shards' mp4 files per camera without re-encoding; ``meta/stats.json`` is lerobot's
     ``aggregate_stats`` over the shards — the same weighted combination the serial export applies episode by
-    episode, so equal up to float rounding (tests/recorder/test_export.py compares both frame for frame)."""
+    episode, so equal up to float rounding (tests/recorder/test_export_shards.py compares both frame for frame)."""
     import shutil
 
     from lerobot.datasets.aggregate import aggregate_datasets
