@@ -188,9 +188,17 @@ def measure_fit_step(cameras: list[Camera], encoder_cfg: Any, device: str, *, st
 
 
 def measure_fit_steps(cameras: list[Camera], encoder_cfg: Any, devices: list[str], **kwargs: Any) -> dict[str, float]:
-    """``pretrain_step_ms_<device>`` for each device (and the CUDA / CPU speed-up when both are measured)."""
-    out = {f"pretrain_step_ms_{d.split(':')[0]}": round(measure_fit_step(cameras, encoder_cfg, d, **kwargs), 2)
-           for d in devices}
+    """``pretrain_step_ms_<device>`` for each device (and the CUDA / CPU speed-up when both are measured); on CUDA
+    also ``pretrain_peak_gib_cuda``, the most GPU memory torch allocated during the steps."""
+    out: dict[str, float] = {}
+    for d in devices:
+        key = d.split(":")[0]
+        cuda = resolve_device(d, "device").type == "cuda"
+        if cuda:
+            torch.cuda.reset_peak_memory_stats()
+        out[f"pretrain_step_ms_{key}"] = round(measure_fit_step(cameras, encoder_cfg, d, **kwargs), 2)
+        if cuda:
+            out[f"pretrain_peak_gib_{key}"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
     if "pretrain_step_ms_cpu" in out and "pretrain_step_ms_cuda" in out:
         out["pretrain_step_speedup_cuda_vs_cpu"] = round(out["pretrain_step_ms_cpu"] / out["pretrain_step_ms_cuda"], 2)
     return out
@@ -255,8 +263,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dataset", type=Path, required=True, help="a dataset root (only meta/info.json is read)")
     ap.add_argument("--devices", default="cpu,cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--steps", type=int, default=12)
-    ap.add_argument("--clips-per-batch", type=int, default=4)
-    ap.add_argument("--clip-frames", type=int, default=8)
+    ap.add_argument("--profile", help="take the encoder and the batch (clips_per_batch x clip_frames) from this "
+                                      "profile's pretrain section (default: the built-in EncoderConfig, 4 x 8)")
+    ap.add_argument("--clips-per-batch", type=int, help="clips per step (default: the profile's, else 4)")
+    ap.add_argument("--clip-frames", type=int, help="target frames per clip (default: the profile's, else 8)")
     ap.add_argument("--legacy", action="store_true",
                     help="also time the encoder as it was before the depth evidence, the BEV decoder and T = 5 "
                          "(keys *_legacy)")
@@ -273,11 +283,20 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(write_intention_samples(args.dataset, args.write_intention_samples)))
             return 0
         cams = cameras_from_dataset(args.dataset)
-        kw = {"steps": args.steps, "clips_per_batch": args.clips_per_batch, "clip_frames": args.clip_frames}
-        pooled = EncoderConfig(fuse_pool=args.fuse_pool) if args.fuse_pool else None
+        encoder, batch, head = EncoderConfig(), {"clips_per_batch": 4, "clip_frames": 8}, {}
+        if args.profile:
+            from pipeline.core.config import load_config
+            from pretrain.stage import PretrainConfig
+
+            cfg = load_config(PretrainConfig, "pretrain", profile=args.profile)
+            encoder, batch = cfg.encoder, {"clips_per_batch": cfg.clips_per_batch, "clip_frames": cfg.clip_frames}
+            head = {"profile": args.profile, "bev_grid_cells": int(np.prod(encoder.grid.shape))}
+        batch = {k: v if getattr(args, k) is None else getattr(args, k) for k, v in batch.items()}
+        kw = {"steps": args.steps, **batch}
+        pooled = replace(encoder, fuse_pool=args.fuse_pool) if args.fuse_pool else None
         if pooled is not None:
             pooled.validate()
-        out = measure_fit_steps(cams, EncoderConfig(), devices, **kw)
+        out = {**head, **batch, **measure_fit_steps(cams, encoder, devices, **kw)}
         if args.legacy:
             legacy = EncoderConfig(**{**LEGACY_ENCODER, "history_frames": 3})
             out.update({f"{k}_legacy": v for k, v in measure_fit_steps(cams, legacy, devices, **kw).items()})

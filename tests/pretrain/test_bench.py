@@ -31,6 +31,14 @@ def test_cli_asks_for_cuda_without_it_is_a_named_error(tiny_dataset, capsys, mon
     assert main(["--dataset", str(tiny_dataset.root), "--devices", "cpu", "--steps", "1", "--clips-per-batch", "1",
                  "--clip-frames", "2"]) == 0
     assert json.loads(capsys.readouterr().out)["pretrain_step_ms_cpu"] > 0
+    # --profile: the profile's encoder and batch, unless the batch is given
+    assert main(["--dataset", str(tiny_dataset.root), "--devices", "cpu", "--steps", "1", "--profile", "default",
+                 "--clips-per-batch", "1", "--clip-frames", "2"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["profile"] == "default" and (out["clips_per_batch"], out["clip_frames"]) == (1, 2)
+    assert out["pretrain_step_ms_cpu"] > 0 and out["bev_grid_cells"] > 0
+    assert main(["--dataset", str(tiny_dataset.root), "--devices", "cpu", "--profile", "nosuch"]) == 2
+    assert "unknown profile 'nosuch'" in capsys.readouterr().err
     # a pooled fusion that does not fit the grid is named before anything is timed
     assert main(["--dataset", str(tiny_dataset.root), "--devices", "cpu", "--fuse-pool", "7"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
