@@ -58,6 +58,7 @@ VERBS: dict[str, str] = {
     "pretrain": "pipeline.verbs.pretrain:STAGE",
     "pretrain-intention": "pipeline.verbs.pretrain_intention:STAGE",
     "train": "pipeline.verbs.train:STAGE",
+    "train-all": "pipeline.verbs.train_all:main",
     "eval": "pipeline.verbs.eval:STAGE",
     "doctor": "pipeline.verbs.doctor:main",
     "recover": "pipeline.verbs.recover:main",

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from pipeline.core.config import load_config
 from pipeline.core.device import machine_facts, resolve_device
 from pipeline.core.errors import ICrowdNavError
 from pipeline.core.timing import time_call
@@ -55,6 +56,7 @@ from pretrain.intention import (
     split_samples,
 )
 from pretrain.model import LEGACY_ENCODER, BEVEncoder, BEVStream, EncoderConfig, PretextHeads
+from pretrain.stage import PretrainConfig
 from pretrain.train import FitConfig, fit
 
 
@@ -285,9 +287,6 @@ def main(argv: list[str] | None = None) -> int:
         cams = cameras_from_dataset(args.dataset)
         encoder, batch, head = EncoderConfig(), {"clips_per_batch": 4, "clip_frames": 8}, {}
         if args.profile:
-            from pipeline.core.config import load_config
-            from pretrain.stage import PretrainConfig
-
             cfg = load_config(PretrainConfig, "pretrain", profile=args.profile)
             encoder, batch = cfg.encoder, {"clips_per_batch": cfg.clips_per_batch, "clip_frames": cfg.clip_frames}
             head = {"profile": args.profile, "bev_grid_cells": int(np.prod(encoder.grid.shape))}

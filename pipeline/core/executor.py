@@ -148,11 +148,11 @@ def ray_session(address: str, data_dir: Path, workers: int) -> Iterator[None]:
 
 
 def _ray_map(fn: Callable[[J], Any], jobs: Sequence[J], desc: str, progress: bool, unit: str,
-             on_result: Callable[[int, Any], None] | None) -> list[Any]:
+             on_result: Callable[[int, Any], None] | None, cpus_per_job: int = 1) -> list[Any]:
     import ray
     from ray.exceptions import RayTaskError
 
-    task = ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)(fn)
+    task = ray.remote(num_cpus=cpus_per_job, max_retries=MAX_RETRIES, retry_exceptions=False)(fn)
     refs = [task.remote(j) for j in jobs]
     index = {r: i for i, r in enumerate(refs)}
     out: list[Any] = [None] * len(jobs)
@@ -207,16 +207,18 @@ class Executor:
 
 def map_jobs(fn: Callable[[J], Any], jobs: Sequence[J], workers: int, desc: str, progress: bool = True,
              unit: str = "ep", executor: Executor | None = None,
-             on_result: Callable[[int, Any], None] | None = None, start: str = "fork") -> list[Any]:
+             on_result: Callable[[int, Any], None] | None = None, start: str = "fork",
+             cpus_per_job: int = 1) -> list[Any]:
     """``[fn(j) for j in jobs]`` in job order: in this process (``workers <= 1``), a process pool of ``workers``
     (started with ``start``: ``fork``, or ``spawn`` for workers that use CUDA), or Ray tasks (``executor.kind ==
-    "ray"``; inside :meth:`Executor.session` or starting one). ``on_result(i, result)`` is called as each job
-    finishes (in completion order with Ray, in job order otherwise), e.g. to record progress."""
+    "ray"``; inside :meth:`Executor.session` or starting one; each task holds ``cpus_per_job`` CPUs, e.g. a job
+    that runs its own process pool). ``on_result(i, result)`` is called as each job finishes (in completion order
+    with Ray, in job order otherwise), e.g. to record progress."""
     if executor is not None and executor.kind == "ray":
         if not jobs:
             return []
         with executor.session(workers):
-            return _ray_map(fn, jobs, desc, progress, unit, on_result)
+            return _ray_map(fn, jobs, desc, progress, unit, on_result, cpus_per_job)
     if workers <= 1:
         out = []
         for i, j in enumerate(tqdm(jobs, desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)):

@@ -195,3 +195,44 @@ def test_a_data_dir_the_nodes_cannot_reach_is_one_named_error(cluster, tmp_path)
     finally:
         ray.shutdown()
     assert Executor().kind == "local"
+
+
+@pytest.mark.slow
+def test_train_all_runs_each_variant_in_a_ray_task_and_reruns_a_killed_one(cluster, tmp_path):
+    """``train-all`` on the cluster: the teacher, then the other variants, each in a Ray task (the stand-in
+    ``train``'s parent is a Ray worker); a task whose worker is killed mid-variant is rerun with ``--resume`` and
+    its variant finishes once."""
+    from pipeline.verbs.train_all import make_plan, run_plan
+    from tests.pipeline.test_train_all import STANDIN, runs, standin
+
+    data = tmp_path / "data"
+    standin(data, seconds=4.0)
+    killed: list[int] = []
+
+    def kill_one() -> None:  # SIGKILL the Ray worker running sarl_om's task once its stand-in has started
+        deadline = time.monotonic() + 120
+        started = data / "checkpoints" / "policy" / "sarl_om" / "runs.txt"
+        while time.monotonic() < deadline and not killed:
+            pids = _ray_task_pids("run_child")
+            if pids and started.is_file():
+                import psutil
+
+                for pid in pids:
+                    kids = [c.cmdline() for c in psutil.Process(pid).children()]
+                    if any("sarl_om" in " ".join(k) for k in kids):
+                        os.kill(pid, signal.SIGKILL)
+                        killed.append(pid)
+            time.sleep(0.05)
+
+    t = threading.Thread(target=kill_one, daemon=True)
+    t.start()
+    plan = make_plan(["--variants", "[sarl_om, teacher, vint]", "--data-dir", str(data), "--cpus_per_variant", "1"])
+    assert plan.executor == "ray"  # auto: RAY_ADDRESS
+    res = run_plan(plan, module=STANDIN)
+    t.join(timeout=5)
+    assert [(r["name"], r["returncode"]) for r in res] == [("teacher", 0), ("sarl_om", 0), ("vint", 0)]
+    assert killed, "no Ray worker was seen running sarl_om"
+    assert [len(runs(data, v)) for v in ("teacher", "sarl_om", "vint")] == [1, 2, 1]
+    assert all(parent.startswith("ray::") for v in ("teacher", "vint") for _, parent, _ in runs(data, v))
+    assert all("--resume" in argv for _, _, argv in runs(data, "sarl_om"))
+    assert (data / "checkpoints" / "policy" / "sarl_om" / "done").is_file()
