@@ -1,5 +1,5 @@
 """``icrowdnav train-all``: the training variants of ``make train`` as independent jobs — one after another on this
-machine (the default, what ``make train`` did with its shell loop), several at once (``--jobs N``), or as Ray tasks
+machine (the default, as ``make train``'s loop does), several at once (``--jobs N``), or as Ray tasks
 spread over a cluster (``--executor ray``, or ``RAY_ADDRESS`` set).
 
 ::
