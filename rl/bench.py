@@ -49,6 +49,7 @@ from pipeline.core.timing import time_call
 from pretrain.geometry import cameras_from_dataset
 from pretrain.intention import ForecasterConfig, IntentionForecaster
 from pretrain.model import BEVEncoder, BEVStream, EncoderConfig
+from pretrain.stage import PretrainConfig
 from rl.observe import BEV_POOL, StudentObserver, env_cameras, observer_for_env, perception_params
 from rl.policy import act, build_policy, policy_class, policy_kwargs
 from rl.stage import TrainConfig
@@ -197,14 +198,14 @@ def synthetic_student_frames(space, n: int, n_actions: int, seed: int) -> dict[s
 
 
 def measure_student_update(cameras, train_cfg: Any, device: str, frames: int = 2048, epochs: int = 2,
-                           seed: int = 0) -> float:
+                           seed: int = 0, encoder_cfg: EncoderConfig | None = None) -> float:
     """Milliseconds per 1,000 frames and epoch of the default student's DAgger update on ``device`` (see the module
     docstring): :func:`rl.teacher.behaviour_clone` with the profile's ``dagger`` settings, timed over ``epochs``
     epochs after one warm-up epoch (each call fills the lookahead feature cache once, as every iteration does)."""
     cfg, d = train_cfg, train_cfg.dagger
     dev = resolve_device(device, "device")
     torch.manual_seed(seed)
-    enc = BEVEncoder(EncoderConfig(), cameras).eval().requires_grad_(False)
+    enc = BEVEncoder(encoder_cfg or EncoderConfig(), cameras).eval().requires_grad_(False)
     observer = StudentObserver("full", cameras, enc, cfg.sim.detector.max_people, mirror=d.mirror, head="lookahead",
                                perception=perception_params(cfg.sim),
                                forecaster=IntentionForecaster(ForecasterConfig()).eval())
@@ -251,18 +252,22 @@ def measure_student_encoder(cameras, device: str, streams: int, steps: int = 20,
 
 
 def measure_student_devices(cameras, train_cfg: Any, devices: list[str], frames: int = 2048,
-                            fuse_pool: int = 0) -> dict[str, float]:
-    """The student's update and encoder figures for each device, with the CUDA / CPU ratios (module docstring);
-    ``fuse_pool`` > 0 adds the encoder with that ``encoder.fuse_pool``."""
-    pooled = EncoderConfig(fuse_pool=fuse_pool) if fuse_pool else None
+                            fuse_pool: int = 0, encoder_cfg: EncoderConfig | None = None) -> dict[str, float]:
+    """The student's update and encoder figures for each device, with the CUDA / CPU ratios (module docstring), with
+    ``encoder_cfg`` (default: the built-in :class:`EncoderConfig`); ``fuse_pool`` > 0 adds the encoder with that
+    ``encoder.fuse_pool``."""
+    encoder_cfg = encoder_cfg or EncoderConfig()
+    pooled = replace(encoder_cfg, fuse_pool=fuse_pool) if fuse_pool else None
     if pooled is not None:
         pooled.validate()
     out: dict[str, float] = {}
     for d in devices:
         key = d.split(":")[0]
-        out[f"student_clone_ms_per_kframe_{key}"] = round(measure_student_update(cameras, train_cfg, d, frames), 1)
+        out[f"student_clone_ms_per_kframe_{key}"] = round(measure_student_update(cameras, train_cfg, d, frames,
+                                                                                 encoder_cfg=encoder_cfg), 1)
         for b in (2, 16):
-            out[f"student_encoder_ms_{key}_b{b}"] = round(measure_student_encoder(cameras, d, b), 2)
+            out[f"student_encoder_ms_{key}_b{b}"] = round(measure_student_encoder(cameras, d, b,
+                                                                                  encoder_cfg=encoder_cfg), 2)
             if pooled is not None:
                 out[f"student_encoder_ms_{key}_b{b}_fuse_pool{fuse_pool}"] = round(
                     measure_student_encoder(cameras, d, b, encoder_cfg=pooled), 2)
@@ -277,7 +282,8 @@ def measure_student_devices(cameras, train_cfg: Any, devices: list[str], frames:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m rl.bench --dataset ROOT [--devices cpu,cuda] [--profile default]``: the student's update and
-    frozen-encoder figures per device as JSON (reads only ``ROOT/meta/info.json``: the cameras)."""
+    frozen-encoder figures per device as JSON, with the profile's ``train`` settings and its ``pretrain.encoder``
+    (reads only ``ROOT/meta/info.json``: the cameras)."""
     import argparse
     import json
     import os
@@ -293,8 +299,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(os.cpu_count() or 1)
     try:
+        encoder = load_config(PretrainConfig, "pretrain", args.profile).encoder
         out = measure_student_devices(cameras_from_dataset(args.dataset), load_config(TrainConfig, "train", args.profile),
-                                      args.devices.split(","), args.frames, args.fuse_pool)
+                                      args.devices.split(","), args.frames, args.fuse_pool, encoder)
+        out = {"profile": args.profile, "bev_grid_cells": int(np.prod(encoder.grid.shape)), **out}
     except ICrowdNavError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -52,3 +52,25 @@ def test_student_device_figures_name_a_pooled_fusion_that_does_not_fit_before_ti
     with pytest.raises(ConfigError, match=r"^encoder\.fuse_pool: expected a divisor of both BEV grid sizes"):
         measure_student_devices(cameras_from_dataset(tiny_dataset.root), TrainConfig(), ["cpu"], frames=64,
                                 fuse_pool=7)
+
+
+def test_bench_main_times_the_profiles_encoder(tiny_dataset, monkeypatch, capsys):
+    """``python -m rl.bench --profile P`` hands the profile's ``pretrain.encoder`` and ``train`` settings to the
+    timing (the `paper` profile's student is timed with the paper's encoder, not the built-in one)."""
+    import json
+
+    import rl.bench as bench
+    from pipeline.core.config import load_config
+    from pretrain.stage import PretrainConfig
+
+    seen = {}
+
+    def fake(cameras, train_cfg, devices, frames, fuse_pool, encoder_cfg):
+        seen.update(train=train_cfg, encoder=encoder_cfg, devices=devices)
+        return {"student_encoder_ms_cpu_b2": 1.0}
+
+    monkeypatch.setattr(bench, "measure_student_devices", fake)
+    assert bench.main(["--dataset", str(tiny_dataset.root), "--profile", "paper", "--devices", "cpu"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert seen["encoder"] == load_config(PretrainConfig, "pretrain", "paper").encoder and seen["devices"] == ["cpu"]
+    assert seen["train"].profile == "paper" and out["profile"] == "paper" and out["bev_grid_cells"] == 24000
