@@ -16,6 +16,8 @@
   ``teacher_loop_bound_steps_per_s`` — SB3's PPO loop as it runs: only the env steps are spread over the cores, the
   forward pass and the update run on one thread while the env workers wait, ``1 / (env / cores + policy +
   update)``; ``teacher_cores`` is the usable core count (``os.sched_getaffinity``);
+* ``student_ppo_env_steps_per_s_<no_bev|full>`` / ``student_ppo_update_share_<variant>`` — the rendered student's
+  PPO fine-tuning throughput as ``train`` runs it (:func:`measure_student_ppo`);
 * ``policy_inference_ms`` / ``policy_inference_hz`` — the full visual policy (variant ``full``) from the two RGB-D
   frames + detected poses to an action index, one CPU thread: streaming encoder step (newest frame only) + pooling +
   φ_bev + I²Former + fusion + actor head; ``policy_inference_recompute_ms`` — the same with the encoder recomputing
@@ -37,6 +39,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -46,14 +49,22 @@ from pipeline.core.config import load_config
 from pipeline.core.device import machine_facts, resolve_device
 from pipeline.core.errors import ICrowdNavError
 from pipeline.core.timing import time_call
+from pretrain.checkpoint import write_encoder_checkpoint
 from pretrain.geometry import cameras_from_dataset
 from pretrain.intention import ForecasterConfig, IntentionForecaster
-from pretrain.model import BEVEncoder, BEVStream, EncoderConfig
+from pretrain.model import BEVEncoder, BEVStream, EncoderConfig, PretextHeads
 from pretrain.stage import PretrainConfig
-from rl.observe import BEV_POOL, StudentObserver, env_cameras, observer_for_env, perception_params
+from rl.observe import BEV_POOL, StudentEnv, StudentObserver, env_cameras, observer_for_env, perception_params
 from rl.policy import act, build_policy, policy_class, policy_kwargs
-from rl.stage import TrainConfig
-from rl.teacher import attach_lookahead_cache, behaviour_clone, make_vec_env, ppo_kwargs, teacher_net
+from rl.stage import TrainConfig, student_net
+from rl.teacher import (
+    SceneMixEnv,
+    attach_lookahead_cache,
+    behaviour_clone,
+    make_vec_env,
+    ppo_kwargs,
+    teacher_net,
+)
 from rl.vec_env import usable_cores
 from sim.env import CrowdNavEnv
 
@@ -131,6 +142,68 @@ def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_c
     out["teacher_cores"] = float(cores)
     out["teacher_cpu_bound_steps_per_s"] = 1e3 * cores / (env_ms + policy_ms + update_ms)
     out["teacher_loop_bound_steps_per_s"] = 1e3 / (env_ms / cores + policy_ms + update_ms)
+    return out
+
+
+def measure_student_ppo(sim_cfg: Any, scene: str, density: float, seed: int, train_cfg: Any, encoder_cfg: Any,
+                        seconds: float, variants: tuple[str, ...] = ("no_bev", "full")) -> dict[str, float]:
+    """The rendered student's PPO fine-tuning throughput (``student_ppo_env_steps_per_s_<variant>``): SB3 PPO with the
+    profile's ``finetune`` settings on ``finetune.n_envs`` rendered :class:`rl.observe.StudentEnv` processes, as
+    ``train`` runs it (``rl.stage._finetune``: the lookahead head, the profile's ``map_cost``, the frozen encoder
+    on one thread per env; constant-velocity prediction, since no intention model is loaded), after one warm-up
+    rollout + update, for at least ``seconds`` each; ``student_ppo_update_share_<variant>`` is the update's share of
+    that time. ``full`` uses a random-weight encoder of the profile's ``pretrain.encoder`` (written to a temporary
+    checkpoint), ``no_bev`` needs none."""
+    import tempfile
+
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    f = train_cfg.finetune
+    out: dict[str, float] = {}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            cfg = replace(train_cfg, data_dir=tmp, head="lookahead")
+            probe = CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, obs_mode="visual"))
+            probe.reset(seed=seed)
+            cams = env_cameras(probe)
+            probe.close()
+            ckpt = Path(tmp) / "bev"
+            ckpt.mkdir()
+            torch.manual_seed(seed)
+            enc = BEVEncoder(encoder_cfg, cams).eval()
+            write_encoder_checkpoint(ckpt, enc, PretextHeads(encoder_cfg.bev_channels), {})
+            (ckpt / "manifest.json").write_text("{}")
+            for variant in variants:
+                enc_dir = ckpt if variant != "no_bev" else None
+
+                def make(variant=variant, enc_dir=enc_dir):
+                    return StudentEnv(SceneMixEnv(sim_cfg, [(scene, density)], obs_mode="visual"), variant, enc_dir,
+                                      head="lookahead", map_cost=cfg.map_cost)
+
+                one = make()
+                net = student_net(replace(cfg, variant=variant), one.observer.grid)
+                one.close()
+                venv = SubprocVecEnv([make] * f.n_envs, start_method="fork") if f.n_envs > 1 else DummyVecEnv([make])
+                venv.seed(seed)
+                try:
+                    model = PPO(policy_class("student", net), venv, policy_kwargs=policy_kwargs("student", variant, net),
+                                seed=seed, device="cpu", verbose=0, **ppo_kwargs(f.ppo))
+                    model.learn(model.n_steps * f.n_envs)  # warm-up
+                    spent = _time_phases(model)
+                    t0, done = time.perf_counter(), 0
+                    while time.perf_counter() - t0 < seconds:
+                        model.learn(model.n_steps * f.n_envs, reset_num_timesteps=False)
+                        done += model.n_steps * f.n_envs
+                    wall = time.perf_counter() - t0
+                finally:
+                    venv.close()
+                out[f"student_ppo_env_steps_per_s_{variant}"] = done / wall
+                out[f"student_ppo_update_share_{variant}"] = spent["train"] / max(wall, 1e-9)
+    finally:
+        torch.set_num_threads(threads)
     return out
 
 
@@ -288,7 +361,6 @@ def main(argv: list[str] | None = None) -> int:
     import json
     import os
     import sys
-    from pathlib import Path
 
     ap = argparse.ArgumentParser(prog="python -m rl.bench", description=main.__doc__)
     ap.add_argument("--dataset", type=Path, required=True, help="a dataset root (only meta/info.json is read)")

@@ -63,7 +63,7 @@ from recorder.bench import measure_chunk_loading
 from recorder.export import write_dataset
 from recorder.record import RecordConfig
 from recorder.record import body as record_body
-from rl.bench import measure_inference, measure_teacher
+from rl.bench import measure_inference, measure_student_ppo, measure_teacher
 from rl.stage import TrainConfig
 from sim.crowd import Crowd, social_force_reference
 from sim.env import SimConfig
@@ -83,7 +83,8 @@ class BenchConfig(BaseStageConfig):
     density: float = field(default=0.2, metadata={"help": "crowd density of the env figures, ped/m²"})
     sim: SimConfig = field(default_factory=SimConfig, metadata={"help": "the crowd world (camera resolution)"})
     bev: bool = field(default=True, metadata={"help": "measure the BEV encoder figures (pretrain.bench)"})
-    rl: bool = field(default=True, metadata={"help": "measure the teacher PPO and policy inference figures (rl.bench)"})
+    rl: bool = field(default=True, metadata={"help": "measure the teacher's and the rendered students' PPO and policy "
+                                                      "inference figures (rl.bench)"})
     ray: bool = field(default=True, metadata={"help": "also record the recorder figures' episodes on Ray (1 and 2 "
                                                        "local nodes)"})
 
@@ -176,6 +177,7 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
         out.update(measure_teacher(cfg.sim, cfg.scene, cfg.density, cfg.seed, train_cfg, 2 * s))
         enc_cfg = load_config(PretrainConfig, "pretrain", cfg.profile).encoder
         out.update(measure_inference(cfg.sim, cfg.scene, cfg.density, cfg.seed, enc_cfg, s))
+        out.update(measure_student_ppo(cfg.sim, cfg.scene, cfg.density, cfg.seed, train_cfg, enc_cfg, 2 * s))
     if cfg.record_episodes > 0:
         out.update(measure_recorder(cfg))
     return {k: round(float(v), 3) for k, v in out.items()}

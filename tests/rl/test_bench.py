@@ -34,6 +34,25 @@ def test_teacher_benchmark_reports_its_cost_breakdown():
     assert math.isclose(out["teacher_loop_bound_steps_per_s"], 1e3 / (env / cores + policy + update), rel_tol=1e-9)
 
 
+def test_student_ppo_benchmark_runs_the_rendered_students_ppo():
+    """The rendered students' PPO fine-tuning (no_bev without an encoder, full with a random-weight one of the given
+    architecture), at tiny sizes: the throughput and the update's share exist and are sane."""
+    from pipeline.core.config import load_config
+    from pretrain.stage import PretrainConfig
+    from rl.bench import measure_student_ppo
+
+    cfg = TrainConfig(map_cost=True)
+    cfg.finetune = replace(cfg.finetune, n_envs=2, ppo={"n_steps": 16, "batch_size": 16, "n_epochs": 1})
+    sim = SimConfig(max_episode_s=3.0)
+    sim = replace(sim, camera=replace(sim.camera, width_px=64, height_px=48))
+    out = measure_student_ppo(sim, "hallway", 0.1, 0, cfg, load_config(PretrainConfig, "pretrain", "smoke").encoder,
+                              0.2)
+    assert set(out) == {f"student_ppo_{k}_{v}" for k in ("env_steps_per_s", "update_share") for v in ("no_bev", "full")}
+    for v in ("no_bev", "full"):
+        assert math.isfinite(out[f"student_ppo_env_steps_per_s_{v}"]) and out[f"student_ppo_env_steps_per_s_{v}"] > 0
+        assert 0 < out[f"student_ppo_update_share_{v}"] < 1
+
+
 def test_student_device_figures_on_the_cpu(tiny_dataset):
     """The default student's DAgger update and the frozen encoder's streaming step, from a dataset's cameras only."""
     from pretrain.geometry import cameras_from_dataset
