@@ -26,7 +26,7 @@ parent (``PR_SET_PDEATHSIG``), so Ctrl-C or a cancelled Ray task leaves no train
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.cli import parse_stage_args
@@ -54,7 +54,11 @@ class Plan:
     executor: str = "local"
     ray_address: str = ""
     cpus_per_variant: int = 2
-    logs: Path = field(default_factory=Path)
+
+    @property
+    def logs(self) -> Path:
+        """Where each variant's ``train-<variant>.log`` goes."""
+        return self.data_dir / "logs"
 
 
 def _parse_list(text: str) -> list[str]:
@@ -121,8 +125,7 @@ def make_plan(argv: list[str]) -> Plan:
     return Plan(waves=waves, passthrough=rest, data_dir=data_dir,
                 jobs=_positive("jobs", own.get("jobs", "1")),
                 executor=resolve_executor(executor, address), ray_address=address,
-                cpus_per_variant=_positive("cpus_per_variant", own.get("cpus_per_variant", str(workers))),
-                logs=data_dir / "logs")
+                cpus_per_variant=_positive("cpus_per_variant", own.get("cpus_per_variant", str(workers))))
 
 
 def variant_job(variant: str, plan: Plan, module: str = "pipeline") -> ChildJob:
@@ -164,13 +167,15 @@ def main(argv: list[str]) -> int:
         return 0
     plan = make_plan(argv)
     results = run_plan(plan)
+    def state(r: dict) -> str:
+        return "skipped (the teacher failed)" if r["returncode"] is None else f"exit {r['returncode']}"
+
     failed = [r for r in results if r["returncode"] != 0]
     for r in results:
-        state = "skipped (the teacher failed)" if r["returncode"] is None else f"exit {r['returncode']}"
-        print(f"train-all: {r['name']}: {state}, {r['seconds']:.0f} s" + (f" ({r['log']})" if r["log"] else ""))
+        print(f"train-all: {r['name']}: {state(r)}, {r['seconds']:.0f} s" + (f" ({r['log']})" if r["log"] else ""))
     if failed:
-        named = "; ".join(f"{r['name']} ({'skipped' if r['returncode'] is None else 'exit ' + str(r['returncode'])}"
-                          + (f", log {r['log']}: {log_tail(r['log'])}" if r["log"] else "") + ")" for r in failed)
+        named = "; ".join(f"{r['name']} ({state(r)}" + (f", log {r['log']}: {log_tail(r['log'])}" if r["log"] else "")
+                          + ")" for r in failed)
         raise ICrowdNavError(f"train-all: {len(failed)} of {len(results)} variants did not finish: {named}")
     return 0
 
