@@ -9,7 +9,7 @@ index (``index``):
 * ``labels``    ``F x 4 x X x Y`` uint8 — the pretext targets (:data:`pretrain.model.TARGETS`) in the BEV grid of
   each frame's robot: static obstacles (``privileged.local_occupancy`` resampled), pedestrians now, in 0.5 s and
   in 1.0 s (discs of each ``privileged.ped_state`` row's radius; future positions expressed in the *current*
-  robot frame, as FIERY does);
+  robot frame, as FIERY does; with ``people_label="seen"`` only the people the current frame's depth reaches);
 * ``valid``     ``F x 4`` bool — False where a future lies beyond the episode's end.
 
 Reading: the dataset is opened with stock ``LeRobotDataset`` (metadata, episode index, parquet columns through its
@@ -31,7 +31,7 @@ import torch
 
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pipeline.core.keys import OBS_ODOM, PRIV_LOCAL_OCCUPANCY, PRIV_PED_STATE, depth_key, image_key
-from pretrain.geometry import BEVGrid, Camera, cameras_from_meta, sample_depth
+from pretrain.geometry import BEVGrid, Camera, LiftGeometry, cameras_from_meta, lift_evidence, sample_depth
 from recorder.dataset_info import read_dataset_info
 from recorder.doctor_dataset import require_sound_dataset
 from recorder.schema import depth_from_mm
@@ -165,8 +165,30 @@ def world_to_base(xy: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
 
 
+PEOPLE_LABELS = ("all", "seen")
+
+
+def seen_people(grid: BEVGrid, hits: np.ndarray, ped_xy: np.ndarray, radius: np.ndarray,
+                present: np.ndarray) -> np.ndarray:
+    """Which people the depth sees: ``hits`` ``L x X x Y`` bool (a measured point in the height band, from
+    :func:`pretrain.geometry.lift_evidence`), people ``L x P x 2`` in each frame's base frame with radii and presence
+    ``L x P`` → ``L x P`` bool, True where at least one hit cell's centre lies on the person's disc (the cells its
+    label marks)."""
+    out = np.zeros(present.shape, dtype=bool)
+    centres = grid.cell_centres()  # X x Y x 2
+    for t in np.flatnonzero(present.any(1)):
+        c = centres[hits[t]]  # H x 2
+        if not len(c):
+            continue
+        p = np.flatnonzero(present[t])
+        d2 = ((c[:, None, :] - ped_xy[t, p][None]) ** 2).sum(-1)  # H x P'
+        out[t, p] = (d2 <= radius[t, p][None] ** 2).any(0)
+    return out
+
+
 def episode_labels(grid: BEVGrid, local_map: dict, occupancy: np.ndarray, ped_state: np.ndarray,
-                   odom: np.ndarray, future_frames: list[int]) -> tuple[np.ndarray, np.ndarray]:
+                   odom: np.ndarray, future_frames: list[int],
+                   hits: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The pretext labels of one episode.
 
     Args:
@@ -176,6 +198,9 @@ def episode_labels(grid: BEVGrid, local_map: dict, occupancy: np.ndarray, ped_st
         ped_state: ``L x P x 8`` ``privileged.ped_state`` (world x, y, vx, vy, radius, body yaw, head yaw, present).
         odom: ``L x 3`` world poses.
         future_frames: frame offsets of the future pedestrian targets (e.g. ``[5, 10]`` at 10 Hz).
+        hits: ``L x X x Y`` bool, the depth's points in the height band per frame, or None. Given, the people targets
+            keep only the people the depth sees in the *current* frame (:func:`seen_people`), now and in the future
+            — what a camera-only model can know of (``people_label: seen``); None: everyone present.
 
     Returns:
         ``labels`` ``L x (2 + len(future_frames)) x X x Y`` uint8 and ``valid`` ``L x (2 + ...)`` bool.
@@ -188,6 +213,9 @@ def episode_labels(grid: BEVGrid, local_map: dict, occupancy: np.ndarray, ped_st
     out = np.zeros((length, 2 + len(future_frames), *grid.shape), dtype=np.uint8)
     valid = np.ones((length, 2 + len(future_frames)), dtype=bool)
     out[:, 0] = static
+    seen = None
+    if hits is not None:
+        seen = seen_people(grid, hits, world_to_base(ps[..., :2], pose), ps[..., 4], ps[..., 7] > 0.5)
     for k, off in enumerate([0, *future_frames]):
         n = length - off
         if n <= 0:
@@ -195,7 +223,10 @@ def episode_labels(grid: BEVGrid, local_map: dict, occupancy: np.ndarray, ped_st
             continue
         fut = ps[off:]
         xy = world_to_base(fut[..., :2], pose[:n])
-        out[:n, 1 + k] = rasterise_people(grid, xy, fut[..., 4], fut[..., 7] > 0.5)
+        present = fut[..., 7] > 0.5
+        if seen is not None:
+            present = present & seen[:n]
+        out[:n, 1 + k] = rasterise_people(grid, xy, fut[..., 4], present)
         valid[n:, 1 + k] = False
     return out, valid
 
@@ -259,7 +290,8 @@ def decode_video_file(path: Path, expected: dict[int, tuple[float, float, int]],
 
 
 def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px: int, future_s: list[float],
-                episodes: list[int] | None = None, max_gb: float = 16.0, progress: bool = True) -> FrameStore:
+                episodes: list[int] | None = None, max_gb: float = 16.0, progress: bool = True,
+                people_label: str = "all") -> FrameStore:
     """Loads episodes of a LeRobot dataset into a :class:`FrameStore`.
 
     Args:
@@ -271,6 +303,8 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
         episodes: dataset episode indices to load (all when None).
         max_gb: refuse to load more than this many GB (the estimate is checked before reading anything).
         progress: show a progress bar.
+        people_label: ``all`` (every person present) or ``seen`` (only the people the frame's depth sees, now and in
+            the future targets: :func:`episode_labels`).
 
     Raises:
         InputMissingError / CorruptArtifactError: see :func:`check_dataset`; a video frame missing or undecodable.
@@ -281,6 +315,8 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
     from tqdm import tqdm
 
     root = Path(root)
+    if people_label not in PEOPLE_LABELS:
+        raise ConfigError(f"people_label: expected one of {list(PEOPLE_LABELS)}, got {people_label!r}")
     meta = check_dataset(root, cameras)
     local_map = meta.local_map
     check_grid_in_local_map(grid, local_map, str(root))
@@ -316,6 +352,7 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
     hf = ds.hf_dataset.select_columns(cols).with_format("numpy")
     first_of: dict[int, int] = {}
     pos = 0
+    geom = None
     for e, length in tqdm(list(zip(eps, lengths, strict=True)), desc="pretrain: labels", unit="ep",
                           disable=not progress):
         a, b = int(meta_eps[e]["dataset_from_index"]), int(meta_eps[e]["dataset_to_index"])
@@ -327,9 +364,13 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
             store.depth[sl, ci] = sample_depth(torch.as_tensor(depth_from_mm(rows[depth_key(c.name)])),
                                                lift_stride_px).numpy()
         store.pose[sl] = rows[OBS_ODOM]
+        hits = None
+        if people_label == "seen":
+            geom = geom or LiftGeometry(cameras, lift_stride_px)
+            hits = (lift_evidence(torch.from_numpy(store.depth[sl]), geom, grid)[:, 0] > 0).numpy()
         store.labels[sl], store.valid[sl] = episode_labels(
             grid, local_map, rows[PRIV_LOCAL_OCCUPANCY].astype(bool), rows[PRIV_PED_STATE],
-            rows[OBS_ODOM].astype(np.float64), future_frames)
+            rows[OBS_ODOM].astype(np.float64), future_frames, hits)
         store.episode_start[sl], store.episode_end[sl] = pos, pos + length
         store.episode_slices.append((pos, pos + length))
         first_of[e] = pos

@@ -35,7 +35,7 @@ from scipy import ndimage
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.errors import ConfigError, ICrowdNavError
 from pretrain.checkpoint import load_encoder, load_heads, read_encoder_json
-from pretrain.data import check_dataset, load_frames, make_batches, make_clips
+from pretrain.data import PEOPLE_LABELS, check_dataset, load_frames, make_batches, make_clips
 from pretrain.geometry import check_grid_fits_cameras, lift_evidence
 from pretrain.model import TARGETS
 from pretrain.train import forward_batch, iou_counts
@@ -237,8 +237,9 @@ class SeenPeopleCounts:
 
 
 def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str = "val",
-                        thresholds=THRESHOLDS, progress: bool = True) -> dict:
-    """Loads a checkpoint and a dataset and returns the IoU sweep with its provenance."""
+                        thresholds=THRESHOLDS, progress: bool = True, people_label: str | None = None) -> dict:
+    """Loads a checkpoint and a dataset and returns the IoU sweep with its provenance; the people targets are
+    scored against ``people_label`` (``all`` | ``seen``; None: the label the checkpoint was trained on)."""
     desc = read_encoder_json(ckpt)
     ds = desc.get("dataset", {})
     if dataset is None:
@@ -269,8 +270,9 @@ def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str =
     bad = [e for e in eps if not 0 <= e < total]
     if bad or not eps:
         raise ConfigError(f"--episodes: {bad or 'none'} not in the dataset's 0..{total - 1}")
+    people_label = people_label or desc.get("people_label", "all")
     store = load_frames(dataset, cams, encoder.grid, encoder.cfg.lift_stride_px, desc.get("future_s", [0.5, 1.0]),
-                        episodes=eps, progress=progress)
+                        episodes=eps, progress=progress, people_label=people_label)
     pos_weight = None
     mpath = Path(ckpt) / "metrics.json"
     if mpath.is_file():
@@ -280,6 +282,7 @@ def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str =
                       on_batch=seen)
     visible = seen.result()
     return {"checkpoint": str(ckpt), "dataset": str(dataset), "episodes": eps, "frames": len(store),
+            "people_label": people_label,
             "iou": sweep, "visible_people": visible, "note": "dataset-level IoU, field-of-view cells, valid frames"}
 
 
@@ -289,9 +292,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dataset", type=Path, default=None, help="dataset root (default: the one it was trained on)")
     ap.add_argument("--episodes", default="val", help="val | train | all | comma list of episode indices")
     ap.add_argument("--out", type=Path, default=None, help="also write the result as JSON here")
+    ap.add_argument("--people-label", choices=PEOPLE_LABELS, default=None,
+                    help="score the people targets against all people or only the seen ones (default: the label "
+                         "the checkpoint was trained on)")
     a = ap.parse_args(argv)
     try:
-        res = evaluate_checkpoint(a.checkpoint, a.dataset, a.episodes)
+        res = evaluate_checkpoint(a.checkpoint, a.dataset, a.episodes, people_label=a.people_label)
     except ICrowdNavError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -32,7 +32,14 @@ from pipeline.core.config import BaseStageConfig, check_run_name, config_hash
 from pipeline.core.device import device_counts, resolve_device
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.checkpoint import METRICS_JSON, read_weights, write_encoder_checkpoint
-from pretrain.data import Batch, check_dataset, check_grid_in_local_map, load_frames, split_episodes
+from pretrain.data import (
+    PEOPLE_LABELS,
+    Batch,
+    check_dataset,
+    check_grid_in_local_map,
+    load_frames,
+    split_episodes,
+)
 from pretrain.evaluate import CAL_THRESHOLDS, calibrate, episode_counts, turning_pedestrian_frame
 from pretrain.figures import plot_curves, plot_fov, plot_sample
 from pretrain.geometry import check_grid_fits_cameras
@@ -50,6 +57,9 @@ class PretrainConfig(BaseStageConfig):
     name: str = "bev"  # output: DATA_DIR/checkpoints/<name>/
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     future_s: list[float] = field(default_factory=lambda: [0.5, 1.0])  # horizons of the future pedestrian targets (s)
+    # whom the people targets mark: all (every person present in the grid) | seen (only the people the current
+    # frame's depth reaches, now and in the future targets: a camera cannot know of the others; docs/results.md)
+    people_label: str = "all"
     epochs: int = 3  # passes over the training episodes
     clip_frames: int = 8  # target frames per clip (each clip adds T-1 frames of context)
     clips_per_batch: int = 4  # clips per optimisation step
@@ -87,6 +97,9 @@ class PretrainConfig(BaseStageConfig):
                               f"got {self.lr}, {self.weight_decay}, {self.warmup_frac}, {self.max_ram_gb}")
         if not 0 < self.val_fraction < 1:
             raise ConfigError(f"pretrain.val_fraction: expected a fraction in (0, 1), got {self.val_fraction}")
+        if self.people_label not in PEOPLE_LABELS:
+            raise ConfigError(f"pretrain.people_label: expected one of {list(PEOPLE_LABELS)}, "
+                              f"got {self.people_label!r}")
         if len(self.future_s) != len(TARGETS) - 2 or any(s <= 0 for s in self.future_s):
             raise ConfigError(f"pretrain.future_s: expected {len(TARGETS) - 2} positive horizons (s) for the targets "
                               f"{TARGETS[2:]}, got {self.future_s}")
@@ -144,7 +157,8 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
         n_eps = min(n_eps, cfg.max_episodes)
     train_eps, val_eps = split_episodes(n_eps, cfg.val_fraction, cfg.seed)
     store = load_frames(root, cameras, grid, cfg.encoder.lift_stride_px, cfg.future_s,
-                        episodes=list(range(n_eps)), max_gb=cfg.max_ram_gb, progress=cfg.progress)
+                        episodes=list(range(n_eps)), max_gb=cfg.max_ram_gb, progress=cfg.progress,
+                        people_label=cfg.people_label)
     sl = store.episode_slices
     train_slices, val_slices = [sl[e] for e in train_eps], [sl[e] for e in val_eps]
 
@@ -169,7 +183,7 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
     heads.eval()
     n_train = sum(b - a for a, b in train_slices)
     write_encoder_checkpoint(out, encoder, heads, {  # saved from CPU copies: loads on any machine
-        "targets": list(TARGETS), "future_s": list(cfg.future_s),
+        "targets": list(TARGETS), "future_s": list(cfg.future_s), "people_label": cfg.people_label,
         "dataset": {"repo_id": cfg.repo_id, "train_episodes": train_eps, "val_episodes": val_eps},
         "trained_steps": result["step"], "fps": meta.fps})
     # the decision rule: per-target thresholds chosen on the validation episodes, scored cross-fitted (honest)

@@ -20,6 +20,7 @@ from pretrain.data import (
     make_clips,
     rasterise_people,
     rasterise_people_reference,
+    seen_people,
     split_episodes,
 )
 from pretrain.geometry import BEVGrid
@@ -230,6 +231,56 @@ def test_episode_labels_future_beyond_a_short_episode():
     assert labels.shape == (3, 4, *grid.shape)
     np.testing.assert_array_equal(valid[:, 2], [True, True, False])
     assert not valid[:, 3].any() and not labels[:, 3].any()
+
+
+def two_people_episode():
+    """4 frames, a still robot at the origin, person A at base (2.0, 1.0) and person B at (4.0, -1.0), both walking
+    +x at 0.1 m per frame, radius 0.25 m."""
+    odom = np.zeros((4, 3))
+    ped = np.zeros((4, 2, 8))
+    for t in range(4):
+        ped[t, 0, :2] = (2.0 + 0.1 * t, 1.0)
+        ped[t, 1, :2] = (4.0 + 0.1 * t, -1.0)
+    ped[..., 4] = 0.25
+    ped[..., 7] = 1.0
+    return odom, np.zeros((4, 100, 100), dtype=bool), ped
+
+
+def test_seen_label_keeps_only_the_people_the_depth_reaches_now_and_in_the_future():
+    """With depth hits on person A only (frames 0-1) and on nobody later, the seen label marks A now and in A's
+    future targets of frames 0-1, never B, and nobody in frames 2-3; the all-people label marks both."""
+    grid = default_grid()
+    odom, occ, ped = two_people_episode()
+    hits = np.zeros((4, *grid.shape), dtype=bool)
+    for t in (0, 1):
+        hits[t][grid.cell_of(ped[t, 0, 0] - 0.1, ped[t, 0, 1])] = True  # on A's near side
+    hits[2][grid.cell_of(3.0, 3.0)] = True  # a wall, on nobody
+    seen = seen_people(grid, hits, ped[..., :2], ped[..., 4], ped[..., 7] > 0.5)
+    np.testing.assert_array_equal(seen, [[True, False], [True, False], [False, False], [False, False]])
+    every, valid = episode_labels(grid, LOCAL_MAP, occ, ped, odom, [1, 2])
+    only, valid_seen = episode_labels(grid, LOCAL_MAP, occ, ped, odom, [1, 2], hits)
+    np.testing.assert_array_equal(valid, valid_seen)
+    for t in (0, 1):
+        for ch, off in ((1, 0), (2, 1), (3, 2)):
+            if not valid[t, ch]:
+                continue
+            a = disc_cells(grid, *ped[t + off, 0, :2], 0.25)
+            b = disc_cells(grid, *ped[t + off, 1, :2], 0.25)
+            np.testing.assert_array_equal(only[t, ch].astype(bool), a, err_msg=f"t={t} ch={ch}")
+            np.testing.assert_array_equal(every[t, ch].astype(bool), a | b, err_msg=f"t={t} ch={ch}")
+    assert not only[2:, 1:].any() and every[2:, 1].any()
+    np.testing.assert_array_equal(only[:, 0], every[:, 0])  # the static channel is untouched
+
+
+def test_seen_label_needs_a_hit_on_the_disc():
+    """A hit cell whose centre lies just outside a person's radius does not make it seen."""
+    grid = default_grid()
+    xy = np.array([[[2.05, 0.05]]])
+    hits = np.zeros((1, *grid.shape), dtype=bool)
+    hits[0][grid.cell_of(2.05 + 0.35, 0.05)] = True  # 0.35 m away, radius 0.25
+    assert not seen_people(grid, hits, xy, np.array([[0.25]]), np.array([[True]])).any()
+    hits[0][grid.cell_of(2.05 + 0.15, 0.05)] = True
+    assert seen_people(grid, hits, xy, np.array([[0.25]]), np.array([[True]])).all()
 
 
 # ---------------------------------------------------------------- clips and batches

@@ -51,6 +51,23 @@ def test_store_matches_dataset(tiny_store, tiny_dataset) -> None:
     assert not store.valid[-1, 2:].any() and store.valid[0].all()
 
 
+def test_seen_people_label_is_a_subset_of_everyone(tiny_store, tiny_dataset) -> None:
+    """people_label="seen" keeps the static channel and the validity, and marks a non-empty subset of the people
+    cells of the all-people label (the tiny episodes' people stand in front of the cameras); a bad value is one
+    ConfigError before anything is read."""
+    store, _, cams = tiny_store
+    cfg = EncoderConfig(**ENC)
+    seen = load_frames(tiny_dataset.root, cams, cfg.grid, cfg.lift_stride_px, [0.5, 1.0], progress=False,
+                       people_label="seen")
+    np.testing.assert_array_equal(seen.labels[:, 0], store.labels[:, 0])
+    np.testing.assert_array_equal(seen.valid, store.valid)
+    assert not (seen.labels[:, 1:] & ~store.labels[:, 1:]).any()
+    assert 0 < seen.labels[:, 1].sum() <= store.labels[:, 1].sum()
+    with pytest.raises(ConfigError, match="people_label"):
+        load_frames(tiny_dataset.root, cams, cfg.grid, cfg.lift_stride_px, [0.5, 1.0], progress=False,
+                    people_label="visible")
+
+
 @pytest.mark.slow
 def test_tiny_overfit_reaches_high_iou(tiny_store, tmp_path: Path) -> None:
     """40 steps on one episode (with people in view) take it from chance to a high IoU on that episode."""
