@@ -25,7 +25,9 @@ import json
 import logging
 import multiprocessing as mp
 import os
+import shutil
 import signal
+import tempfile
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -38,7 +40,7 @@ from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError, StoppedError
-from pipeline.core.executor import Executor, check_executor, map_jobs
+from pipeline.core.executor import Executor, check_executor, check_ray_files, map_jobs, receive_file
 from pipeline.core.manifest import hash_file
 from recorder.drive import DRIVERS, drive_episode
 from recorder.mcap.reader import episode_summary
@@ -70,11 +72,15 @@ class RecordConfig(BaseStageConfig):
                                                             "| local | ray (pipeline.core.executor)"})
     ray_address: str = field(default="", metadata={"help": "Ray cluster address host:port (empty: RAY_ADDRESS, or "
                                                            "a Ray instance started on this machine)"})
+    ray_files: str = field(default="shared", metadata={
+        "help": "on Ray, how episode files reach the data dir: shared (every node writes into it: a shared "
+                "filesystem) | transfer (through Ray's object store; only the driver writes)"})
     sim: SimConfig = field(default_factory=SimConfig, metadata={"help": "the crowd world"})
 
     def validate(self) -> None:
         super().validate()
         check_executor(self.executor, self.ray_address, "record")
+        check_ray_files(self.ray_files, "record")
         check_episode_grid(self.scenes, self.densities, self.episodes, self.workers)
         check_run_name(self.run_name)
         if self.driver not in DRIVERS:
@@ -200,11 +206,36 @@ def _record_task(args: tuple) -> dict:
     return record_one(*args)
 
 
+def _record_transfer_task(args: tuple) -> tuple[dict, bytes]:
+    """One episode as a Ray task that does not touch the data directory (``ray_files: transfer``): recorded into a
+    scratch folder of the worker's node, returned as ``(row, the MCAP's bytes)`` through the object store, the
+    scratch folder removed. A retried task (its worker died) records the same bytes again in a new folder; the driver
+    writes each episode once, when its task's result arrives (:func:`pipeline.core.executor.receive_file`)."""
+    sim_cfg, job, driver = args
+    scratch = Path(tempfile.mkdtemp(prefix="icrowdnav-record-"))
+    try:
+        row = record_one(sim_cfg, job, scratch, driver)
+        return row, (scratch / row["file"]).read_bytes()
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
 def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: list[Job]) -> None:
     bar = tqdm(total=len(todo), desc=f"record {cfg.driver}", unit="ep")
     ex = Executor.of(cfg)
     try:
         with graceful_signals():
+            if ex.kind == "ray" and ex.files == "transfer":
+                def received(_: int, result: tuple[dict, bytes]) -> None:
+                    r, data = result
+                    receive_file(out / r["file"], data, r["sha256"])
+                    rows[r["file"]] = r
+                    _write_rows(out, rows, jobs)
+                    bar.update()
+
+                map_jobs(_record_transfer_task, [(cfg.sim, j, cfg.driver) for j in todo], cfg.workers, "record",
+                         progress=False, executor=ex, on_result=received, keep_results=False)
+                return
             if ex.kind == "ray":
                 def finished(_: int, r: dict) -> None:
                     rows[r["file"]] = r

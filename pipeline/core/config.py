@@ -83,7 +83,7 @@ PROFILES_ENV = "ICROWDNAV_PROFILES_DIR"
 COMMON_SECTION = "common"
 CLI_SOURCE = "command line"
 HASH_EXCLUDED_FIELDS: frozenset[str] = frozenset({"overwrite", "resume", "data_dir", "profile", "device", "executor",
-                                                  "ray_address"})
+                                                  "ray_address", "ray_files"})
 
 _TRUE_WORDS = frozenset({"true", "1", "yes", "y", "on"})
 _FALSE_WORDS = frozenset({"false", "0", "no", "n", "off"})
@@ -884,7 +884,8 @@ def config_hash(cfg: Any) -> str:
     it lives: manifests record paths relative to it, so a moved data directory stays up to date), ``profile``
     (a name; the values it set are in the hash), ``device`` (where it is computed, :mod:`pipeline.core.device`:
     a run resumes on another device; the counts of the manifest record the one used) and ``executor`` /
-    ``ray_address`` (where its jobs run, :mod:`pipeline.core.executor`: the same results either way) are left out.
+    ``ray_address`` / ``ray_files`` (where its jobs run and how their files travel, :mod:`pipeline.core.executor`:
+    the same results either way) are left out.
 
     Args:
         cfg: A config dataclass instance.

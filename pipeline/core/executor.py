@@ -13,11 +13,14 @@ names (atomically: a temporary name, then a rename), and results come back in jo
 * every job is one task (one CPU); a task whose worker process or node dies is rerun (``max_retries``) — it
   rewrites the same files, so nothing is lost or duplicated; an exception raised *by* the job is not retried and
   surfaces as itself (a named error stays a named error);
-* files are written where the job's paths point: the data directory must be the same path on every node (a shared
-  filesystem: NFS, a cluster volume; on one machine nothing is needed). :func:`check_data_dir` runs a probe task on
-  every alive node first and names a node that cannot write there (exit 2, nothing written). Clusters without a
-  shared filesystem: mount one (the driver's data directory) — moving episode files through the object store is
-  not implemented (docs/scale-out.md);
+* files reach the driver's data directory in one of two ways (``files``, a stage's ``--ray_files``):
+  ``shared`` (the default): files are written where the job's paths point, so the data directory must be the same
+  path on every node (a shared filesystem: NFS, a cluster volume; on one machine nothing is needed);
+  :func:`check_data_dir` runs a probe task on every alive node first and names a node that cannot write there (exit
+  2, nothing written). ``transfer`` (the ``record`` stage): a task writes into a scratch folder of its own node and
+  returns the file's bytes through Ray's object store; the driver checks them against the row's sha256 and writes
+  them atomically (:func:`receive_file`) — no node but the driver touches the data directory, which is not probed.
+  Stages that read checkpoints in their tasks (``eval``, DAgger) need the shared data directory (docs/scale-out.md);
 * the progress bar counts finished tasks; Ctrl-C (or SIGTERM) cancels every pending and running task
   (``ray.cancel(force=True)``), then the stage reports what finished, as with the local pool;
 * an address nobody answers is a named error after a 5 s TCP probe (``ray.init`` itself would wait for minutes).
@@ -28,6 +31,7 @@ are long-lived processes too, so per-process caches work the same way there.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import multiprocessing as mp
 import os
@@ -42,12 +46,14 @@ from typing import Any, TypeVar
 
 from tqdm import tqdm
 
-from pipeline.core.errors import ConfigError, ICrowdNavError
+from pipeline.core.artifacts import atomic_write_bytes
+from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError
 
 log = logging.getLogger("icrowdnav")
 
 J = TypeVar("J")
 EXECUTORS = ("auto", "local", "ray")
+RAY_FILES = ("shared", "transfer")  # how a Ray task's files reach the driver's data directory (module docstring)
 PROBE_TIMEOUT_S = 5.0
 MAX_RETRIES = 3  # reruns of a task whose worker died
 
@@ -58,6 +64,23 @@ def check_executor(executor: str, address: str, where: str) -> None:
         raise ConfigError(f"{where}.executor: expected one of {list(EXECUTORS)}, got {executor!r}")
     if address and executor == "local":
         raise ConfigError(f"{where}.ray_address: given ({address!r}) but {where}.executor is 'local'")
+
+
+def check_ray_files(files: str, where: str) -> None:
+    """Config check of a stage's ``ray_files`` field."""
+    if files not in RAY_FILES:
+        raise ConfigError(f"{where}.ray_files: expected one of {list(RAY_FILES)}, got {files!r}")
+
+
+def receive_file(path: Path, data: bytes, sha256: str) -> Path:
+    """Writes a file a Ray task returned through the object store (``files: transfer``) to ``path`` atomically,
+    after checking its bytes against the ``sha256`` the task computed; a mismatch is one named error and leaves
+    ``path`` as it was."""
+    got = hashlib.sha256(data).hexdigest()
+    if got != sha256:
+        raise CorruptArtifactError(f"{path}: the {len(data)} bytes a Ray task returned have sha256 {got[:12]}..., "
+                                   f"the task computed {sha256[:12]}...; nothing written")
+    return atomic_write_bytes(Path(path), data)
 
 
 def resolve_executor(executor: str, address: str = "") -> str:
@@ -120,10 +143,10 @@ def check_data_dir(data_dir: Path) -> None:
 
 
 @contextmanager
-def ray_session(address: str, data_dir: Path, workers: int) -> Iterator[None]:
+def ray_session(address: str, data_dir: Path, workers: int, files: str = "shared") -> Iterator[None]:
     """Connects to the cluster at ``address`` (or ``RAY_ADDRESS``), or starts a local Ray instance with ``workers``
-    CPUs; checks the data dir from every node; shuts down what it started. Reuses a session already connected
-    (tests, notebooks)."""
+    CPUs; checks the data dir from every node (``files: shared``; with ``transfer`` the nodes never touch it);
+    shuts down what it started. Reuses a session already connected (tests, notebooks)."""
     import ray
 
     addr = address or os.environ.get("RAY_ADDRESS", "")
@@ -140,7 +163,8 @@ def ray_session(address: str, data_dir: Path, workers: int) -> Iterator[None]:
                               f"({type(e).__name__}: {str(e)[:200]})") from None
         started = True
     try:
-        check_data_dir(data_dir)
+        if files == "shared":
+            check_data_dir(data_dir)
         yield
     finally:
         if started:
@@ -148,29 +172,32 @@ def ray_session(address: str, data_dir: Path, workers: int) -> Iterator[None]:
 
 
 def _ray_map(fn: Callable[[J], Any], jobs: Sequence[J], desc: str, progress: bool, unit: str,
-             on_result: Callable[[int, Any], None] | None, cpus_per_job: int = 1) -> list[Any]:
+             on_result: Callable[[int, Any], None] | None, cpus_per_job: int = 1,
+             keep_results: bool = True) -> list[Any]:
     import ray
     from ray.exceptions import RayTaskError
 
     task = ray.remote(num_cpus=cpus_per_job, max_retries=MAX_RETRIES, retry_exceptions=False)(fn)
-    refs = [task.remote(j) for j in jobs]
-    index = {r: i for i, r in enumerate(refs)}
+    pending = [task.remote(j) for j in jobs]
+    index = {r: i for i, r in enumerate(pending)}
     out: list[Any] = [None] * len(jobs)
-    pending = list(refs)
     bar = tqdm(total=len(jobs), desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
     try:
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
             for r in done:
+                i = index.pop(r)  # the last reference to a finished object: released once handled
                 try:
-                    out[index[r]] = ray.get(r)
+                    result = ray.get(r)
                 except RayTaskError as e:  # the job's own exception: raise it as itself (named errors stay named)
                     cause = getattr(e, "cause", None)
                     if isinstance(cause, ICrowdNavError | KeyboardInterrupt):
                         raise cause from None
                     raise
                 if on_result is not None:
-                    on_result(index[r], out[index[r]])
+                    on_result(i, result)
+                if keep_results:
+                    out[i] = result
                 bar.update()
     except BaseException:
         for r in pending:
@@ -184,16 +211,19 @@ def _ray_map(fn: Callable[[J], Any], jobs: Sequence[J], desc: str, progress: boo
 @dataclass(frozen=True)
 class Executor:
     """Where a stage's jobs run: ``kind`` ``local`` or ``ray`` (resolved), the Ray ``address`` ("" = ``RAY_ADDRESS``
-    or a local instance) and the ``data_dir`` the jobs write into (checked from every Ray node)."""
+    or a local instance), the ``data_dir`` the jobs write into (checked from every Ray node) and how a Ray task's
+    files reach it (``files``: ``shared`` | ``transfer``, module docstring)."""
 
     kind: str = "local"
     address: str = ""
     data_dir: Path = Path(".")
+    files: str = "shared"
 
     @classmethod
     def of(cls, cfg: Any) -> Executor:
-        """From a stage config's ``executor`` / ``ray_address`` / ``data_dir`` fields."""
-        return cls(resolve_executor(cfg.executor, cfg.ray_address), cfg.ray_address, Path(cfg.data_dir))
+        """From a stage config's ``executor`` / ``ray_address`` / ``data_dir`` (/ ``ray_files``) fields."""
+        return cls(resolve_executor(cfg.executor, cfg.ray_address), cfg.ray_address, Path(cfg.data_dir),
+                   getattr(cfg, "ray_files", "shared"))
 
     @contextmanager
     def session(self, workers: int) -> Iterator[None]:
@@ -201,24 +231,25 @@ class Executor:
         if self.kind != "ray":
             yield
             return
-        with ray_session(self.address, self.data_dir, workers):
+        with ray_session(self.address, self.data_dir, workers, self.files):
             yield
 
 
 def map_jobs(fn: Callable[[J], Any], jobs: Sequence[J], workers: int, desc: str, progress: bool = True,
              unit: str = "ep", executor: Executor | None = None,
              on_result: Callable[[int, Any], None] | None = None, start: str = "fork",
-             cpus_per_job: int = 1) -> list[Any]:
+             cpus_per_job: int = 1, keep_results: bool = True) -> list[Any]:
     """``[fn(j) for j in jobs]`` in job order: in this process (``workers <= 1``), a process pool of ``workers``
     (started with ``start``: ``fork``, or ``spawn`` for workers that use CUDA), or Ray tasks (``executor.kind ==
     "ray"``; inside :meth:`Executor.session` or starting one; each task holds ``cpus_per_job`` CPUs, e.g. a job
     that runs its own process pool). ``on_result(i, result)`` is called as each job finishes (in completion order
-    with Ray, in job order otherwise), e.g. to record progress."""
+    with Ray, in job order otherwise), e.g. to record progress; with ``keep_results=False`` (Ray) a result is only
+    handed to ``on_result`` and not kept (e.g. a file's bytes, written as they arrive), and the list holds None."""
     if executor is not None and executor.kind == "ray":
         if not jobs:
             return []
         with executor.session(workers):
-            return _ray_map(fn, jobs, desc, progress, unit, on_result, cpus_per_job)
+            return _ray_map(fn, jobs, desc, progress, unit, on_result, cpus_per_job, keep_results)
     if workers <= 1:
         out = []
         for i, j in enumerate(tqdm(jobs, desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)):

@@ -17,8 +17,16 @@ from pathlib import Path
 import pytest
 
 from pipeline import cli
-from pipeline.core.errors import ConfigError
-from pipeline.core.executor import Executor, check_executor, map_jobs, ray_session, resolve_executor
+from pipeline.core.errors import ConfigError, CorruptArtifactError
+from pipeline.core.executor import (
+    Executor,
+    check_executor,
+    check_ray_files,
+    map_jobs,
+    ray_session,
+    receive_file,
+    resolve_executor,
+)
 
 SCENE_ARGS = ["--scenes", "hallway", "--densities", "0.05", "--sim.camera.width-px", "64",
               "--sim.camera.height-px", "48"]
@@ -76,6 +84,21 @@ def test_cli_unreachable_ray_address_exits_2_and_writes_nothing(tmp_path, capsys
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
     assert rc == 2 and len(err) == 1 and "nobody answers" in err[0]
     assert not (data / "raw" / "expert").exists() or not any((data / "raw" / "expert").glob("*.mcap"))
+
+
+def test_a_transferred_file_is_written_only_when_its_bytes_match(tmp_path):
+    """receive_file (``ray_files: transfer``): the bytes a task returned land atomically when their sha256 is the
+    one the task computed; a mismatch is one named error and leaves no file (nor a temporary one) behind."""
+    data = b"an episode"
+    path = receive_file(tmp_path / "raw" / "a.mcap", data, hashlib.sha256(data).hexdigest())
+    assert path.read_bytes() == data
+    with pytest.raises(CorruptArtifactError, match=r"b\.mcap: the 9 bytes a Ray task returned have sha256"):
+        receive_file(tmp_path / "raw" / "b.mcap", data[:-1], hashlib.sha256(data).hexdigest())
+    assert sorted(p.name for p in (tmp_path / "raw").iterdir()) == ["a.mcap"]
+    with pytest.raises(ConfigError, match=r"record.ray_files: expected one of \['shared', 'transfer'\], got 'nfs'"):
+        check_ray_files("nfs", "record")
+    assert Executor.of(type("C", (), {"executor": "local", "ray_address": "", "data_dir": ".",
+                                      "ray_files": "transfer"})()).files == "transfer"
 
 
 # ------------------------------------------------------------------------------------------ a real Ray cluster
@@ -179,6 +202,37 @@ def test_a_worker_killed_mid_episode_loses_and_duplicates_nothing(cluster, local
     assert killed, "no worker was seen recording"
     assert _digests(out) == _digests(local_record)  # every episode, once, byte-identical
     assert not list(out.glob("*.partial")) and [r["file"] for r in _rows(out)] == NAMES
+
+
+@pytest.mark.slow
+def test_files_through_the_object_store_equal_the_local_pool_and_survive_a_killed_worker(cluster, local_record,
+                                                                                         tmp_path):
+    """``--ray_files transfer``: the tasks get no data-dir path (they record into a scratch folder of their node and
+    return the bytes); a worker SIGKILLed mid-episode is retried; every episode arrives once, byte-identical to the
+    local pool's, with the same rows, and no temporary file is left in the data dir."""
+    data = tmp_path / "data"
+    out = data / "raw" / "expert"
+    killed: list[int] = []
+
+    def kill_one() -> None:  # SIGKILL the first worker seen running a transfer task, once it has had time to start
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not killed:
+            pids = _ray_task_pids("_record_transfer_task")
+            if pids:
+                time.sleep(0.3)
+                os.kill(pids[0], signal.SIGKILL)
+                killed.append(pids[0])
+            time.sleep(0.05)
+
+    t = threading.Thread(target=kill_one, daemon=True)
+    t.start()
+    assert cli.main(["record", "--data-dir", str(data), *RECORD, "--workers", "2", "--executor", "ray",
+                     "--ray_files", "transfer"]) == 0
+    t.join(timeout=5)
+    assert killed, "no worker was seen recording"
+    assert _digests(out) == _digests(local_record)
+    assert _rows(out) == _rows(local_record)
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".") or p.suffix in (".partial", ".tmp")]
 
 
 @pytest.mark.slow
