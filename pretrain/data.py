@@ -352,7 +352,7 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
     hf = ds.hf_dataset.select_columns(cols).with_format("numpy")
     first_of: dict[int, int] = {}
     pos = 0
-    geom = None
+    geom = LiftGeometry(cameras, lift_stride_px) if people_label == "seen" else None  # the depth hits of `seen`
     for e, length in tqdm(list(zip(eps, lengths, strict=True)), desc="pretrain: labels", unit="ep",
                           disable=not progress):
         a, b = int(meta_eps[e]["dataset_from_index"]), int(meta_eps[e]["dataset_to_index"])
@@ -364,10 +364,7 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
             store.depth[sl, ci] = sample_depth(torch.as_tensor(depth_from_mm(rows[depth_key(c.name)])),
                                                lift_stride_px).numpy()
         store.pose[sl] = rows[OBS_ODOM]
-        hits = None
-        if people_label == "seen":
-            geom = geom or LiftGeometry(cameras, lift_stride_px)
-            hits = (lift_evidence(torch.from_numpy(store.depth[sl]), geom, grid)[:, 0] > 0).numpy()
+        hits = None if geom is None else (lift_evidence(torch.from_numpy(store.depth[sl]), geom, grid)[:, 0] > 0).numpy()
         store.labels[sl], store.valid[sl] = episode_labels(
             grid, local_map, rows[PRIV_LOCAL_OCCUPANCY].astype(bool), rows[PRIV_PED_STATE],
             rows[OBS_ODOM].astype(np.float64), future_frames, hits)

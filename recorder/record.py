@@ -225,25 +225,21 @@ def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: l
     ex = Executor.of(cfg)
     try:
         with graceful_signals():
-            if ex.kind == "ray" and ex.files == "transfer":
-                def received(_: int, result: tuple[dict, bytes]) -> None:
-                    r, data = result
-                    receive_file(out / r["file"], data, r["sha256"])
-                    rows[r["file"]] = r
-                    _write_rows(out, rows, jobs)
-                    bar.update()
-
-                map_jobs(_record_transfer_task, [(cfg.sim, j, cfg.driver) for j in todo], cfg.workers, "record",
-                         progress=False, executor=ex, on_result=received, keep_results=False)
-                return
             if ex.kind == "ray":
-                def finished(_: int, r: dict) -> None:
+                transfer = ex.files == "transfer"
+
+                def finished(_: int, result) -> None:
+                    r = result[0] if transfer else result
+                    if transfer:  # (row, bytes): only the driver writes into the data dir
+                        receive_file(out / r["file"], result[1], r["sha256"])
                     rows[r["file"]] = r
                     _write_rows(out, rows, jobs)
                     bar.update()
 
-                map_jobs(_record_task, [(cfg.sim, j, out, cfg.driver) for j in todo], cfg.workers, "record",
-                         progress=False, executor=ex, on_result=finished)
+                task, args = ((_record_transfer_task, [(cfg.sim, j, cfg.driver) for j in todo]) if transfer else
+                              (_record_task, [(cfg.sim, j, out, cfg.driver) for j in todo]))
+                map_jobs(task, args, cfg.workers, "record", progress=False, executor=ex, on_result=finished,
+                         keep_results=not transfer)
                 return
             if cfg.workers == 1:
                 for j in todo:
