@@ -22,7 +22,8 @@ for ``full`` and ``no_i2``, the pretrained encoder ``DATA_DIR/checkpoints/<encod
     teacher:  imitation/<k>/{policy.*, data.npz}: k = 0 clones the expert's episodes, k >= 1 is a DAgger iteration
               (the teacher drives, the expert labels every state with its cost of each action); ppo/ (SB3
               checkpoint for --resume); metrics.json also has the acceptance run of the policy before PPO
-    student:  dagger/iter_<k>/{raw/*.mcap, dataset/ (LeRobot), features/*.npz, episodes.jsonl, policy/, done.json}
+    student:  dagger/iter_<k>/{raw/*.mcap, dataset/ (LeRobot), features/*.npz, episodes.jsonl, policy/, done.json,
+              intention/ (with --intention_tune.epochs N: the intention model fine-tuned on iterations 0..k)}
               ppo/ (SB3 checkpoint of the fine-tuning for --resume)
     baseline: policy.json has kind "baseline"; its own resume state (drl_vo: bc/, ppo/; sarl_om: rl/) — see
               rl.baselines.<name>
@@ -42,6 +43,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import math
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -59,7 +61,13 @@ from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissing
 from pipeline.core.executor import Executor, check_executor
 from pretrain.checkpoint import read_encoder_json
 from pretrain.geometry import BEVGrid
-from pretrain.intention import FORECASTER_WEIGHTS, INTENTION_JSON, load_forecaster
+from pretrain.intention import (
+    FORECASTER_WEIGHTS,
+    INTENTION_JSON,
+    FitOptions,
+    finetune_forecaster,
+    load_forecaster,
+)
 from rl.baselines import BASELINES, baseline_module
 from rl.baselines.common import curve_points
 from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
@@ -174,6 +182,20 @@ class FinetuneConfig:
 
 
 @dataclass
+class IntentionTuneConfig:
+    """Frozen or fine-tuned intention model (``pretrain.intention.finetune_forecaster``): with ``epochs`` > 0, after
+    every DAgger iteration the pretrained model is fine-tuned on that student's rollouts so far (its pretext: the
+    tracked people's future positions) and the next iteration, and the final policy, use it."""
+
+    epochs: int = 0  # 0 = frozen (measured: fine-tuning on the default profile's rollouts changes its error < 1 %)
+    lr: float = 1e-3  # AdamW peak learning rate (one-cycle)
+    batch: int = 256
+    pose_dropout: float = 0.3  # as in pretraining (pretrain-intention.pose_dropout)
+    head_aux_weight: float = 0.2
+    val_fraction: float = 0.2  # rollout episodes held out to measure the fine-tuning
+
+
+@dataclass
 class AcceptanceConfig:
     """The seeded evaluation run at the end of training (the test scenes; `make eval` is the full benchmark)."""
 
@@ -192,6 +214,7 @@ class TrainConfig(BaseStageConfig):
     # of a variant with poses (full, no_bev) predicts the people it tracks with it; "" = constant velocity (the
     # ablation). The profiles set it; no_i2 and the mlp head never use it.
     intention: str = ""
+    intention_tune: IntentionTuneConfig = field(default_factory=IntentionTuneConfig)  # frozen (default) | fine-tuned
     sim: SimConfig = field(default_factory=SimConfig)
     teacher: TeacherConfig = field(default_factory=TeacherConfig)
     dagger: DaggerConfig = field(default_factory=DaggerConfig)
@@ -237,13 +260,22 @@ class TrainConfig(BaseStageConfig):
                        ("teacher.n_envs", t.n_envs), ("dagger.iterations", d.iterations),
                        ("dagger.episodes_per_iter", d.episodes_per_iter), ("dagger.bc_epochs", d.bc_epochs),
                        ("workers", self.workers), ("finetune.n_envs", self.finetune.n_envs),
-                       ("acceptance.episodes", self.acceptance.episodes)):
+                       ("acceptance.episodes", self.acceptance.episodes),
+                       ("intention_tune.batch", self.intention_tune.batch)):
             if v < 1:
                 raise ConfigError(f"train.{key}: expected an integer >= 1, got {v}")
         if t.ppo_steps < 0 or self.finetune.ppo_steps < 0 or t.critic_warmup_steps < 0:
             raise ConfigError("train: ppo_steps and teacher.critic_warmup_steps must be >= 0")
         if d.soft_tau < 0:
             raise ConfigError(f"train.dagger.soft_tau: expected >= 0, got {d.soft_tau}")
+        it = self.intention_tune
+        if it.epochs < 0:
+            raise ConfigError(f"train.intention_tune.epochs: expected an integer >= 0 (0 = frozen), got {it.epochs}")
+        if not (math.isfinite(it.lr) and it.lr > 0 and 0 <= it.pose_dropout < 1 and it.head_aux_weight >= 0
+                and 0 < it.val_fraction < 1):
+            raise ConfigError("train.intention_tune: expected lr > 0, 0 <= pose_dropout < 1, head_aux_weight >= 0 and "
+                              f"0 < val_fraction < 1, got {it.lr}, {it.pose_dropout}, {it.head_aux_weight}, "
+                              f"{it.val_fraction}")
 
         if self.head not in STUDENT_HEADS:
             raise ConfigError(f"train.head: expected one of {list(STUDENT_HEADS)}, got {self.head!r}")
@@ -493,6 +525,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         inherit_linear_cost(policy, teacher_dir)
     iters: list[dict[str, Any]] = []
     frames_total = 0
+    tune = cfg.intention_tune.epochs > 0 and int_dir is not None
     for k in range(d.iterations):
         it = out / "dagger" / f"iter_{k}"
         if (it / "done.json").exists():
@@ -501,6 +534,10 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             frames_total = info["aggregate_frames"]
             policy, _ = load_policy(it / "policy")
             policy.to(device)
+            if tune and "skipped" not in info.get("intention_tune", {"skipped": ""}):
+                int_dir = it / "intention"
+                load_forecaster(int_dir)  # missing or corrupt: one error naming it (delete the iteration to redo it)
+                extra["intention"] = str(int_dir)
             continue
         beta = d.beta0 * d.beta_decay ** k
         student_dir = out / "dagger" / f"iter_{k - 1}" / "policy" if k > 0 else None
@@ -513,6 +550,18 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 for e in range(d.episodes_per_iter)]
         rows = run_iteration(it, jobs, cfg.workers, cfg.progress, Executor.of(cfg))
         counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress)
+        tuned = None
+        if tune:  # the intention model on this student's rollouts so far, from the pretrained weights every time
+            tuned = _tune_intention(cfg, out, k, device)
+            if "skipped" not in tuned:
+                int_dir = it / "intention"
+                extra["intention"] = str(int_dir)
+        if tuned and "skipped" not in tuned:
+            v = tuned["val"]
+            log.info("student %s iteration %d: intention model fine-tuned on %d samples, held-out FDE@1 s %.3f -> "
+                     "%.3f m (turns %s -> %s m)", cfg.variant, k, tuned["train_samples"],
+                     v["pretrained"]["fde_1s_m"], v["tuned"]["fde_1s_m"], v["pretrained"]["fde_1s_turns_m"],
+                     v["tuned"]["fde_1s_turns_m"])
         new = load_features([it])
         data = load_features([out / "dagger" / f"iter_{j}" for j in range(k + 1)])
         if k == 0 and "bev" in space.spaces:
@@ -554,7 +603,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 "student_steps": int(sum(r["student_steps"] for r in rows)),
                 "bc_loss_new_before": before, "bc_loss_new_after": after, "final_accuracy": hist[-1]["accuracy"],
                 "dataset": str(it / "dataset"), "dataset_frames": counts["frames"], **soft_ce,
-                **({"linear_fit": linear_fit} if linear_fit else {})}
+                **({"linear_fit": linear_fit} if linear_fit else {}), **({"intention_tune": tuned} if tuned else {})}
         save_policy(it / "policy", policy, describe("student", cfg.variant, space, net, **extra,
                                                     produced_by={"dagger_iterations": k + 1,
                                                                  "dagger_frames": frames_total}))
@@ -564,12 +613,29 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     produced = {"teacher": str(teacher_dir), "dagger_iterations": d.iterations, "dagger_frames": frames_total,
                 "ppo_finetune_steps": 0}
     summary: dict[str, Any] = {"dagger": iters}
+    produced["intention"] = (None if int_dir is None else "frozen" if int_dir == intention_dir(cfg)
+                             else {"tuned": str(int_dir), "epochs": cfg.intention_tune.epochs})
     if cfg.finetune.ppo_steps > 0:
-        policy, steps, rate = _finetune(cfg, out, policy, net, pairs, enc_dir, device)
+        policy, steps, rate = _finetune(cfg, out, policy, net, pairs, enc_dir, device, int_dir)
         produced["ppo_finetune_steps"] = steps
         summary["finetune"] = {"steps": steps, "steps_per_s": rate}
     save_policy(out, policy, describe("student", cfg.variant, space, net, **extra, produced_by=produced))
     return summary
+
+
+def _tune_intention(cfg: TrainConfig, out: Path, k: int, device: torch.device) -> dict[str, Any]:
+    """The pretrained intention model fine-tuned on DAgger iterations 0..k (``iter_k/intention``) with its held-out
+    errors; ``{"skipped": why}`` when the rollouts so far hold no training and validation episode with a tracked
+    person (the iteration keeps the model it had)."""
+    tc = cfg.intention_tune
+    roots = [out / "dagger" / f"iter_{j}" / "dataset" for j in range(k + 1)]
+    try:
+        return finetune_forecaster(intention_dir(cfg), roots, out / "dagger" / f"iter_{k}" / "intention",
+                                   FitOptions(tc.epochs, tc.batch, tc.lr, tc.pose_dropout, tc.head_aux_weight,
+                                              cfg.seed + k), tc.val_fraction, device)
+    except InputMissingError as e:
+        log.warning("student %s iteration %d: intention model not fine-tuned: %s", cfg.variant, k, e)
+        return {"skipped": str(e)}
 
 
 def inherit_linear_cost(policy, teacher_dir: Path) -> None:
@@ -613,15 +679,16 @@ def teacher_heading(teacher_dir: Path) -> str:
     return str(read_policy_json(teacher_dir)["net"].get("heading", "end"))
 
 
-def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, enc_dir, device: torch.device):
+def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, enc_dir, device: torch.device,
+              int_dir: Path | None):
     """PPO on the student (rendered envs, the paper's reward), starting from the distilled policy; the updates and
-    each env's frozen encoder on ``device`` (env subprocesses spawned for CUDA)."""
+    each env's frozen encoder on ``device`` (env subprocesses spawned for CUDA); ``int_dir`` the intention model the
+    DAgger loop ended with."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     f = cfg.finetune
     sim, variant, head, dev, map_cost = cfg.sim, cfg.variant, cfg.head, str(device), cfg.map_cost
-    int_dir = intention_dir(cfg)
 
     def make():  # captures plain values only: pickled into spawned subprocesses
         return StudentEnv(SceneMixEnv(sim, pairs, obs_mode="visual"), variant, enc_dir, head=head, device=dev,

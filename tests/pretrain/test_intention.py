@@ -1,6 +1,6 @@
 """The intention model (pretrain.intention): samples replayed through the students' tracker, a pose cue that the pose
 model reads and the position model cannot, overfitting a tiny set, the stage on the tiny dataset, checkpoint round
-trip and the named errors."""
+trip, fine-tuning on another distribution, and the named errors."""
 
 from __future__ import annotations
 
@@ -32,6 +32,7 @@ from pretrain.intention import (
     IntentionForecaster,
     episode_samples,
     evaluate,
+    finetune_forecaster,
     fit_model,
     from_track_frame,
     load_forecaster,
@@ -212,3 +213,34 @@ def test_a_dataset_without_keypoints_is_a_named_error(dataset_copy):
     info.write_text(json.dumps(meta))
     with pytest.raises(InputMissingError, match=OBS_POSES.replace(".", r"\.")):
         intention.collect(dataset_copy, HORIZONS, 8)
+
+
+def test_fine_tuning_adapts_the_pretrained_model_to_a_new_distribution(intention_ckpt, tmp_path, monkeypatch):
+    """The people around the student's robot turn the other way than in the pretraining data (the cue's sign flipped
+    in the target): fine-tuning from the pretrained weights must lower the held-out error it reports, and write a
+    checkpoint :func:`load_forecaster` reads without a manifest, naming where it came from; the pretrained one is
+    untouched and the position model is copied."""
+    flipped = cue_samples(120, seed=3)
+    flipped["target"] = flipped["target"][:, -2:] * np.array([1.0, -1.0], np.float32)
+    seen = []
+    monkeypatch.setattr(intention, "collect", lambda root, horizons_s, history, max_episodes=0: (
+        seen.append(root) or flipped, FPS, 10))
+    before = (intention_ckpt / "forecaster.safetensors").read_bytes()
+    out = tmp_path / "policy" / "dagger" / "iter_1" / "intention"
+    res = finetune_forecaster(intention_ckpt, [tmp_path / "d0", tmp_path / "d1"], out,
+                              FitOptions(epochs=40, batch=16, lr=1e-2, pose_dropout=0.0, head_aux_weight=0.0, seed=0),
+                              0.3)
+    assert seen == [tmp_path / "d0", tmp_path / "d1"]
+    assert res["train_episodes"] + res["val_episodes"] == 20 and res["val_samples"] > 0  # ids made unique per root
+    v = res["val"]
+    assert v["tuned"]["fde_1s_m"] < 0.5 * v["pretrained"]["fde_1s_m"], v
+    model, desc = load_forecaster(out)
+    assert desc["tuned_from"] == str(intention_ckpt) and desc["tuning"]["val"] == v
+    assert (intention_ckpt / "forecaster.safetensors").read_bytes() == before
+    assert (out / "position.safetensors").read_bytes() == (intention_ckpt / "position.safetensors").read_bytes()
+    pretrained, _ = load_forecaster(intention_ckpt)
+    s = {k: x[:5] for k, x in flipped.items()}
+    assert not np.allclose(predict(model, s), predict(pretrained, s))
+    (out / "intention.json").unlink()  # weights without their description: not a checkpoint
+    with pytest.raises(InputMissingError, match="unfinished"):
+        load_forecaster(out)

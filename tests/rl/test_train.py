@@ -12,6 +12,7 @@ import yaml
 
 from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pretrain.intention import load_forecaster
 from rl.policy import act, build_policy, describe, load_policy, save_policy
 from rl.teacher import (
     SceneMixEnv,
@@ -296,6 +297,37 @@ def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
     assert desc["intention"] is None and "peds_future" not in desc["observation_space"]
     assert desc["net"]["map_cost"] and policy.features_extractor.lookahead.map_key == "occ"
     assert json.loads((out / "metrics.json").read_text())["acceptance"]["table"]["hallway@0.1"]["n"] == 1
+
+
+def test_intention_model_fine_tuned_on_the_students_rollouts(tmp_path, teacher_dir):
+    """``intention_tune.epochs`` > 0: after each DAgger iteration the pretrained intention model is fine-tuned on the
+    rollouts so far, the next iteration and the final policy use it, its held-out errors are in the iteration's
+    record; a resumed run picks the tuned model up again. Default (frozen) is the test above."""
+    from pipeline.verbs.train import run
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    pretrained = tiny_intention_checkpoint(tmp_path / "checkpoints" / "intention")
+    sizes = {"dagger.episodes_per_iter": 4, "sim.max_episode_s": 8.0, "dagger.densities": 0.2,
+             "intention_tune.epochs": 2, "intention_tune.val_fraction": 0.3}
+    run(_train_cfg(tmp_path, "no_bev", **sizes))
+    out = tmp_path / "checkpoints" / "policy" / "no_bev"
+    iters = json.loads((out / "metrics.json").read_text())["dagger"]
+    tune = [it["intention_tune"] for it in iters]
+    assert all("skipped" not in t for t in tune), tune
+    assert tune[1]["train_samples"] > tune[0]["train_samples"]  # iteration 1 tunes on iterations 0 and 1
+    assert all(t["val"]["tuned"]["fde_1s_m"] > 0 and t["val_samples"] > 0 for t in tune)
+    for k in (0, 1):
+        _, d = load_forecaster(out / "dagger" / f"iter_{k}" / "intention")
+        assert d["tuned_from"] == str(pretrained)
+    _, desc = load_policy(out)
+    assert desc["intention"] == str(out / "dagger" / "iter_1" / "intention")
+    assert desc["produced_by"]["intention"]["tuned"] == desc["intention"]
+    # resumed after iteration 1 finished but before the final policy: the tuned model is picked up again
+    for name in ("manifest.json", "policy.safetensors", "policy.json", "metrics.json"):
+        (out / name).unlink()
+    run(_train_cfg(tmp_path, "no_bev", resume="true", **sizes))
+    _, again = load_policy(out)
+    assert again["intention"] == desc["intention"]
 
 
 def tiny_intention_checkpoint(out):
