@@ -1,0 +1,195 @@
+"""Why a method's benchmark episodes fail: each failed episode of an eval run put in a cause, counted per cell, and
+the first few of each cause drawn at the moment it ended.
+
+::
+
+    python -m evaluation.failures data/eval/<run>                        # every method of the run
+    python -m evaluation.failures data/eval/<run> --method full --figures 3 --out failures/
+
+Reads the run's ``episodes.jsonl``, its per-episode ``traces/*.npz`` and ``seeds.json`` (``icrowdnav eval`` writes
+them). Causes, from the trace's last state:
+
+* ``collision_pedestrian``, ``timeout`` — the outcome;
+* ``collision_obstacle_near_person`` — the robot hit a wall or an obstacle with a pedestrian's body within
+  ``near_m`` of its own (surface to surface): it was evading someone, or squeezed between people and clutter;
+* ``collision_obstacle_clear`` — it hit a wall or an obstacle with nobody that close.
+
+Each failure also records the robot's mean speed and yaw rate over its last ``tail_s`` and, for a timeout, how far
+the goal still was. Writes ``failures.json`` (the counts per method and cell, and one record per failure) and
+``failures.md`` into ``--out`` (default ``<run>/failures``), and ``figures/<cause>_<k>.png``: the top-down view
+(:func:`sim.viz.plot_episode_topdown`) 3 m around the end, the robot and the people 1 s before and at the end. The
+layout is rebuilt from the run's scene, scene seed and crowd seed; a trace whose start and goal do not match it
+(scene files changed since the run) is a named error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from evaluation.compare import read_rows
+from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
+from pipeline.core.config import from_dict, read_yaml_mapping
+from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
+from sim.env import CrowdNavEnv, SimConfig
+from sim.trace import EpisodeTrace
+from sim.viz import plot_episode_topdown
+
+CAUSES = ("collision_pedestrian", "collision_obstacle_near_person", "collision_obstacle_clear", "timeout")
+
+
+def trace_path(run: Path, row: dict[str, Any]) -> Path:
+    """The trace of a benchmark row (the harness names it ``<scene>_d<density>_s<seed>_<method>.npz``)."""
+    return Path(run) / "traces" / f"{row['scene']}_d{float(row['density']):g}_s{row['seed']}_{row['method']}.npz"
+
+
+def classify(trace: EpisodeTrace, near_m: float = 1.0, tail_s: float = 0.5) -> dict[str, Any]:
+    """The cause of a failed episode (module docstring) and the robot's last moments."""
+    pose = trace.robot_pose[-1]
+    px = trace.ped_xy[-1]
+    here = np.isfinite(px).all(-1) if len(px) else np.zeros(0, bool)
+    gaps = np.linalg.norm(px[here] - pose[:2], axis=-1) - trace.ped_radius[here] - trace.robot_radius_m
+    nearest = float(gaps.min()) if len(gaps) else float("inf")
+    cause = trace.outcome
+    if cause == "collision_obstacle":
+        cause = "collision_obstacle_near_person" if nearest <= near_m else "collision_obstacle_clear"
+    if cause not in CAUSES:
+        raise ConfigError(f"failure cause of a {trace.outcome!r} episode: not a failure")
+    n = max(1, round(tail_s / trace.dt_s))
+    cmd = trace.robot_cmd[-n:] if len(trace.robot_cmd) else np.zeros((1, 2))
+    return {"cause": cause, "nearest_person_m": nearest, "tail_speed_mps": float(np.abs(cmd[:, 0]).mean()),
+            "tail_yaw_rate_radps": float(np.abs(cmd[:, 1]).mean()),
+            "goal_distance_m": float(np.linalg.norm(trace.goal_xy - pose[:2])), "steps": int(len(trace.robot_cmd))}
+
+
+def _load_trace(path: Path) -> EpisodeTrace:
+    if not path.is_file():
+        raise InputMissingError(f"{path}: no trace of this episode (run `icrowdnav eval` again; it saves one per "
+                                "benchmark episode)")
+    try:
+        return EpisodeTrace.load_npz(path)
+    except (OSError, ValueError, KeyError) as e:
+        raise CorruptArtifactError(f"{path}: unreadable trace ({type(e).__name__}: {e})") from None
+
+
+def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: float = 0.5) -> dict[str, Any]:
+    """Counts of failure causes per method and cell, and one record per failed benchmark episode of ``run``."""
+    if not (near_m >= 0 and tail_s > 0):
+        raise ConfigError(f"failures: expected near_m >= 0 and tail_s > 0, got {near_m}, {tail_s}")
+    rows = read_rows(Path(run) / "episodes.jsonl")
+    if method is not None:
+        rows = [r for r in rows if r.get("method") == method]
+        if not rows:
+            raise InputMissingError(f"{run}: no episode of method {method!r}")
+    records, counts = [], {}
+    for r in rows:
+        cell = f"{r['scene']}@{float(r['density']):g}"
+        c = counts.setdefault(r["method"], {}).setdefault(cell, Counter())
+        c["episodes"] += 1
+        if r["success"]:
+            continue
+        info = classify(_load_trace(trace_path(run, r)), near_m, tail_s)
+        c[info["cause"]] += 1
+        records.append({"method": r["method"], "scene": r["scene"], "density": r["density"], "seed": r["seed"],
+                        **info})
+    return {"run": str(run), "near_m": near_m, "tail_s": tail_s,
+            "counts": {m: {cell: dict(c) for cell, c in cs.items()} for m, cs in counts.items()},
+            "failures": records}
+
+
+def markdown(res: dict[str, Any]) -> str:
+    lines = [f"Failure causes in {res['run']} (obstacle hits split at a person within {res['near_m']:g} m)", "",
+             "| method | cell | episodes | " + " | ".join(CAUSES) + " |", "|---|---|---|" + "---|" * len(CAUSES)]
+    for m, cells in res["counts"].items():
+        for cell, c in cells.items():
+            lines.append(f"| {m} | {cell} | {c['episodes']} | " + " | ".join(str(c.get(k, 0)) for k in CAUSES) + " |")
+        fails = [f for f in res["failures"] if f["method"] == m]
+        total = Counter(f["cause"] for f in fails)
+        lines.append(f"| {m} | all | {sum(c['episodes'] for c in cells.values())} | "
+                     + " | ".join(str(total.get(k, 0)) for k in CAUSES) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _scene_seeds(run: Path) -> dict[int, int | None]:
+    path = Path(run) / "seeds.json"
+    try:
+        eps = json.loads(path.read_text())["benchmark"]["episodes"]
+        return {int(e["seed"]): e.get("scene_seed") for e in eps}
+    except FileNotFoundError:
+        raise InputMissingError(f"{path}: missing (the run's seeds are needed to rebuild its layouts)") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise CorruptArtifactError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
+
+
+def draw(run: Path, res: dict[str, Any], out: Path, per_cause: int) -> list[Path]:
+    """The first ``per_cause`` failures of each cause (in run order), drawn at their end (module docstring)."""
+    run = Path(run)
+    sim = from_dict(SimConfig, read_yaml_mapping(run / "config.yaml", "eval config").get("sim", {}),
+                    str(run / "config.yaml"))
+    scene_seeds = _scene_seeds(run)
+    written, seen = [], Counter()
+    for f in res["failures"]:
+        k = seen[f["cause"]]
+        if k >= per_cause:
+            continue
+        seen[f["cause"]] += 1
+        trace = _load_trace(trace_path(run, f))
+        env = CrowdNavEnv(config=replace(sim, scene=f["scene"], scenario="", density=float(f["density"]),
+                                         obs_mode="state"))
+        try:
+            opts = {"scene_seed": int(scene_seeds[f["seed"]])} if scene_seeds.get(f["seed"]) is not None else None
+            env.reset(seed=int(f["seed"]), options=opts)
+            u = env.unwrapped
+            if not (np.allclose(u.goal, trace.goal_xy, atol=1e-6) and np.allclose(u.robot[:2], trace.start_xy,
+                                                                                 atol=1e-6)):
+                raise CorruptArtifactError(f"{trace_path(run, f)}: its start and goal are not those of scene "
+                                           f"{f['scene']!r} with seed {f['seed']} today (scene files changed since "
+                                           "the run?)")
+            end = trace.robot_pose[-1]
+            t_end = len(trace.robot_pose) - 1
+            path = plot_episode_topdown(
+                u.layout.obstacles, trace, out / "figures" / f"{f['cause']}_{k}.png",
+                bounds=(end[0] - 3.0, end[0] + 3.0, end[1] - 3.0, end[1] + 3.0),
+                camera_yaws_deg=(sim.camera.yaw_deg, -sim.camera.yaw_deg), camera_hfov_deg=sim.camera.hfov_deg,
+                snapshot_steps=[max(0, t_end - round(1.0 / trace.dt_s)), t_end],
+                title=f"{f['method']}: {f['cause']} (nearest person {f['nearest_person_m']:.2f} m)")
+        finally:
+            env.close()
+        written.append(path)
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m evaluation.failures", description=__doc__.split("\n\n")[0])
+    ap.add_argument("run", type=Path, help="an eval run directory (data/eval/<run>)")
+    ap.add_argument("--method", default=None, help="only this method's episodes")
+    ap.add_argument("--near-m", type=float, default=1.0, help="an obstacle hit is 'near a person' within this")
+    ap.add_argument("--tail-s", type=float, default=0.5, help="the last seconds the speed and yaw rate average")
+    ap.add_argument("--figures", type=int, default=2, help="failures drawn per cause")
+    ap.add_argument("--out", type=Path, default=None, help="output folder (default <run>/failures)")
+    args = ap.parse_args(argv)
+    out = args.out or args.run / "failures"
+    try:
+        if args.figures < 0:
+            raise ConfigError(f"--figures: expected an integer >= 0, got {args.figures}")
+        res = analyse(args.run, args.method, args.near_m, args.tail_s)
+        out.mkdir(parents=True, exist_ok=True)
+        draw(args.run, res, out, args.figures)
+        atomic_write_json(out / "failures.json", json_safe(res))
+        atomic_write_text(out / "failures.md", markdown(res))
+    except ICrowdNavError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(markdown(res), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,89 @@
+"""Failure causes of an eval run (evaluation.failures): the classification on constructed episodes, and a real tiny
+run whose episodes time out — counted, drawn on their rebuilt layout, and the named errors."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from evaluation.failures import analyse, classify, draw, main
+from pipeline.core.errors import ConfigError, CorruptArtifactError
+from sim.env import SimConfig
+from sim.trace import EpisodeTrace
+
+
+def _trace(outcome: str, ped_at: list[tuple[float, float]], v: float = 0.5, w: float = 0.8) -> EpisodeTrace:
+    """A robot driving along +x for 10 steps to (1, 0), the goal at (5, 0), people standing at ``ped_at``."""
+    t1, n = 11, len(ped_at)
+    pose = np.stack([np.linspace(0.0, 1.0, t1), np.zeros(t1), np.zeros(t1)], -1)
+    peds = np.repeat(np.asarray(ped_at, float).reshape(1, n, 2), t1, 0)
+    return EpisodeTrace(dt_s=0.1, robot_radius_m=0.3, goal_radius_m=0.3, robot_pose=pose,
+                        robot_cmd=np.tile([v, w], (t1 - 1, 1)), goal_xy=np.array([5.0, 0.0]),
+                        start_xy=np.zeros(2), ped_xy=peds, ped_vel=np.zeros_like(peds), ped_radius=np.full(n, 0.25),
+                        ped_yaw=np.zeros((t1, n)), ped_head_yaw=np.zeros((t1, n)), static_clearance_m=np.ones(t1),
+                        outcome=outcome)
+
+
+def test_obstacle_hits_are_split_by_the_nearest_person():
+    near = classify(_trace("collision_obstacle", [(1.0, 1.0), (4.0, 0.0)]))  # 1 m - 0.25 - 0.3 = 0.45 m gap
+    assert near["cause"] == "collision_obstacle_near_person" and near["nearest_person_m"] == pytest.approx(0.45)
+    assert near["tail_speed_mps"] == pytest.approx(0.5) and near["tail_yaw_rate_radps"] == pytest.approx(0.8)
+    assert classify(_trace("collision_obstacle", [(1.0, 3.0)]))["cause"] == "collision_obstacle_clear"
+    assert classify(_trace("collision_obstacle", [(1.0, 1.0)]), near_m=0.4)["cause"] == "collision_obstacle_clear"
+    assert classify(_trace("collision_obstacle", []))["cause"] == "collision_obstacle_clear"  # nobody there
+    assert classify(_trace("collision_pedestrian", [(1.5, 0.0)]))["cause"] == "collision_pedestrian"
+    late = classify(_trace("timeout", [(1.0, 3.0)]))
+    assert late["cause"] == "timeout" and late["goal_distance_m"] == pytest.approx(4.0)
+    with pytest.raises(ConfigError, match="not a failure"):
+        classify(_trace("success", []))
+
+
+@pytest.fixture(scope="module")
+def timed_out_run(tmp_path_factory):
+    """The expert with a 2 s time limit in the lobby: both episodes time out (real failures, real traces)."""
+    from evaluation.stage import EvalConfig
+    from pipeline.verbs.eval import run
+
+    data = tmp_path_factory.mktemp("data")
+    sim = SimConfig(max_episode_s=2.0, timeout_s_per_m=0.0,
+                    camera=replace(SimConfig().camera, width_px=64, height_px=48))
+    run(EvalConfig(data_dir=str(data), methods=["expert"], scenes=["office_lobby"], densities=[0.1], goals=1,
+                   trials=2, routing_scenes=[], scenarios=[], workers=1, figures=0, videos=0, sim=sim, progress=False,
+                   long_horizon=replace(EvalConfig().long_horizon, runs=0)))
+    return data / "eval" / "benchmark"
+
+
+def test_a_real_run_is_counted_and_drawn_on_its_rebuilt_layout(timed_out_run, tmp_path):
+    res = analyse(timed_out_run)
+    assert res["counts"]["expert"]["office_lobby@0.1"] == {"episodes": 2, "timeout": 2}
+    assert [f["cause"] for f in res["failures"]] == ["timeout", "timeout"]
+    assert all(f["goal_distance_m"] > 0.3 and f["steps"] == 20 for f in res["failures"])
+    (png,) = draw(timed_out_run, res, tmp_path, per_cause=1)
+    assert png == tmp_path / "figures" / "timeout_0.png" and png.stat().st_size > 10_000
+
+
+def test_cli_writes_its_tables_and_refuses_bad_input(timed_out_run, tmp_path, capsys):
+    out = tmp_path / "f"
+    assert main([str(timed_out_run), "--figures", "0", "--out", str(out)]) == 0
+    assert "| expert | office_lobby@0.1 | 2 | 0 | 0 | 0 | 2 |" in capsys.readouterr().out
+    assert json.loads((out / "failures.json").read_text())["counts"]["expert"]["office_lobby@0.1"]["timeout"] == 2
+    assert main([str(tmp_path / "nope")]) == 2
+    assert "no per-episode rows" in capsys.readouterr().err
+    assert main([str(timed_out_run), "--method", "dwa", "--out", str(tmp_path / "g")]) == 2
+    assert "no episode of method 'dwa'" in capsys.readouterr().err and not (tmp_path / "g").exists()
+
+
+def test_a_trace_that_does_not_match_todays_layout_is_a_named_error(timed_out_run, tmp_path):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(timed_out_run, run)
+    seeds = json.loads((run / "seeds.json").read_text())
+    for e in seeds["benchmark"]["episodes"]:
+        e["scene_seed"] = int(e["scene_seed"]) + 7  # another goal: another start and goal than the trace's
+    (run / "seeds.json").write_text(json.dumps(seeds))
+    with pytest.raises(CorruptArtifactError, match="start and goal"):
+        draw(run, analyse(run), tmp_path / "out", per_cause=1)
