@@ -15,7 +15,9 @@ them). Causes, from the trace's last state:
 * ``collision_obstacle_clear`` — it hit a wall or an obstacle with nobody that close.
 
 Each failure also records the robot's mean speed and yaw rate over its last ``tail_s`` and, for a timeout, how far
-the goal still was. Writes ``failures.json`` (the counts per method and cell, and one record per failure) and
+the goal still was; an obstacle hit records where the obstacle was — the bearing of its nearest surface point from
+the robot's heading, and whether that lies in the cameras' field of view (|bearing| ≤ camera yaw + half its
+horizontal FOV): a student only sees what its two forward cameras see, so a hit out of view is a side or rear one. Writes ``failures.json`` (the counts per method and cell, and one record per failure) and
 ``failures.md`` into ``--out`` (default ``<run>/failures``), and ``figures/<cause>_<k>.png``: the top-down view
 (:func:`sim.viz.plot_episode_topdown`) 3 m around the end, the robot and the people 1 s before and at the end. The
 layout is rebuilt from the run's scene, scene seed and crowd seed; a trace whose start and goal do not match it
@@ -26,8 +28,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -43,6 +48,7 @@ from sim.trace import EpisodeTrace
 from sim.viz import plot_episode_topdown
 
 CAUSES = ("collision_pedestrian", "collision_obstacle_near_person", "collision_obstacle_clear", "timeout")
+OUT_OF_VIEW = "obstacle_hits_out_of_view"  # obstacle hits whose obstacle lay outside the cameras' field of view
 
 
 def trace_path(run: Path, row: dict[str, Any]) -> Path:
@@ -79,24 +85,40 @@ def _load_trace(path: Path) -> EpisodeTrace:
         raise CorruptArtifactError(f"{path}: unreadable trace ({type(e).__name__}: {e})") from None
 
 
+def hit_bearing(layout: Any, pose: np.ndarray) -> float:
+    """Bearing (deg, counter-clockwise from the heading) of the nearest obstacle surface point from robot ``pose``."""
+    _, closest = layout.geometry.signed_distance(np.asarray(pose[:2], float))
+    d = np.asarray(closest, float) - pose[:2]
+    return float(np.degrees(np.angle(np.exp(1j * (math.atan2(d[1], d[0]) - pose[2])))))
+
+
 def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: float = 0.5) -> dict[str, Any]:
     """Counts of failure causes per method and cell, and one record per failed benchmark episode of ``run``."""
     if not (near_m >= 0 and tail_s > 0):
         raise ConfigError(f"failures: expected near_m >= 0 and tail_s > 0, got {near_m}, {tail_s}")
-    rows = read_rows(Path(run) / "episodes.jsonl")
+    run = Path(run)
+    rows = read_rows(run / "episodes.jsonl")
     if method is not None:
         rows = [r for r in rows if r.get("method") == method]
         if not rows:
             raise InputMissingError(f"{run}: no episode of method {method!r}")
-    records, counts = [], {}
+    records, counts, layouts = [], {}, None
     for r in rows:
         cell = f"{r['scene']}@{float(r['density']):g}"
         c = counts.setdefault(r["method"], {}).setdefault(cell, Counter())
         c["episodes"] += 1
         if r["success"]:
             continue
-        info = classify(_load_trace(trace_path(run, r)), near_m, tail_s)
+        trace = _load_trace(trace_path(run, r))
+        info = classify(trace, near_m, tail_s)
         c[info["cause"]] += 1
+        if trace.outcome == "collision_obstacle":
+            if layouts is None:
+                layouts = Layouts(run)
+            with layouts.env(r, trace) as u:
+                info["hit_bearing_deg"] = hit_bearing(u.layout, trace.robot_pose[-1])
+            info["hit_in_view"] = abs(info["hit_bearing_deg"]) <= layouts.view_deg
+            c["obstacle_hits_out_of_view"] += int(not info["hit_in_view"])
         records.append({"method": r["method"], "scene": r["scene"], "density": r["density"], "seed": r["seed"],
                         **info})
     return {"run": str(run), "near_m": near_m, "tail_s": tail_s,
@@ -106,34 +128,61 @@ def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: f
 
 def markdown(res: dict[str, Any]) -> str:
     lines = [f"Failure causes in {res['run']} (obstacle hits split at a person within {res['near_m']:g} m)", "",
-             "| method | cell | episodes | " + " | ".join(CAUSES) + " |", "|---|---|---|" + "---|" * len(CAUSES)]
+             "| method | cell | episodes | " + " | ".join(CAUSES) + f" | {OUT_OF_VIEW} |",
+             "|---|---|---|" + "---|" * (len(CAUSES) + 1)]
+    cols = (*CAUSES, OUT_OF_VIEW)
     for m, cells in res["counts"].items():
         for cell, c in cells.items():
-            lines.append(f"| {m} | {cell} | {c['episodes']} | " + " | ".join(str(c.get(k, 0)) for k in CAUSES) + " |")
-        fails = [f for f in res["failures"] if f["method"] == m]
-        total = Counter(f["cause"] for f in fails)
-        lines.append(f"| {m} | all | {sum(c['episodes'] for c in cells.values())} | "
-                     + " | ".join(str(total.get(k, 0)) for k in CAUSES) + " |")
+            lines.append(f"| {m} | {cell} | {c['episodes']} | " + " | ".join(str(c.get(k, 0)) for k in cols) + " |")
+        total = Counter()
+        for c in cells.values():
+            total.update(c)
+        lines.append(f"| {m} | all | {total['episodes']} | " + " | ".join(str(total.get(k, 0)) for k in cols) + " |")
     return "\n".join(lines) + "\n"
 
 
-def _scene_seeds(run: Path) -> dict[int, int | None]:
-    path = Path(run) / "seeds.json"
-    try:
-        eps = json.loads(path.read_text())["benchmark"]["episodes"]
-        return {int(e["seed"]): e.get("scene_seed") for e in eps}
-    except FileNotFoundError:
-        raise InputMissingError(f"{path}: missing (the run's seeds are needed to rebuild its layouts)") from None
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise CorruptArtifactError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
+class Layouts:
+    """The episodes of an eval run rebuilt from its sim config, scene seeds and crowd seeds (state mode: no
+    rendering), checked against their traces' start and goal."""
+
+    def __init__(self, run: Path) -> None:
+        self.run = Path(run)
+        self.sim = from_dict(SimConfig, read_yaml_mapping(self.run / "config.yaml", "eval config").get("sim", {}),
+                             str(self.run / "config.yaml"))
+        cam = self.sim.camera
+        self.view_deg = abs(cam.yaw_deg) + cam.hfov_deg / 2.0  # the two mirrored cameras' joint field of view
+        path = self.run / "seeds.json"
+        try:
+            eps = json.loads(path.read_text())["benchmark"]["episodes"]
+            self.scene_seeds = {int(e["seed"]): e.get("scene_seed") for e in eps}
+        except FileNotFoundError:
+            raise InputMissingError(f"{path}: missing (the run's seeds are needed to rebuild its layouts)") from None
+        except (json.JSONDecodeError, KeyError, TypeError) as e:
+            raise CorruptArtifactError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
+
+    @contextmanager
+    def env(self, row: dict[str, Any], trace: EpisodeTrace) -> Iterator[Any]:
+        """The reset env (unwrapped) of ``row``'s episode; its start and goal must be the trace's."""
+        env = CrowdNavEnv(config=replace(self.sim, scene=row["scene"], scenario="", density=float(row["density"]),
+                                         obs_mode="state"))
+        try:
+            seed = self.scene_seeds.get(int(row["seed"]))
+            env.reset(seed=int(row["seed"]), options=None if seed is None else {"scene_seed": int(seed)})
+            u = env.unwrapped
+            if not (np.allclose(u.goal, trace.goal_xy, atol=1e-6) and np.allclose(u.robot[:2], trace.start_xy,
+                                                                                 atol=1e-6)):
+                raise CorruptArtifactError(f"{trace_path(self.run, row)}: its start and goal are not those of scene "
+                                           f"{row['scene']!r} with seed {row['seed']} today (scene files changed "
+                                           "since the run?)")
+            yield u
+        finally:
+            env.close()
 
 
 def draw(run: Path, res: dict[str, Any], out: Path, per_cause: int) -> list[Path]:
     """The first ``per_cause`` failures of each cause (in run order), drawn at their end (module docstring)."""
-    run = Path(run)
-    sim = from_dict(SimConfig, read_yaml_mapping(run / "config.yaml", "eval config").get("sim", {}),
-                    str(run / "config.yaml"))
-    scene_seeds = _scene_seeds(run)
+    layouts = Layouts(run)
+    cam = layouts.sim.camera
     written, seen = [], Counter()
     for f in res["failures"]:
         k = seen[f["cause"]]
@@ -141,27 +190,16 @@ def draw(run: Path, res: dict[str, Any], out: Path, per_cause: int) -> list[Path
             continue
         seen[f["cause"]] += 1
         trace = _load_trace(trace_path(run, f))
-        env = CrowdNavEnv(config=replace(sim, scene=f["scene"], scenario="", density=float(f["density"]),
-                                         obs_mode="state"))
-        try:
-            opts = {"scene_seed": int(scene_seeds[f["seed"]])} if scene_seeds.get(f["seed"]) is not None else None
-            env.reset(seed=int(f["seed"]), options=opts)
-            u = env.unwrapped
-            if not (np.allclose(u.goal, trace.goal_xy, atol=1e-6) and np.allclose(u.robot[:2], trace.start_xy,
-                                                                                 atol=1e-6)):
-                raise CorruptArtifactError(f"{trace_path(run, f)}: its start and goal are not those of scene "
-                                           f"{f['scene']!r} with seed {f['seed']} today (scene files changed since "
-                                           "the run?)")
+        with layouts.env(f, trace) as u:
             end = trace.robot_pose[-1]
             t_end = len(trace.robot_pose) - 1
             path = plot_episode_topdown(
                 u.layout.obstacles, trace, out / "figures" / f"{f['cause']}_{k}.png",
                 bounds=(end[0] - 3.0, end[0] + 3.0, end[1] - 3.0, end[1] + 3.0),
-                camera_yaws_deg=(sim.camera.yaw_deg, -sim.camera.yaw_deg), camera_hfov_deg=sim.camera.hfov_deg,
+                camera_yaws_deg=(cam.yaw_deg, -cam.yaw_deg), camera_hfov_deg=cam.hfov_deg,
                 snapshot_steps=[max(0, t_end - round(1.0 / trace.dt_s)), t_end],
-                title=f"{f['method']}: {f['cause']} (nearest person {f['nearest_person_m']:.2f} m)")
-        finally:
-            env.close()
+                title=f"{f['method']}: {f['cause']} (nearest person {f['nearest_person_m']:.2f} m"
+                      + (f", obstacle at {f['hit_bearing_deg']:+.0f}°)" if "hit_bearing_deg" in f else ")"))
         written.append(path)
     return written
 

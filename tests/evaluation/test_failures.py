@@ -9,9 +9,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from evaluation.failures import analyse, classify, draw, main
+from evaluation.failures import analyse, classify, draw, hit_bearing, main
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from sim.env import SimConfig
+from sim.geometry import Cylinder, StaticGeometry
 from sim.trace import EpisodeTrace
 
 
@@ -41,6 +42,16 @@ def test_obstacle_hits_are_split_by_the_nearest_person():
         classify(_trace("success", []))
 
 
+def test_the_bearing_of_a_hit_obstacle_is_measured_from_the_heading():
+    class Layout:  # what hit_bearing reads of a SceneLayout
+        geometry = StaticGeometry([Cylinder((1.0, 1.0), 0.2)])
+
+    assert hit_bearing(Layout, np.array([1.0, 0.5, np.pi / 2])) == pytest.approx(0.0, abs=1e-6)  # dead ahead
+    assert hit_bearing(Layout, np.array([1.0, 0.5, 0.0])) == pytest.approx(90.0)  # on its left
+    assert hit_bearing(Layout, np.array([1.0, 0.5, np.pi])) == pytest.approx(-90.0)  # on its right
+    assert abs(hit_bearing(Layout, np.array([1.0, 0.5, -np.pi / 2]))) == pytest.approx(180.0)  # behind
+
+
 @pytest.fixture(scope="module")
 def timed_out_run(tmp_path_factory):
     """The expert with a 2 s time limit in the lobby: both episodes time out (real failures, real traces)."""
@@ -68,7 +79,7 @@ def test_a_real_run_is_counted_and_drawn_on_its_rebuilt_layout(timed_out_run, tm
 def test_cli_writes_its_tables_and_refuses_bad_input(timed_out_run, tmp_path, capsys):
     out = tmp_path / "f"
     assert main([str(timed_out_run), "--figures", "0", "--out", str(out)]) == 0
-    assert "| expert | office_lobby@0.1 | 2 | 0 | 0 | 0 | 2 |" in capsys.readouterr().out
+    assert "| expert | office_lobby@0.1 | 2 | 0 | 0 | 0 | 2 | 0 |" in capsys.readouterr().out
     assert json.loads((out / "failures.json").read_text())["counts"]["expert"]["office_lobby@0.1"]["timeout"] == 2
     assert main([str(tmp_path / "nope")]) == 2
     assert "no per-episode rows" in capsys.readouterr().err
