@@ -67,6 +67,7 @@ def timed_out_run(tmp_path_factory):
     return data / "eval" / "benchmark"
 
 
+@pytest.mark.slow
 def test_a_real_run_is_counted_and_drawn_on_its_rebuilt_layout(timed_out_run, tmp_path):
     res = analyse(timed_out_run)
     assert res["counts"]["expert"]["office_lobby@0.1"] == {"episodes": 2, "timeout": 2}
@@ -76,6 +77,7 @@ def test_a_real_run_is_counted_and_drawn_on_its_rebuilt_layout(timed_out_run, tm
     assert png == tmp_path / "figures" / "timeout_0.png" and png.stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_cli_writes_its_tables_and_refuses_bad_input(timed_out_run, tmp_path, capsys):
     out = tmp_path / "f"
     assert main([str(timed_out_run), "--figures", "0", "--out", str(out)]) == 0
@@ -87,6 +89,7 @@ def test_cli_writes_its_tables_and_refuses_bad_input(timed_out_run, tmp_path, ca
     assert "no episode of method 'dwa'" in capsys.readouterr().err and not (tmp_path / "g").exists()
 
 
+@pytest.mark.slow
 def test_a_trace_that_does_not_match_todays_layout_is_a_named_error(timed_out_run, tmp_path):
     import shutil
 

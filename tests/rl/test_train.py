@@ -299,6 +299,7 @@ def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
     assert json.loads((out / "metrics.json").read_text())["acceptance"]["table"]["hallway@0.1"]["n"] == 1
 
 
+@pytest.mark.slow
 def test_intention_model_fine_tuned_on_the_students_rollouts(tmp_path, teacher_dir):
     """``intention_tune.epochs`` > 0: after each DAgger iteration the pretrained intention model is fine-tuned on the
     rollouts so far, the next iteration and the final policy use it, its held-out errors are in the iteration's
