@@ -244,13 +244,17 @@ class FrameStore:
     episode_end: np.ndarray  # F: store index one past the last frame of each frame's episode
     episodes: list[int]  # dataset episode_index of each stored episode, in store order
     episode_slices: list[tuple[int, int]]  # store [start, end) of each stored episode
+    # F x X x Y uint8, only when asked (load_frames(with_seen_now=True)): the "pedestrians now" label of the people
+    # the frame's depth sees (:func:`seen_people`) — what a camera-only model can know of, whatever ``labels`` holds
+    seen_now: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.pose.shape[0]
 
     @property
     def nbytes(self) -> int:
-        return sum(a.nbytes for a in (self.rgb, self.depth, self.pose, self.labels, self.valid))
+        arrays = (self.rgb, self.depth, self.pose, self.labels, self.valid, self.seen_now)
+        return sum(a.nbytes for a in arrays if a is not None)
 
 
 def estimate_bytes(n_frames: int, cameras: list[Camera], grid: BEVGrid, stride: int, targets: int) -> int:
@@ -291,7 +295,7 @@ def decode_video_file(path: Path, expected: dict[int, tuple[float, float, int]],
 
 def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px: int, future_s: list[float],
                 episodes: list[int] | None = None, max_gb: float = 16.0, progress: bool = True,
-                people_label: str = "all") -> FrameStore:
+                people_label: str = "all", with_seen_now: bool = False) -> FrameStore:
     """Loads episodes of a LeRobot dataset into a :class:`FrameStore`.
 
     Args:
@@ -305,6 +309,8 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
         progress: show a progress bar.
         people_label: ``all`` (every person present) or ``seen`` (only the people the frame's depth sees, now and in
             the future targets: :func:`episode_labels`).
+        with_seen_now: also keep :attr:`FrameStore.seen_now`, the "now" label of the seen people (for scoring a
+            model on the people it can see, :mod:`pretrain.evaluate`).
 
     Raises:
         InputMissingError / CorruptArtifactError: see :func:`check_dataset`; a video frame missing or undecodable.
@@ -335,7 +341,7 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
     meta_eps = ds.meta.episodes
     lengths = [int(meta_eps[e]["length"]) for e in eps]
     n = sum(lengths)
-    need = estimate_bytes(n, cameras, grid, lift_stride_px, 2 + len(future_frames))
+    need = estimate_bytes(n, cameras, grid, lift_stride_px, 2 + len(future_frames) + int(with_seen_now))
     if need > max_gb * 1e9:
         raise ConfigError(f"pretraining would hold {need / 1e9:.1f} GB of frames in memory ({n} frames), more than "
                           f"max_ram_gb={max_gb:g}; use fewer episodes or raise max_ram_gb")
@@ -346,13 +352,15 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
         depth=np.zeros((n, len(cameras), h, w), np.float32), pose=np.zeros((n, 3), np.float64),
         labels=np.zeros((n, 2 + len(future_frames), *grid.shape), np.uint8),
         valid=np.zeros((n, 2 + len(future_frames)), bool), episode_start=np.zeros(n, np.int64),
-        episode_end=np.zeros(n, np.int64), episodes=eps, episode_slices=[])
+        episode_end=np.zeros(n, np.int64), episodes=eps, episode_slices=[],
+        seen_now=np.zeros((n, *grid.shape), np.uint8) if with_seen_now else None)
     cols = [OBS_ODOM, PRIV_PED_STATE, PRIV_LOCAL_OCCUPANCY] + [
         depth_key(c.name) for c in cameras]
     hf = ds.hf_dataset.select_columns(cols).with_format("numpy")
     first_of: dict[int, int] = {}
     pos = 0
-    geom = LiftGeometry(cameras, lift_stride_px) if people_label == "seen" else None  # the depth hits of `seen`
+    # the depth hits that decide who is seen
+    geom = LiftGeometry(cameras, lift_stride_px) if people_label == "seen" or with_seen_now else None
     for e, length in tqdm(list(zip(eps, lengths, strict=True)), desc="pretrain: labels", unit="ep",
                           disable=not progress):
         a, b = int(meta_eps[e]["dataset_from_index"]), int(meta_eps[e]["dataset_to_index"])
@@ -365,9 +373,12 @@ def load_frames(root: Path, cameras: list[Camera], grid: BEVGrid, lift_stride_px
                                                lift_stride_px).numpy()
         store.pose[sl] = rows[OBS_ODOM]
         hits = None if geom is None else (lift_evidence(torch.from_numpy(store.depth[sl]), geom, grid)[:, 0] > 0).numpy()
-        store.labels[sl], store.valid[sl] = episode_labels(
-            grid, local_map, rows[PRIV_LOCAL_OCCUPANCY].astype(bool), rows[PRIV_PED_STATE],
-            rows[OBS_ODOM].astype(np.float64), future_frames, hits)
+        label_args = (grid, local_map, rows[PRIV_LOCAL_OCCUPANCY].astype(bool), rows[PRIV_PED_STATE],
+                      rows[OBS_ODOM].astype(np.float64), future_frames)
+        store.labels[sl], store.valid[sl] = episode_labels(*label_args, hits if people_label == "seen" else None)
+        if with_seen_now:
+            store.seen_now[sl] = (store.labels[sl, 1] if people_label == "seen"
+                                  else episode_labels(*label_args[:5], [], hits)[0][:, 1])
         store.episode_start[sl], store.episode_end[sl] = pos, pos + length
         store.episode_slices.append((pos, pos + length))
         first_of[e] = pos

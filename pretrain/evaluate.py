@@ -14,10 +14,11 @@ applied to validation ones — choosing them on the validation episodes and repo
 optimistic.
 
 ``visible_people`` asks how much of the "pedestrians now" error is occlusion: the label marks every person in the
-field of view, also those behind the first row whom no depth ray reaches. A person (a connected blob of the label)
-counts as *seen* when at least one of the frame's measured depth points in the height band falls on it
-(:func:`seen_people_mask`); the cells of unseen people are left out of the IoU (neither a miss nor a false
-alarm), which gives the IoU a camera-only model could reach on the people it can see. Reported beside the plain
+field of view, also those behind the first row whom no depth ray reaches. A person counts as *seen* when at least
+one of the frame's measured depth points in the height band falls on its disc — the rule of the ``seen`` people
+label (:func:`pretrain.data.seen_people`, one definition for training and scoring); the cells of unseen people are
+left out of the IoU (neither a miss nor a false alarm), which gives the IoU a camera-only model could reach on the
+people it can see. Reported beside the plain
 IoU at the same thresholds, with the share of label cells that belong to unseen people.
 """
 
@@ -36,7 +37,7 @@ from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.errors import ConfigError, ICrowdNavError
 from pretrain.checkpoint import load_encoder, load_heads, read_encoder_json
 from pretrain.data import PEOPLE_LABELS, check_dataset, load_frames, make_batches, make_clips
-from pretrain.geometry import check_grid_fits_cameras, lift_evidence
+from pretrain.geometry import check_grid_fits_cameras
 from pretrain.model import TARGETS
 from pretrain.train import forward_batch, iou_counts
 
@@ -160,7 +161,6 @@ def turning_pedestrian_frame(store, slices, fov: np.ndarray, cell_m: float, min_
     """A frame of ``slices`` showing one pedestrian (one connected blob now, at +0.5 s and at +1.0 s, all valid, in
     the field of view) who turns most between the two half-seconds: ``(store index, turn in degrees)``, or None.
     The figure of predicted vs true future occupancy is drawn on it."""
-    from scipy import ndimage
 
     best: tuple[int, float] | None = None
     for a, b in slices:
@@ -185,24 +185,15 @@ def turning_pedestrian_frame(store, slices, fov: np.ndarray, cell_m: float, min_
     return best
 
 
-def seen_people_mask(people: np.ndarray, hits: np.ndarray) -> np.ndarray:
-    """The cells of the people the depth sees: ``people`` ``X x Y`` bool (the "now" label), ``hits`` ``X x Y`` bool
-    (a measured point in the height band) → ``X x Y`` bool, the label's connected blobs (8-neighbourhood) that hold
-    at least one hit."""
-    blobs, n = ndimage.label(people, structure=np.ones((3, 3), bool))
-    if n == 0:
-        return np.zeros_like(people, dtype=bool)
-    seen = np.unique(blobs[people & hits])
-    return np.isin(blobs, seen[seen > 0])
-
-
 class SeenPeopleCounts:
     """The "pedestrians now" IoU with and without the cells of unseen people (module docstring), per threshold,
     accumulated from forward passes made elsewhere: pass it as ``on_batch`` to :func:`episode_counts` /
     :func:`iou_sweep`, then read :meth:`result`."""
 
-    def __init__(self, encoder, store, fov: np.ndarray, thresholds=THRESHOLDS):
-        self.encoder, self.store, self.fov = encoder, store, fov
+    def __init__(self, store, fov: np.ndarray, thresholds=THRESHOLDS):
+        if store.seen_now is None:
+            raise ConfigError("SeenPeopleCounts needs a store loaded with with_seen_now=True")
+        self.store, self.fov = store, fov
         self.cols = [f"{x:g}" for x in thresholds]
         self.th = np.asarray(thresholds, dtype=np.float32)
         self.inter = np.zeros((2, len(self.th)))
@@ -214,11 +205,10 @@ class SeenPeopleCounts:
         prob = torch.sigmoid(logits[:, PEOPLE_NOW]).cpu().numpy()
         people = (labels[:, PEOPLE_NOW] > 0.5).cpu().numpy()
         ok = valid[:, PEOPLE_NOW].cpu().numpy()
-        depth = torch.from_numpy(self.store.depth[batch.targets]).to(logits.device)
-        hits = (lift_evidence(depth, self.encoder.geom, self.encoder.grid)[:, 0] > 0).cpu().numpy()
+        seen_now = self.store.seen_now[batch.targets] > 0
         for p in np.flatnonzero(ok):
             true = people[p] & fov
-            seen = seen_people_mask(true, hits[p])
+            seen = seen_now[p] & true
             keep = fov & ~(true & ~seen)
             self.label_cells += int(true.sum())
             self.unseen_cells += int((true & ~seen).sum())
@@ -272,12 +262,12 @@ def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str =
         raise ConfigError(f"--episodes: {bad or 'none'} not in the dataset's 0..{total - 1}")
     people_label = people_label or desc.get("people_label", "all")
     store = load_frames(dataset, cams, encoder.grid, encoder.cfg.lift_stride_px, desc.get("future_s", [0.5, 1.0]),
-                        episodes=eps, progress=progress, people_label=people_label)
+                        episodes=eps, progress=progress, people_label=people_label, with_seen_now=True)
     pos_weight = None
     mpath = Path(ckpt) / "metrics.json"
     if mpath.is_file():
         pos_weight = json.loads(mpath.read_text()).get("pos_weight")
-    seen = SeenPeopleCounts(encoder, store, fov, thresholds)  # fed by the sweep's forward passes
+    seen = SeenPeopleCounts(store, fov, thresholds)  # fed by the sweep's forward passes
     sweep = iou_sweep(encoder, heads, store, store.episode_slices, fov, thresholds, pos_weight=pos_weight,
                       on_batch=seen)
     visible = seen.result()

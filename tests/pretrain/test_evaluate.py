@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pretrain.evaluate import calibrate, seen_people_mask, turning_pedestrian_frame
+from pretrain.evaluate import calibrate, turning_pedestrian_frame
 
 
 def test_calibrate_picks_the_best_threshold_and_scores_it_on_the_other_fold() -> None:
@@ -42,19 +42,3 @@ def test_turning_pedestrian_frame_finds_the_turn() -> None:
     assert t == 4 and np.isclose(turn, 90.0)
     labels[:, 2, 0:2, 0:2] = True  # a second person everywhere: no frame shows one pedestrian
     assert turning_pedestrian_frame(store, [(0, n)], np.ones((x, y), bool), 0.1, stride=1) is None
-
-
-def test_seen_people_mask_keeps_the_blobs_a_depth_point_falls_on() -> None:
-    """Two people in the label, a hit on one: only that one's blob is seen; a hit on floor beside the other does
-    not make it seen; no people, nothing seen."""
-    people = np.zeros((10, 12), bool)
-    people[1:4, 1:4] = True  # person A
-    people[6:9, 7:10] = True  # person B
-    hits = np.zeros_like(people)
-    hits[2, 2] = True  # on A
-    hits[5, 5] = True  # on nobody
-    seen = seen_people_mask(people, hits)
-    assert seen[1:4, 1:4].all() and not seen[6:9, 7:10].any() and seen.sum() == 9
-    hits[8, 9] = True
-    assert seen_people_mask(people, hits).sum() == 18
-    assert not seen_people_mask(np.zeros_like(people), hits).any()

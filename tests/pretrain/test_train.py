@@ -63,6 +63,13 @@ def test_seen_people_label_is_a_subset_of_everyone(tiny_store, tiny_dataset) -> 
     np.testing.assert_array_equal(seen.valid, store.valid)
     assert not (seen.labels[:, 1:] & ~store.labels[:, 1:]).any()
     assert 0 < seen.labels[:, 1].sum() <= store.labels[:, 1].sum()
+    # the all-people store with the seen people's "now" label beside it (what pretrain.evaluate scores with):
+    # the same rule, so the same cells as the seen label's "now" channel
+    both = load_frames(tiny_dataset.root, cams, cfg.grid, cfg.lift_stride_px, [0.5, 1.0], progress=False,
+                       with_seen_now=True)
+    np.testing.assert_array_equal(both.labels, store.labels)
+    np.testing.assert_array_equal(both.seen_now, seen.labels[:, 1])
+    assert store.seen_now is None and both.nbytes == store.nbytes + both.seen_now.nbytes
     with pytest.raises(ConfigError, match="people_label"):
         load_frames(tiny_dataset.root, cams, cfg.grid, cfg.lift_stride_px, [0.5, 1.0], progress=False,
                     people_label="visible")
