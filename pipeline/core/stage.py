@@ -311,11 +311,13 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
 def _run_body(stage: Stage, cfg: Any, out: Path, mode: str, chash: str, params: dict, inputs: list[FileRecord],
               command: list[str], t0: float) -> tuple[Manifest, bool]:
     """The body in its :class:`OutputDir`, then ``config.yaml`` and ``manifest.json``."""
+    # the code that runs is the code at the start: a run that spans commits must not record a later one
+    commit, dirty = git_info(_CODE_ROOT)
+    chash_code = code_hash(None, stage.code)
     with OutputDir(out, mode) as od:
         log.info("%s: running (mode %s) -> %s", stage.name, mode, out)
         counts = _clean_counts(stage.name, stage.body(cfg, od.path))
         dump_yaml(cfg, od.path / CONFIG_NAME)
-        commit, dirty = git_info(_CODE_ROOT)
         seed = getattr(cfg, "seed", None)
         manifest = Manifest(
             stage=stage.name,
@@ -331,7 +333,7 @@ def _run_body(stage: Stage, cfg: Any, out: Path, mode: str, chash: str, params: 
             versions=collect_versions(),
             duration_s=round(time.monotonic() - t0, 3),
             command=command,
-            code_hash=code_hash(None, stage.code),
+            code_hash=chash_code,
         )
         manifest.write(od.path / MANIFEST_NAME)
     log.info("%s: done in %.1f s -> %s", stage.name, manifest.duration_s, out)

@@ -190,6 +190,22 @@ def test_run_stage_writes_outputs_config_and_manifest(cfg: ToyStageConfig) -> No
     assert sorted(p.name for p in cfg.data_dir.iterdir()) == ["toy"]  # no staging dir left
 
 
+def test_manifest_records_the_code_at_the_start_of_a_run(cfg: ToyStageConfig, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run during which a commit lands (hours of training) records the commit and code hash it started with."""
+    import pipeline.core.stage as stage_mod
+
+    state = {"commit": "a" * 40, "code": "start"}
+    monkeypatch.setattr(stage_mod, "git_info", lambda root: (state["commit"], False))
+    monkeypatch.setattr(stage_mod, "code_hash", lambda root, packages: state["code"])
+
+    def body(c: ToyStageConfig, out: Path) -> dict[str, int]:
+        state.update(commit="b" * 40, code="later")  # what a commit during the run would change
+        return toy_body(c, out)
+
+    m = run_stage(dataclasses.replace(TOY, body=body), cfg)
+    assert m.git_commit == "a" * 40 and m.code_hash == "start"
+
+
 def test_run_stage_twice_is_a_noop(cfg: ToyStageConfig, caplog: pytest.LogCaptureFixture) -> None:
     first = run_stage(TOY, cfg)
     caplog.set_level(logging.INFO, logger="icrowdnav")
