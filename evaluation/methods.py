@@ -87,6 +87,16 @@ _REGISTERED: dict[str, Callable[[Path], MethodSpec]] = {}
 METHOD_NAMES = tuple(_BUILTIN)
 
 
+def method_label(name: str) -> tuple[str, bool]:
+    """The label of a method name and whether it is an upper reference, without its checkpoint (a built-in, a learned
+    baseline; any other name is its own label, a competitor)."""
+    if name in _BUILTIN:
+        return _BUILTIN[name][0], _BUILTIN[name][3]
+    if name in BASELINES:
+        return BASELINES[name].label, False
+    return name, False
+
+
 def register_method(name: str, make_spec: Callable[[Path], MethodSpec], make_driver=None, kind: str | None = None):
     """Adds a method: ``make_spec(data_dir)`` returns its spec; ``make_driver(spec)`` (for a new ``kind``) its
     driver."""
