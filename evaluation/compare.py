@@ -57,6 +57,21 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
     return rows
 
 
+def read_protocol(run: Path) -> list[dict[str, Any]]:
+    """The benchmark episodes an eval run ran (``seeds.json``: per episode its ``seed``, ``goal``, ``trial`` and
+    ``scene_seed``)."""
+    path = Path(run) / "seeds.json"
+    try:
+        eps = json.loads(path.read_text())["benchmark"]["episodes"]
+        if not isinstance(eps, list) or not all(isinstance(e, dict) and "seed" in e for e in eps):
+            raise TypeError("benchmark.episodes is not a list of episodes with a seed")
+        return eps
+    except FileNotFoundError:
+        raise InputMissingError(f"{path}: missing (an eval run's seeds say which episodes it ran)") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise CorruptArtifactError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
+
+
 def compare(a: list[dict[str, Any]], b: list[dict[str, Any]], labels: tuple[str, str]) -> dict[str, Any]:
     """``a`` (labelled ``labels[0]``, the reference) against ``b`` on their common (scene, density, seed)."""
     if labels[0] == labels[1]:

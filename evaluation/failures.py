@@ -27,7 +27,6 @@ layout is rebuilt from the run's scene, scene seed and crowd seed; a trace whose
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from collections import Counter
@@ -39,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.compare import read_rows
+from evaluation.compare import read_protocol, read_rows
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import from_dict, read_yaml_mapping
 from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
@@ -151,14 +150,7 @@ class Layouts:
                              str(self.run / "config.yaml"))
         cam = self.sim.camera
         self.view_deg = abs(cam.yaw_deg) + cam.hfov_deg / 2.0  # the two mirrored cameras' joint field of view
-        path = self.run / "seeds.json"
-        try:
-            eps = json.loads(path.read_text())["benchmark"]["episodes"]
-            self.scene_seeds = {int(e["seed"]): e.get("scene_seed") for e in eps}
-        except FileNotFoundError:
-            raise InputMissingError(f"{path}: missing (the run's seeds are needed to rebuild its layouts)") from None
-        except (json.JSONDecodeError, KeyError, TypeError) as e:
-            raise CorruptArtifactError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
+        self.scene_seeds = {int(e["seed"]): e.get("scene_seed") for e in read_protocol(self.run)}
 
     @contextmanager
     def env(self, row: dict[str, Any], trace: EpisodeTrace) -> Iterator[Any]:

@@ -23,11 +23,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from evaluation.compare import read_rows
+from evaluation.compare import read_protocol, read_rows
 from evaluation.methods import method_label
 from evaluation.report import paired, paired_pooled, plot_sr, report_markdown, results, results_csv
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
-from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
+from pipeline.core.errors import ConfigError, ICrowdNavError
 
 
 def parse_run(arg: str) -> tuple[Path, str | None]:
@@ -39,14 +39,7 @@ def parse_run(arg: str) -> tuple[Path, str | None]:
 
 
 def _protocol(run: Path) -> list[tuple[Any, ...]]:
-    path = run / "seeds.json"
-    try:
-        eps = json.loads(path.read_text())["benchmark"]["episodes"]
-        return sorted((int(e["seed"]), e.get("scene_seed")) for e in eps)
-    except FileNotFoundError:
-        raise InputMissingError(f"{path}: missing (an eval run's seeds say which episodes it ran)") from None
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise CorruptArtifactError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
+    return sorted((int(e["seed"]), e.get("scene_seed")) for e in read_protocol(run))
 
 
 def _renamed(rows: list[dict[str, Any]], run: Path, name: str | None) -> list[dict[str, Any]]:
