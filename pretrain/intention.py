@@ -740,14 +740,11 @@ def finetune_forecaster(pretrained: Path, roots: list[Path], out: Path, opt: Fit
     fit_model(model, train, val, opt, device)
     model.requires_grad_(False)
     preds = {"cv": predict(None, val, horizons_s=hz), "pretrained": before, "tuned": predict(model, val, device)}
-    i1 = int(np.argmin(np.abs(np.asarray(hz) - 1.0)))
-    turn = val["turn"].astype(bool)
-    errors = {}
-    for name, p in preds.items():
-        e = np.linalg.norm(p - val["target"], axis=-1)[:, i1]
-        errors[name] = {"fde_1s_m": round(float(e.mean()), 4),
-                        "fde_1s_turns_m": round(float(e[turn].mean()), 4) if turn.any() else None}
-    result = {"train_samples": len(train["speed"]), "val_samples": len(val["speed"]), "val_turns": int(turn.sum()),
+    res = evaluate(preds, val, hz, n_boot=0, seed=opt.seed)["results"]
+    errors = {name: {key: None if math.isnan(r[group]["fde_1s_m"]) else round(r[group]["fde_1s_m"], 4)
+                     for key, group in (("fde_1s_m", "all"), ("fde_1s_turns_m", "turns"))} for name, r in res.items()}
+    result = {"train_samples": len(train["speed"]), "val_samples": len(val["speed"]),
+              "val_turns": int(val["turn"].astype(bool).sum()),
               "train_episodes": len(train_eps), "val_episodes": len(val_eps), "epochs": opt.epochs, "lr": opt.lr,
               "seconds": round(time.monotonic() - t, 1), "val": errors}
     write_forecaster_checkpoint(Path(out), model, position, fps,

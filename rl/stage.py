@@ -512,8 +512,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                                 map_heads=load_student_heads(cfg.variant, cfg.head, cfg.map_cost, enc_dir, encoder))
     space = observer.observation_space
     net = student_net(cfg, observer.grid)
-    extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir),
-             "intention": str(int_dir) if int_dir else None}
+    extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir)}
     pairs = [(s, float(x)) for s in d.scenes for x in d.densities]
     n_rot = cfg.sim.robot.n_rotations  # yaw rates of the action grid (mirroring reverses them)
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
@@ -537,7 +536,6 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             if tune and "skipped" not in info.get("intention_tune", {"skipped": ""}):
                 int_dir = it / "intention"
                 load_forecaster(int_dir)  # missing or corrupt: one error naming it (delete the iteration to redo it)
-                extra["intention"] = str(int_dir)
             continue
         beta = d.beta0 * d.beta_decay ** k
         student_dir = out / "dagger" / f"iter_{k - 1}" / "policy" if k > 0 else None
@@ -550,18 +548,10 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 for e in range(d.episodes_per_iter)]
         rows = run_iteration(it, jobs, cfg.workers, cfg.progress, Executor.of(cfg))
         counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress)
-        tuned = None
-        if tune:  # the intention model on this student's rollouts so far, from the pretrained weights every time
-            tuned = _tune_intention(cfg, out, k, device)
-            if "skipped" not in tuned:
-                int_dir = it / "intention"
-                extra["intention"] = str(int_dir)
+        # the intention model on this student's rollouts so far, from the pretrained weights every time
+        tuned = _tune_intention(cfg, out, k, device) if tune else None
         if tuned and "skipped" not in tuned:
-            v = tuned["val"]
-            log.info("student %s iteration %d: intention model fine-tuned on %d samples, held-out FDE@1 s %.3f -> "
-                     "%.3f m (turns %s -> %s m)", cfg.variant, k, tuned["train_samples"],
-                     v["pretrained"]["fde_1s_m"], v["tuned"]["fde_1s_m"], v["pretrained"]["fde_1s_turns_m"],
-                     v["tuned"]["fde_1s_turns_m"])
+            int_dir = it / "intention"
         new = load_features([it])
         data = load_features([out / "dagger" / f"iter_{j}" for j in range(k + 1)])
         if k == 0 and "bev" in space.spaces:
@@ -605,6 +595,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 "dataset": str(it / "dataset"), "dataset_frames": counts["frames"], **soft_ce,
                 **({"linear_fit": linear_fit} if linear_fit else {}), **({"intention_tune": tuned} if tuned else {})}
         save_policy(it / "policy", policy, describe("student", cfg.variant, space, net, **extra,
+                                                    intention=str(int_dir) if int_dir else None,
                                                     produced_by={"dagger_iterations": k + 1,
                                                                  "dagger_frames": frames_total}))
         write_done(it, info)
@@ -619,7 +610,8 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         policy, steps, rate = _finetune(cfg, out, policy, net, pairs, enc_dir, device, int_dir)
         produced["ppo_finetune_steps"] = steps
         summary["finetune"] = {"steps": steps, "steps_per_s": rate}
-    save_policy(out, policy, describe("student", cfg.variant, space, net, **extra, produced_by=produced))
+    save_policy(out, policy, describe("student", cfg.variant, space, net, **extra,
+                                      intention=str(int_dir) if int_dir else None, produced_by=produced))
     return summary
 
 
@@ -630,12 +622,17 @@ def _tune_intention(cfg: TrainConfig, out: Path, k: int, device: torch.device) -
     tc = cfg.intention_tune
     roots = [out / "dagger" / f"iter_{j}" / "dataset" for j in range(k + 1)]
     try:
-        return finetune_forecaster(intention_dir(cfg), roots, out / "dagger" / f"iter_{k}" / "intention",
-                                   FitOptions(tc.epochs, tc.batch, tc.lr, tc.pose_dropout, tc.head_aux_weight,
-                                              cfg.seed + k), tc.val_fraction, device)
+        tuned = finetune_forecaster(intention_dir(cfg), roots, out / "dagger" / f"iter_{k}" / "intention",
+                                    FitOptions(tc.epochs, tc.batch, tc.lr, tc.pose_dropout, tc.head_aux_weight,
+                                               cfg.seed + k), tc.val_fraction, device)
     except InputMissingError as e:
         log.warning("student %s iteration %d: intention model not fine-tuned: %s", cfg.variant, k, e)
         return {"skipped": str(e)}
+    v = tuned["val"]
+    log.info("student %s iteration %d: intention model fine-tuned on %d samples, held-out FDE@1 s %.3f -> %.3f m "
+             "(turns %s -> %s m)", cfg.variant, k, tuned["train_samples"], v["pretrained"]["fde_1s_m"],
+             v["tuned"]["fde_1s_m"], v["pretrained"]["fde_1s_turns_m"], v["tuned"]["fde_1s_turns_m"])
+    return tuned
 
 
 def inherit_linear_cost(policy, teacher_dir: Path) -> None:
