@@ -30,9 +30,8 @@ import argparse
 import math
 import sys
 from collections import Counter
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -101,25 +100,23 @@ def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: f
         rows = [r for r in rows if r.get("method") == method]
         if not rows:
             raise InputMissingError(f"{run}: no episode of method {method!r}")
-    records, counts, layouts = [], {}, None
-    for r in rows:
-        cell = f"{r['scene']}@{float(r['density']):g}"
-        c = counts.setdefault(r["method"], {}).setdefault(cell, Counter())
-        c["episodes"] += 1
-        if r["success"]:
-            continue
-        trace = _load_trace(trace_path(run, r))
-        info = classify(trace, near_m, tail_s)
-        c[info["cause"]] += 1
-        if trace.outcome == "collision_obstacle":
-            if layouts is None:
-                layouts = Layouts(run)
-            with layouts.env(r, trace) as u:
-                info["hit_bearing_deg"] = hit_bearing(u.layout, trace.robot_pose[-1])
-            info["hit_in_view"] = abs(info["hit_bearing_deg"]) <= layouts.view_deg
-            c["obstacle_hits_out_of_view"] += int(not info["hit_in_view"])
-        records.append({"method": r["method"], "scene": r["scene"], "density": r["density"], "seed": r["seed"],
-                        **info})
+    records, counts = [], {}
+    with Layouts(run) as layouts:
+        for r in rows:
+            cell = f"{r['scene']}@{float(r['density']):g}"
+            c = counts.setdefault(r["method"], {}).setdefault(cell, Counter())
+            c["episodes"] += 1
+            if r["success"]:
+                continue
+            trace = _load_trace(trace_path(run, r))
+            info = classify(trace, near_m, tail_s)
+            c[info["cause"]] += 1
+            if trace.outcome == "collision_obstacle":
+                info["hit_bearing_deg"] = hit_bearing(layouts.layout(r, trace), trace.robot_pose[-1])
+                info["hit_in_view"] = abs(info["hit_bearing_deg"]) <= layouts.view_deg
+                c["obstacle_hits_out_of_view"] += int(not info["hit_in_view"])
+            records.append({"method": r["method"], "scene": r["scene"], "density": r["density"], "seed": r["seed"],
+                            **info})
     return {"run": str(run), "near_m": near_m, "tail_s": tail_s,
             "counts": {m: {cell: dict(c) for cell, c in cs.items()} for m, cs in counts.items()},
             "failures": records}
@@ -142,57 +139,78 @@ def markdown(res: dict[str, Any]) -> str:
 
 class Layouts:
     """The episodes of an eval run rebuilt from its sim config, scene seeds and crowd seeds (state mode: no
-    rendering), checked against their traces' start and goal."""
+    rendering; one env per cell, reset per episode), checked against their traces' start and goal. The run's config
+    and seeds are read on first use; a context manager (the envs are closed on exit)."""
 
     def __init__(self, run: Path) -> None:
         self.run = Path(run)
-        self.sim = from_dict(SimConfig, read_yaml_mapping(self.run / "config.yaml", "eval config").get("sim", {}),
-                             str(self.run / "config.yaml"))
-        cam = self.sim.camera
-        self.view_deg = abs(cam.yaw_deg) + cam.hfov_deg / 2.0  # the two mirrored cameras' joint field of view
-        self.scene_seeds = {int(e["seed"]): e.get("scene_seed") for e in read_protocol(self.run)}
+        self._envs: dict[tuple[str, float], CrowdNavEnv] = {}
 
-    @contextmanager
-    def env(self, row: dict[str, Any], trace: EpisodeTrace) -> Iterator[Any]:
-        """The reset env (unwrapped) of ``row``'s episode; its start and goal must be the trace's."""
-        env = CrowdNavEnv(config=replace(self.sim, scene=row["scene"], scenario="", density=float(row["density"]),
-                                         obs_mode="state"))
-        try:
-            seed = self.scene_seeds.get(int(row["seed"]))
-            env.reset(seed=int(row["seed"]), options=None if seed is None else {"scene_seed": int(seed)})
-            u = env.unwrapped
-            if not (np.allclose(u.goal, trace.goal_xy, atol=1e-6) and np.allclose(u.robot[:2], trace.start_xy,
-                                                                                 atol=1e-6)):
-                raise CorruptArtifactError(f"{trace_path(self.run, row)}: its start and goal are not those of scene "
-                                           f"{row['scene']!r} with seed {row['seed']} today (scene files changed "
-                                           "since the run?)")
-            yield u
-        finally:
+    @cached_property
+    def sim(self) -> SimConfig:
+        return from_dict(SimConfig, read_yaml_mapping(self.run / "config.yaml", "eval config").get("sim", {}),
+                         str(self.run / "config.yaml"))
+
+    @cached_property
+    def view_deg(self) -> float:
+        """The two mirrored cameras' joint field of view: |bearing| up to this is seen."""
+        return abs(self.sim.camera.yaw_deg) + self.sim.camera.hfov_deg / 2.0
+
+    @cached_property
+    def scene_seeds(self) -> dict[int, int | None]:
+        return {int(e["seed"]): e.get("scene_seed") for e in read_protocol(self.run)}
+
+    def __enter__(self) -> Layouts:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for env in self._envs.values():
             env.close()
+        self._envs.clear()
+
+    def env(self, row: dict[str, Any], trace: EpisodeTrace) -> Any:
+        """The env (unwrapped) reset to ``row``'s episode; its start and goal must be the trace's."""
+        key = (row["scene"], float(row["density"]))
+        if key not in self._envs:
+            self._envs[key] = CrowdNavEnv(config=replace(self.sim, scene=key[0], scenario="", density=key[1],
+                                                         obs_mode="state"))
+        seed = self.scene_seeds.get(int(row["seed"]))
+        self._envs[key].reset(seed=int(row["seed"]), options=None if seed is None else {"scene_seed": int(seed)})
+        u = self._envs[key].unwrapped
+        if not (np.allclose(u.goal, trace.goal_xy, atol=1e-6) and np.allclose(u.robot[:2], trace.start_xy,
+                                                                             atol=1e-6)):
+            raise CorruptArtifactError(f"{trace_path(self.run, row)}: its start and goal are not those of scene "
+                                       f"{row['scene']!r} with seed {row['seed']} today (scene files changed since "
+                                       "the run?)")
+        return u
+
+    def layout(self, row: dict[str, Any], trace: EpisodeTrace) -> Any:
+        """The static world of ``row``'s episode (:meth:`env`)."""
+        return self.env(row, trace).layout
 
 
 def draw(run: Path, res: dict[str, Any], out: Path, per_cause: int) -> list[Path]:
     """The first ``per_cause`` failures of each cause (in run order), drawn at their end (module docstring)."""
-    layouts = Layouts(run)
-    cam = layouts.sim.camera
     written, seen = [], Counter()
-    for f in res["failures"]:
-        k = seen[f["cause"]]
-        if k >= per_cause:
-            continue
-        seen[f["cause"]] += 1
-        trace = _load_trace(trace_path(run, f))
-        with layouts.env(f, trace) as u:
+    with Layouts(run) as layouts:
+        cam = layouts.sim.camera
+        for f in res["failures"]:
+            k = seen[f["cause"]]
+            if k >= per_cause:
+                continue
+            seen[f["cause"]] += 1
+            trace = _load_trace(trace_path(run, f))
+            obstacles = layouts.layout(f, trace).obstacles
             end = trace.robot_pose[-1]
             t_end = len(trace.robot_pose) - 1
             path = plot_episode_topdown(
-                u.layout.obstacles, trace, out / "figures" / f"{f['cause']}_{k}.png",
+                obstacles, trace, out / "figures" / f"{f['cause']}_{k}.png",
                 bounds=(end[0] - 3.0, end[0] + 3.0, end[1] - 3.0, end[1] + 3.0),
                 camera_yaws_deg=(cam.yaw_deg, -cam.yaw_deg), camera_hfov_deg=cam.hfov_deg,
                 snapshot_steps=[max(0, t_end - round(1.0 / trace.dt_s)), t_end],
                 title=f"{f['method']}: {f['cause']} (nearest person {f['nearest_person_m']:.2f} m"
                       + (f", obstacle at {f['hit_bearing_deg']:+.0f}°)" if "hit_bearing_deg" in f else ")"))
-        written.append(path)
+            written.append(path)
     return written
 
 
