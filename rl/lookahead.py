@@ -50,6 +50,8 @@ NEAR_GOAL_M = 0.5  # closer than this to the goal, the cost rewards reaching it 
 N_MAP = 4  # occupancy-map features per action (LookaheadHead.map_features)
 MAP_KEYS = ("bev_occ", "occ")  # the maps the head can read: the BEV's predicted occupancy, the depth occupancy
 MAP_PED_TIMES_S = (0.0, 0.5, 1.0)  # the times of the people channels 1.. of a ``bev_occ`` map (pretrain.model.TARGETS)
+SHIELD_MARGIN_M = 0.02  # the obstacle shield: an arc closer than this to the scan within ``shield_s`` is inadmissible
+SHIELD_NATS_PER_M = 1000.0  # ... and its logit is lowered by this many nats per metre of predicted intrusion
 
 
 def lookahead_times(dt_s: float) -> torch.Tensor:
@@ -109,13 +111,21 @@ class LookaheadHead(nn.Module):
             ``C x X x Y`` over ``map_bounds``; channel 0 static, channels 1.. people at :data:`MAP_PED_TIMES_S`);
             ``None`` = no map features (the teacher; students trained before the option).
         map_bounds: ``((x_min, x_max), (y_min, y_max))`` of the map (m, robot frame; the BEV grid).
+        shield_s: the obstacle shield's horizon (s; 0 = off). An action whose arc comes closer than
+            :data:`SHIELD_MARGIN_M` to the scan's obstacles at a lookahead time up to ``shield_s`` is inadmissible, as
+            in DWA's admissible velocities: its logit is lowered by :data:`SHIELD_NATS_PER_M` nats per metre of
+            predicted intrusion, so it is chosen only when every action intrudes (then the least intruding). The
+            robot can always stop or turn on the spot, so a predicted obstacle contact is the cost's choice, not
+            forced: docs/results.md ("Why they fail") found the students choosing arcs they predicted to hit.
     """
 
     def __init__(self, observation_space: gym.spaces.Dict, robot: dict[str, Any] | None, dt_s: float,
                  path_spacing_m: float, base_dim: int, score_dim: int, context_dim: int, *, subgoal: bool,
                  scan_range_m: float, heading: str = "end", scorer_bound: float | None = None,
-                 map_key: str | None = None, map_bounds: Any = None) -> None:
+                 map_key: str | None = None, map_bounds: Any = None, shield_s: float = 0.0) -> None:
         super().__init__()
+        if not (math.isfinite(float(shield_s)) and 0.0 <= float(shield_s) <= LOOKAHEAD_HORIZON_S):
+            raise ConfigError(f"lookahead shield_s: expected 0 (off) .. {LOOKAHEAD_HORIZON_S} s, got {shield_s!r}")
         if heading not in HEADING_MODES:
             raise ConfigError(f"lookahead heading: expected one of {list(HEADING_MODES)}, got {heading!r}")
         if map_key is not None and map_key not in MAP_KEYS:
@@ -133,6 +143,7 @@ class LookaheadHead(nn.Module):
         self.n_actions = len(grid)
         times = lookahead_times(dt_s)
         arcs, end = unicycle_arcs(grid, times)
+        self.shield_steps = int((times <= float(shield_s) + 1e-6).sum()) if shield_s else 0
         self.register_buffer("grid_norm", grid / grid.new_tensor([rc.v_max_mps, rc.omega_max_radps]), persistent=False)
         self.register_buffer("times", times, persistent=False)
         self.register_buffer("arcs", arcs, persistent=False)  # A x S x 2
@@ -204,7 +215,17 @@ class LookaheadHead(nn.Module):
         learned = self.scorer(torch.cat([feats, ctx], -1))
         if self.scorer_bound:  # c · tanh(x / c): the learned part may re-rank actions, not override predicted contacts
             learned = self.scorer_bound * torch.tanh(learned / self.scorer_bound)
-        return (SCORE_SCALE * self.fitted_cost(feats) + learned).squeeze(-1)
+        logits = (SCORE_SCALE * self.fitted_cost(feats) + learned).squeeze(-1)
+        if self.shield_steps:
+            logits = logits - SHIELD_NATS_PER_M * self.shield_intrusion(feats)
+        return logits
+
+    def shield_intrusion(self, feats: torch.Tensor) -> torch.Tensor:
+        """``B x A`` (m): how far each action's arc comes inside :data:`SHIELD_MARGIN_M` of the scan's obstacles at
+        the lookahead times up to ``shield_s`` (0 = admissible), from the obstacle clearances of ``feats``."""
+        s = len(self.times)
+        obs_min = feats[..., s:2 * s][..., :self.shield_steps]
+        return (SHIELD_MARGIN_M - obs_min.amin(-1)).clamp_min(0.0)
 
     def fitted_cost(self, feats: torch.Tensor) -> torch.Tensor:
         """``B x A x 1``: the linear cost over the last :data:`N_LINEAR` features, plus the map cost over the

@@ -76,7 +76,9 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
         ext: dict[str, Any] = {"scan_range_m": net.get("scan_range_m", 10.0)}
         pi = list(net.get("pi", [256, 256]))
         if encoder == "lookahead":  # the extractor scores the actions; the actor head only reads the scores
-            ext.update({k: net[k] for k in ("robot", "dt_s", "path_spacing_m", "score_dim", "context_dim", "heading") if k in net})
+            ext.update({k: net[k] for k in ("robot", "dt_s", "path_spacing_m", "score_dim", "context_dim", "heading",
+                                        "shield_s")
+                        if k in net})
             pi = []
         return {"features_extractor_class": teacher_extractor_class(encoder),
                 "features_extractor_kwargs": ext,
@@ -87,7 +89,7 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
     cls: type = StudentExtractor
     if net.get("head", "mlp") == "lookahead":  # the extractor scores the actions (rl.networks.StudentLookaheadExtractor)
         ext.update({k: net[k] for k in ("robot", "dt_s", "scan_range_m", "score_dim", "context_dim", "scorer_bound",
-                                        "heading", "map_cost", "map_bounds") if k in net})
+                                        "heading", "map_cost", "map_bounds", "shield_s") if k in net})
         cls, pi = StudentLookaheadExtractor, []
     return {"features_extractor_class": cls,
             "features_extractor_kwargs": {"variant": variant, **ext},

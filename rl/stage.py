@@ -77,6 +77,7 @@ from rl.callbacks import checkpoint_callback, progress_callback
 from rl.dagger import bev_stats, export_iteration, load_features, run_iteration, write_done
 from rl.evaluate import evaluate, success_table
 from rl.figures import plot_learning_curve, plot_training
+from rl.lookahead import LOOKAHEAD_HORIZON_S
 from rl.networks import STUDENT_HEADS, VARIANTS
 from rl.observe import (
     StudentEnv,
@@ -226,6 +227,9 @@ class TrainConfig(BaseStageConfig):
     # paper's MLP head on z alone (why the default differs: docs/notes/2026-11-paper-mlp-head-student.md)
     head: str = "lookahead"
     scorer_bound: float = 3.0  # lookahead head: its learned correction is bounded to ± this many nats (0 = unbounded)
+    # lookahead head: the obstacle shield's horizon in s (0 = off): an action whose arc is predicted to come within
+    # 2 cm of the perceived obstacles by then is chosen only if every action is (rl.lookahead.LookaheadHead)
+    shield_s: float = 0.0
     # lookahead head: also sample an occupancy map along every arc, weighted by a convex-fitted cost (rl.lookahead):
     # the pretrained BEV's predicted occupancy (static, people now / +0.5 s / +1.0 s) for full and no_i2, the depth
     # occupancy (the w/o BEV substitute) for no_bev; the mlp head has no costs and ignores it
@@ -281,6 +285,8 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError(f"train.head: expected one of {list(STUDENT_HEADS)}, got {self.head!r}")
         if self.scorer_bound < 0:
             raise ConfigError(f"train.scorer_bound: expected >= 0, got {self.scorer_bound}")
+        if not 0.0 <= self.shield_s <= LOOKAHEAD_HORIZON_S:
+            raise ConfigError(f"train.shield_s: expected 0 (off) .. {LOOKAHEAD_HORIZON_S} s, got {self.shield_s}")
         if d.linear_cost not in ("teacher", "fit"):
             raise ConfigError(f"train.dagger.linear_cost: expected 'teacher' or 'fit', got {d.linear_cost!r}")
         if not (0 <= d.beta0 <= 1 and 0 <= d.beta_decay <= 1):
@@ -661,6 +667,8 @@ def student_net(cfg: TrainConfig, grid: BEVGrid) -> dict[str, Any]:
     if cfg.head == "lookahead":
         net.update({"robot": asdict(cfg.sim.robot), "dt_s": cfg.sim.dt_s, "scan_range_m": cfg.sim.scan_range_m,
                     "scorer_bound": cfg.scorer_bound, "heading": teacher_heading(policy_root(cfg) / "teacher")})
+        if cfg.shield_s:
+            net["shield_s"] = cfg.shield_s
         if cfg.map_cost:
             net.update({"map_cost": True, "map_bounds": [list(map(float, b[:2])) for b in (grid.x_bound, grid.y_bound)]})
     return net

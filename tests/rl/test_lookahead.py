@@ -8,8 +8,8 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from pipeline.core.errors import CorruptArtifactError
-from rl.lookahead import N_LINEAR, unicycle_arcs
+from pipeline.core.errors import ConfigError, CorruptArtifactError
+from rl.lookahead import N_LINEAR, SHIELD_NATS_PER_M, unicycle_arcs
 from rl.networks import LookaheadTeacherExtractor
 from rl.policy import (
     POLICY_WEIGHTS,
@@ -203,3 +203,28 @@ def test_best_heading_prefers_the_turn_towards_the_route(space):
     torch.testing.assert_close(fs[N_ROT:, err], fe[N_ROT:, err])
     with pytest.raises(ConfigError, match="heading"):
         build_policy("teacher", None, space, teacher_net({"encoder": "lookahead", "heading": "sideways"}, SIM))
+
+
+def test_obstacle_shield_lowers_exactly_the_arcs_predicted_to_hit(space):
+    """With ``shield_s`` the head lowers the logit of every action whose arc comes within the margin of the scan's
+    obstacles by then (a wall 0.6 m ahead: the fast straight arcs), leaves the others (standing still, turning on
+    the spot) as they were, and is off by default; an out-of-range horizon is one ConfigError."""
+    torch.manual_seed(0)
+    plain = build_policy("teacher", None, space, teacher_net({"encoder": "lookahead"}, SIM))
+    torch.manual_seed(0)
+    shielded = build_policy("teacher", None, space, {**teacher_net({"encoder": "lookahead"}, SIM), "shield_s": 0.6})
+    shielded.load_state_dict(plain.state_dict())
+    head = shielded.features_extractor.lookahead
+    obs = _obs(scan_m=0.6)
+    feats = head.action_features(obs)
+    intr = head.shield_intrusion(feats)[0]
+    straight_fast = 4 * N_ROT + N_ROT // 2
+    assert intr[straight_fast] > 0.1 and intr[:N_ROT].abs().max() == 0  # v = 0: no intrusion
+    a = plain.features_extractor(obs)[0, :head.n_actions]
+    b = shielded.features_extractor(obs)[0, :head.n_actions]
+    torch.testing.assert_close(a - b, SHIELD_NATS_PER_M * intr)
+    assert int(b.argmax()) not in torch.nonzero(intr > 0).flatten().tolist()
+    free = _obs()  # nothing near: the shield changes nothing
+    torch.testing.assert_close(plain.features_extractor(free), shielded.features_extractor(free))
+    with pytest.raises(ConfigError, match="shield_s"):
+        build_policy("teacher", None, space, {**teacher_net({"encoder": "lookahead"}, SIM), "shield_s": 5.0})
