@@ -69,7 +69,7 @@ _DRIVERS: dict[str, Any] = {}
 
 
 def _driver(spec: MethodSpec):
-    key = f"{spec.name}:{spec.checkpoint}"
+    key = f"{spec.name}:{spec.checkpoint}:{spec.shield_s}"
     if key not in _DRIVERS:  # one driver per method and checkpoint per process (weights loaded once)
         _DRIVERS[key] = spec.driver()
     return _DRIVERS[key]

@@ -64,6 +64,7 @@ from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_s
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
 from pipeline.core.executor import Executor, check_executor
+from rl.lookahead import LOOKAHEAD_HORIZON_S
 from rl.policy import check_checkpoint_weights
 from sim.env import CrowdNavEnv, SimConfig
 from sim.planners.topomap import build_gvg, plot_topomap
@@ -105,6 +106,9 @@ class EvalConfig(BaseStageConfig):
                                  metadata={"help": "scenario files (sim/scenarios/ or paths) every method runs"})
     scenario_trials: int = field(default=3, metadata={"help": "seeded episodes per scenario and method"})
     paired_with: str = field(default="full", metadata={"help": "the method every other is paired against"})
+    shield_s: float | None = field(default=None, metadata={
+        "help": "the saved policies' obstacle shield horizon in s instead of their own (rl.lookahead; 0 = off, "
+                "none = as saved): ablate or add the shield without retraining"})
     seed_base: int = field(default=20_000, metadata={"help": "episode seeds are seed_base + seed + k"})
     workers: int = 2
     executor: str = field(default="auto", metadata={"help": "where episodes run: auto (Ray when RAY_ADDRESS is set) "
@@ -127,6 +131,10 @@ class EvalConfig(BaseStageConfig):
         check_run_name(self.run_name)
         if not self.scenes:
             raise ConfigError("eval.scenes: expected at least one scene")
+        if self.shield_s is not None and not (isinstance(self.shield_s, (int, float))
+                                              and 0.0 <= self.shield_s <= LOOKAHEAD_HORIZON_S):
+            raise ConfigError(f"eval.shield_s: expected none or 0 (off) .. {LOOKAHEAD_HORIZON_S} s, got "
+                              f"{self.shield_s!r}")
         for k in ("goals", "trials"):
             if not isinstance(getattr(self, k), int) or not 1 <= getattr(self, k) <= 10_000:
                 raise ConfigError(f"eval.{k}: expected an integer in [1, 10000], got {getattr(self, k)!r}")
@@ -159,7 +167,7 @@ def output_dir(cfg: EvalConfig) -> Path:
 
 
 def inputs(cfg: EvalConfig) -> list[Path]:
-    specs = resolve_methods(cfg.methods, Path(cfg.data_dir))  # unknown / missing -> one clear error, nothing written
+    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s)  # unknown / missing -> one error
     for m in specs:  # a damaged or non-finite checkpoint: one error naming the file, before any episode (or MCAP)
         if m.checkpoint is not None:
             check_checkpoint_weights(m.checkpoint)
@@ -245,7 +253,7 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
 
 
 def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
-    specs = resolve_methods(cfg.methods, Path(cfg.data_dir))
+    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s)
     labels = {m.name: m.label for m in specs}
     seeds = seeds_of(cfg)
     rows = run_jobs_cached(benchmark_jobs(cfg, specs, out), out / "rows", cfg.workers, "eval: benchmark", cfg.progress,

@@ -35,12 +35,13 @@ def process_cached(key: str, make: Callable[[], Any]) -> Any:
     return _CACHE[key]
 
 
-def cached_policy(path: Path | None):
-    """The policy saved in ``path`` (None for None), loaded once per process and file version."""
+def cached_policy(path: Path | None, shield_s: float | None = None):
+    """The policy saved in ``path`` (None for None), loaded once per process, file version and ``shield_s``
+    (:func:`rl.policy.load_policy`)."""
     if path is None:
         return None
-    return process_cached(f"policy:{path}:{os.path.getmtime(Path(path) / 'policy.safetensors')}",
-                          lambda: load_policy(path)[0])
+    return process_cached(f"policy:{path}:{os.path.getmtime(Path(path) / 'policy.safetensors')}:{shield_s}",
+                          lambda: load_policy(path, shield_s)[0])
 
 
 def cached_student_encoder(variant: str, encoder_ckpt: Path | str | None, device: str = "cpu"):
@@ -67,9 +68,9 @@ def cached_student_forecaster(variant: str, head: str, intention_ckpt: Path | st
 class PolicyDriver:
     """A saved teacher or student policy (``policy.json`` kind ``teacher`` | ``student``) as a driver."""
 
-    def __init__(self, ckpt: Path) -> None:
+    def __init__(self, ckpt: Path, shield_s: float | None = None) -> None:
         torch.set_num_threads(1)
-        self.policy = cached_policy(ckpt)
+        self.policy = cached_policy(ckpt, shield_s)
         self.desc = read_policy_json(ckpt)
         self.student = self.desc["kind"] == "student"
         self.encoder = cached_student_encoder(self.desc["variant"], self.desc.get("encoder")) if self.student else None

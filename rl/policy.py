@@ -162,8 +162,10 @@ def upgrade_state_dict(sd: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {_PRE_HEAD_KEY.sub(r"\1lookahead.\2.", k): v for k, v in sd.items()}
 
 
-def load_policy(ckpt: Path) -> tuple[ActorCriticPolicy, dict[str, Any]]:
-    """The policy saved in ``ckpt`` (eval mode) and its description.
+def load_policy(ckpt: Path, shield_s: float | None = None) -> tuple[ActorCriticPolicy, dict[str, Any]]:
+    """The policy saved in ``ckpt`` (eval mode) and its description. ``shield_s``: the lookahead head's obstacle
+    shield horizon instead of the saved one (:class:`rl.lookahead.LookaheadHead`; it has no weights, so any
+    lookahead checkpoint can be evaluated with or without it; ignored by other heads); None = as saved.
 
     Raises:
         InputMissingError: the directory or a file is missing. CorruptArtifactError: unreadable or mismatching.
@@ -172,6 +174,8 @@ def load_policy(ckpt: Path) -> tuple[ActorCriticPolicy, dict[str, Any]]:
 
     ckpt = Path(ckpt)
     desc = read_policy_json(ckpt)
+    if shield_s is not None:
+        desc = {**desc, "net": {**desc["net"], "shield_s": float(shield_s)}}
     try:
         space = space_from_json(desc["observation_space"])
         policy = build_policy(desc["kind"], desc.get("variant"), space, desc["net"])

@@ -228,3 +228,23 @@ def test_obstacle_shield_lowers_exactly_the_arcs_predicted_to_hit(space):
     torch.testing.assert_close(plain.features_extractor(free), shielded.features_extractor(free))
     with pytest.raises(ConfigError, match="shield_s"):
         build_policy("teacher", None, space, {**teacher_net({"encoder": "lookahead"}, SIM), "shield_s": 5.0})
+
+
+def test_shield_can_be_set_on_a_saved_checkpoint_without_touching_its_files(tmp_path, space):
+    """``load_policy(ckpt, shield_s)`` (``eval --shield_s``) builds the saved weights with the shield on (or off):
+    the same logits wherever no arc intrudes, the intruding arcs lowered, the checkpoint's files unchanged."""
+    policy = _policy(space)
+    save_policy(tmp_path / "t", policy, describe("teacher", None, space, teacher_net({"encoder": "lookahead"}, SIM)))
+    before = {p.name: p.read_bytes() for p in (tmp_path / "t").iterdir() if p.is_file()}
+    saved, _ = load_policy(tmp_path / "t")
+    shielded, desc = load_policy(tmp_path / "t", shield_s=0.6)
+    assert desc["net"]["shield_s"] == 0.6 and saved.features_extractor.lookahead.shield_steps == 0
+    wall, free = _obs(scan_m=0.6), _obs()
+    with torch.no_grad():
+        torch.testing.assert_close(saved.get_distribution(free).distribution.logits,
+                                   shielded.get_distribution(free).distribution.logits)
+        assert not torch.allclose(saved.get_distribution(wall).distribution.logits,
+                                  shielded.get_distribution(wall).distribution.logits)
+    off, _ = load_policy(tmp_path / "t", shield_s=0.0)
+    assert off.features_extractor.lookahead.shield_steps == 0
+    assert {p.name: p.read_bytes() for p in (tmp_path / "t").iterdir() if p.is_file()} == before
