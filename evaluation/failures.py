@@ -22,6 +22,14 @@ horizontal FOV): a student only sees what its two forward cameras see, so a hit 
 (:func:`sim.viz.plot_episode_topdown`) 3 m around the end, the robot and the people 1 s before and at the end. The
 layout is rebuilt from the run's scene, scene seed and crowd seed; a trace whose start and goal do not match it
 (scene files changed since the run) is a named error.
+
+``--replay K`` reruns the first K obstacle hits of a lookahead-head policy (its checkpoint in the run's data dir,
+the run's ``shield_s``) and asks whether the policy *saw* the hit coming: at each of the last steps, the obstacle
+clearance its head predicted for the arc it chose (over the next :data:`REPLAY_WINDOW_S`, from its perceived scan),
+the best clearance any action of the grid offered, and the true clearance after the step. A hit whose chosen arcs
+were predicted to touch while a free arc existed is the cost's choice (``chose_predicted_contact``), not a
+perception miss. Episodes are deterministic given their seeds; a replay that does not end as the run's row did is
+reported as not reproduced.
 """
 
 from __future__ import annotations
@@ -45,6 +53,8 @@ from sim.env import CrowdNavEnv, SimConfig
 from sim.trace import EpisodeTrace
 from sim.viz import plot_episode_topdown
 
+REPLAY_WINDOW_S = 0.6  # --replay: the predicted clearance of an arc is its minimum over the lookahead times up to this
+REPLAY_STEPS = 10  # --replay: the last steps kept per replayed hit
 CAUSES = ("collision_pedestrian", "collision_obstacle_near_person", "collision_obstacle_clear", "timeout")
 OUT_OF_VIEW = "obstacle_hits_out_of_view"  # obstacle hits whose obstacle lay outside the cameras' field of view
 
@@ -214,6 +224,71 @@ def draw(run: Path, res: dict[str, Any], out: Path, per_cause: int) -> list[Path
     return written
 
 
+def replay_obstacle_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path | None = None) -> list[dict[str, Any]]:
+    """The first ``k`` obstacle hits of ``res`` rerun with their method's policy (module docstring, ``--replay``)."""
+    import torch
+
+    from evaluation.harness import Job, _driver, make_env, reset_options
+    from evaluation.methods import resolve_methods
+    from rl.policy import obs_to_tensor
+    from sim.episode import episode_steps
+
+    run = Path(run)
+    data_dir = Path(data_dir) if data_dir is not None else run.parent.parent
+    cfg = read_yaml_mapping(run / "config.yaml", "eval config")
+    hits = [f for f in res["failures"] if f["cause"].startswith("collision_obstacle")][:k]
+    out = []
+    with Layouts(run) as layouts:
+        for f in hits:
+            spec = resolve_methods([f["method"]], data_dir, cfg.get("shield_s"))[0]
+            driver = _driver(spec)
+            head = getattr(getattr(getattr(driver, "policy", None), "features_extractor", None), "lookahead", None)
+            if head is None:
+                raise ConfigError(f"--replay: method {f['method']!r} has no lookahead head whose predicted "
+                                  "clearances could be read")
+            s = len(head.times)
+            w = int((head.times <= REPLAY_WINDOW_S + 1e-6).sum())
+            job = Job(spec, layouts.sim, f["scene"], float(f["density"]), int(f["seed"]), run, save_trace=False,
+                      scene_seed=layouts.scene_seeds.get(int(f["seed"])))
+            env = make_env(job)
+            u = env.unwrapped
+            steps = []
+            try:
+                for tr in episode_steps(env, driver, job.seed, reset_options(job)):
+                    o = driver.last_obs  # what the policy saw at the previous step, when it chose tr.action
+                    if tr.step == 0 or o is None:
+                        continue
+                    obs = obs_to_tensor({key: o[key] for key in driver.policy.observation_space.spaces})
+                    with torch.no_grad():
+                        clear = head.action_features(obs)[0, :, s:s + w]  # A x w predicted obstacle clearances
+                    true = float(u.layout.geometry.signed_distance(np.asarray(u.robot[:2], float))[0])
+                    steps.append({"step": tr.step - 1, "action": int(tr.action),
+                                  "predicted_m": float(clear[tr.action].min()),
+                                  "predicted_next_m": float(clear[tr.action, 0]),
+                                  "best_available_m": float(clear.min(-1).values.max()),
+                                  "true_next_m": true - float(head.radius_m)})
+                trace = u.trace(method=spec.name)
+            finally:
+                env.close()
+            tail = steps[-REPLAY_STEPS:]
+            err = [abs(r["predicted_next_m"] - r["true_next_m"]) for r in steps if r["true_next_m"] < 1.0]
+            out.append({"method": f["method"], "scene": f["scene"], "density": f["density"], "seed": f["seed"],
+                        "reproduced": trace.outcome == "collision_obstacle" and trace.n_steps == f["steps"],
+                        "chose_predicted_contact": any(r["predicted_m"] < 0.0 < r["best_available_m"] for r in tail),
+                        "clearance_error_m": float(np.median(err)) if err else None, "steps": tail})
+    return out
+
+
+def replay_markdown(replays: list[dict[str, Any]]) -> str:
+    chose = sum(r["chose_predicted_contact"] for r in replays)
+    errs = [r["clearance_error_m"] for r in replays if r["clearance_error_m"] is not None]
+    return (f"\nReplayed obstacle hits: {len(replays)} ({sum(r['reproduced'] for r in replays)} reproduced); in "
+            f"{chose} the policy chose, within its last {REPLAY_STEPS} steps, an arc it predicted to touch an "
+            f"obstacle within {REPLAY_WINDOW_S:g} s while a free arc existed; median |predicted − true| clearance "
+            f"one step ahead within 1 m of obstacles: "
+            + (f"{float(np.median(errs)):.3f} m" if errs else "n/a") + "\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m evaluation.failures", description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path, help="an eval run directory (data/eval/<run>)")
@@ -222,20 +297,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tail-s", type=float, default=0.5, help="the last seconds the speed and yaw rate average")
     ap.add_argument("--figures", type=int, default=2, help="failures drawn per cause")
     ap.add_argument("--out", type=Path, default=None, help="output folder (default <run>/failures)")
+    ap.add_argument("--replay", type=int, default=0, help="rerun the first K obstacle hits (lookahead-head policies)")
+    ap.add_argument("--data-dir", type=Path, default=None, help="where --replay finds the checkpoints (default: the "
+                                                                    "run's data dir, <run>/../..)")
     args = ap.parse_args(argv)
     out = args.out or args.run / "failures"
     try:
-        if args.figures < 0:
-            raise ConfigError(f"--figures: expected an integer >= 0, got {args.figures}")
+        for name in ("figures", "replay"):
+            if getattr(args, name) < 0:
+                raise ConfigError(f"--{name}: expected an integer >= 0, got {getattr(args, name)}")
         res = analyse(args.run, args.method, args.near_m, args.tail_s)
+        if args.replay:
+            res["replays"] = replay_obstacle_hits(args.run, res, args.replay, args.data_dir)
+        text = markdown(res) + (replay_markdown(res["replays"]) if args.replay else "")
         out.mkdir(parents=True, exist_ok=True)
         draw(args.run, res, out, args.figures)
         atomic_write_json(out / "failures.json", json_safe(res))
-        atomic_write_text(out / "failures.md", markdown(res))
+        atomic_write_text(out / "failures.md", text)
     except ICrowdNavError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    print(markdown(res), end="")
+    print(text, end="")
     return 0
 
 

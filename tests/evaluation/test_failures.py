@@ -11,7 +11,7 @@ import pytest
 
 from evaluation.failures import analyse, classify, draw, hit_bearing, main
 from pipeline.core.errors import ConfigError, CorruptArtifactError
-from sim.env import SimConfig
+from sim.env import CrowdNavEnv, SimConfig
 from sim.geometry import Cylinder, StaticGeometry
 from sim.trace import EpisodeTrace
 
@@ -101,3 +101,59 @@ def test_a_trace_that_does_not_match_todays_layout_is_a_named_error(timed_out_ru
     (run / "seeds.json").write_text(json.dumps(seeds))
     with pytest.raises(CorruptArtifactError, match="start and goal"):
         draw(run, analyse(run), tmp_path / "out", per_cause=1)
+
+
+def _straight_teacher(data, sim):
+    """A lookahead teacher whose cost only wants speed (straight ahead at full speed, whatever is in the way), saved
+    as ``checkpoints/policy/teacher`` with its manifest."""
+    import torch
+
+    from pipeline.core.manifest import Manifest, hash_tree
+    from rl.lookahead import N_LINEAR
+    from rl.policy import build_policy, describe, save_policy
+    from rl.teacher import teacher_net
+
+    env = CrowdNavEnv(config=replace(sim, obs_mode="privileged", action_type="discrete"))
+    space = env.observation_space
+    env.close()
+    net = teacher_net({"encoder": "lookahead"}, sim)
+    policy = build_policy("teacher", None, space, net)
+    head = policy.features_extractor.lookahead
+    with torch.no_grad():
+        for p in head.parameters():
+            p.zero_()
+        head.linear.weight[0, N_LINEAR - 2:] = torch.tensor([1.0, -0.5])  # + speed, - turning
+    ck = data / "checkpoints" / "policy" / "teacher"
+    save_policy(ck, policy, describe("teacher", None, space, net))
+    (ck / "config.yaml").write_text("seed: 0\n")
+    Manifest(stage="train", params={}, config_hash="0" * 64, seed=0, outputs=hash_tree(ck)).write(ck / "manifest.json")
+
+
+@pytest.mark.slow
+def test_replay_finds_a_hit_the_policy_predicted_and_the_shield_prevents_it(tmp_path):
+    """A teacher that drives straight into the lobby's clutter: its obstacle hits replay exactly, each one an arc it
+    predicted to touch while turning on the spot was free; the same checkpoint evaluated with ``shield_s`` on the
+    same seeds hits no obstacle."""
+    from evaluation.failures import replay_obstacle_hits
+    from evaluation.stage import EvalConfig
+    from pipeline.verbs.eval import run
+
+    sim = SimConfig(max_episode_s=12.0, timeout_s_per_m=0.0)
+    _straight_teacher(tmp_path, replace(sim, scene="office_lobby"))
+
+    def evaluate(name, shield):
+        run(EvalConfig(data_dir=str(tmp_path), methods=["teacher"], scenes=["office_lobby"], densities=[0.05],
+                       goals=3, trials=1, routing_scenes=[], scenarios=[], workers=1, figures=0, videos=0, sim=sim,
+                       progress=False, paired_with="teacher", shield_s=shield, run_name=name,
+                       long_horizon=replace(EvalConfig().long_horizon, runs=0)))
+        return tmp_path / "eval" / name
+
+    plain = evaluate("plain", None)
+    res = analyse(plain)
+    hits = [f for f in res["failures"] if f["cause"].startswith("collision_obstacle")]
+    assert hits, res["failures"]
+    replays = replay_obstacle_hits(plain, res, len(hits))
+    assert all(r["reproduced"] and r["chose_predicted_contact"] for r in replays)
+    assert all(r["clearance_error_m"] < 0.05 for r in replays)  # the privileged scan: prediction = truth
+    shielded = analyse(evaluate("shielded", 0.6))
+    assert not [f for f in shielded["failures"] if f["cause"].startswith("collision_obstacle")]
