@@ -228,8 +228,9 @@ class TrainConfig(BaseStageConfig):
     head: str = "lookahead"
     scorer_bound: float = 3.0  # lookahead head: its learned correction is bounded to ± this many nats (0 = unbounded)
     # lookahead head: the obstacle shield's horizon in s (0 = off): an action whose arc is predicted to come within
-    # 2 cm of the perceived obstacles by then is chosen only if every action is (rl.lookahead.LookaheadHead)
-    shield_s: float = 0.0
+    # 2 cm of the perceived obstacles by then is chosen only if every action is (rl.lookahead.LookaheadHead; on
+    # the N = 75 benchmark it raised full's SR by 0.078 pooled, docs/results.md "Why they fail")
+    shield_s: float = 0.6
     # lookahead head: also sample an occupancy map along every arc, weighted by a convex-fitted cost (rl.lookahead):
     # the pretrained BEV's predicted occupancy (static, people now / +0.5 s / +1.0 s) for full and no_i2, the depth
     # occupancy (the w/o BEV substitute) for no_bev; the mlp head has no costs and ignores it

@@ -528,3 +528,17 @@ def test_mirror_batch_reflects_the_students_inputs():
     assert torch.equal(twice["poses"], obs["poses"]) and torch.equal(twice["occ"], obs["occ"])
     with pytest.raises(ValueError, match="bev_mirror"):
         mirror_batch({"bev": obs["bev"]}, act_, None, flip, 21)
+
+
+def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
+    """The lookahead student's policy.json says whether it was built with the obstacle shield (the default profile's
+    0.6 s, or off), the MLP head never has one, and an out-of-range horizon is one named error."""
+    from pretrain.geometry import BEVGrid
+    from rl.stage import student_net
+
+    grid = BEVGrid((0.0, 6.0, 0.1), (-4.8, 4.8, 0.1), (0.05, 1.8))
+    assert student_net(_train_cfg(tmp_path, "full"), grid)["shield_s"] == 0.6
+    assert "shield_s" not in student_net(_train_cfg(tmp_path, "full", shield_s=0.0), grid)
+    assert "shield_s" not in student_net(_train_cfg(tmp_path, "full", head="mlp"), grid)
+    with pytest.raises(ConfigError, match=r"train.shield_s: expected 0 \(off\) .. 2.0 s, got 3.0"):
+        _train_cfg(tmp_path, "full", shield_s=3.0)
