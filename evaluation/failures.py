@@ -44,12 +44,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from evaluation.compare import read_protocol, read_rows
+from evaluation.harness import Job, cached_driver, make_env, reset_options
+from evaluation.methods import resolve_methods
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import from_dict, read_yaml_mapping
 from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
+from rl.policy import obs_to_tensor
 from sim.env import CrowdNavEnv, SimConfig
+from sim.episode import episode_steps
 from sim.trace import EpisodeTrace
 from sim.viz import plot_episode_topdown
 
@@ -226,13 +231,6 @@ def draw(run: Path, res: dict[str, Any], out: Path, per_cause: int) -> list[Path
 
 def replay_obstacle_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path | None = None) -> list[dict[str, Any]]:
     """The first ``k`` obstacle hits of ``res`` rerun with their method's policy (module docstring, ``--replay``)."""
-    import torch
-
-    from evaluation.harness import Job, _driver, make_env, reset_options
-    from evaluation.methods import resolve_methods
-    from rl.policy import obs_to_tensor
-    from sim.episode import episode_steps
-
     run = Path(run)
     data_dir = Path(data_dir) if data_dir is not None else run.parent.parent
     cfg = read_yaml_mapping(run / "config.yaml", "eval config")
@@ -241,7 +239,7 @@ def replay_obstacle_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path 
     with Layouts(run) as layouts:
         for f in hits:
             spec = resolve_methods([f["method"]], data_dir, cfg.get("shield_s"))[0]
-            driver = _driver(spec)
+            driver = cached_driver(spec)
             head = getattr(getattr(getattr(driver, "policy", None), "features_extractor", None), "lookahead", None)
             if head is None:
                 raise ConfigError(f"--replay: method {f['method']!r} has no lookahead head whose predicted "

@@ -68,7 +68,8 @@ class Job:
 _DRIVERS: dict[str, Any] = {}
 
 
-def _driver(spec: MethodSpec):
+def cached_driver(spec: MethodSpec):
+    """The driver of ``spec``, made once per process (its weights loaded once)."""
     key = f"{spec.name}:{spec.checkpoint}:{spec.shield_s}"
     if key not in _DRIVERS:  # one driver per method and checkpoint per process (weights loaded once)
         _DRIVERS[key] = spec.driver()
@@ -111,7 +112,7 @@ def reset_options(job: Job) -> dict | None:
 def run_episode(job: Job) -> dict[str, Any]:
     """Runs ``job`` through the episode loop (:func:`sim.episode.episode_steps`); returns its metrics row (and
     writes what it was asked to)."""
-    driver = _driver(job.method)
+    driver = cached_driver(job.method)
     env = make_env(job)
     u = env.unwrapped
     frames: list[np.ndarray] = []
