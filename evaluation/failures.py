@@ -162,9 +162,13 @@ class Layouts:
         self._envs: dict[tuple[str, float], CrowdNavEnv] = {}
 
     @cached_property
+    def config(self) -> dict[str, Any]:
+        """The run's eval config (``config.yaml``) as a mapping."""
+        return read_yaml_mapping(self.run / "config.yaml", "eval config")
+
+    @cached_property
     def sim(self) -> SimConfig:
-        return from_dict(SimConfig, read_yaml_mapping(self.run / "config.yaml", "eval config").get("sim", {}),
-                         str(self.run / "config.yaml"))
+        return from_dict(SimConfig, self.config.get("sim", {}), str(self.run / "config.yaml"))
 
     @cached_property
     def view_deg(self) -> float:
@@ -233,19 +237,19 @@ def replay_obstacle_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path 
     """The first ``k`` obstacle hits of ``res`` rerun with their method's policy (module docstring, ``--replay``)."""
     run = Path(run)
     data_dir = Path(data_dir) if data_dir is not None else run.parent.parent
-    cfg = read_yaml_mapping(run / "config.yaml", "eval config")
     hits = [f for f in res["failures"] if f["cause"].startswith("collision_obstacle")][:k]
     out = []
     with Layouts(run) as layouts:
+        methods = list(dict.fromkeys(f["method"] for f in hits))
+        specs = dict(zip(methods, resolve_methods(methods, data_dir, layouts.config.get("shield_s")), strict=True))
         for f in hits:
-            spec = resolve_methods([f["method"]], data_dir, cfg.get("shield_s"))[0]
+            spec = specs[f["method"]]
             driver = cached_driver(spec)
             head = getattr(getattr(getattr(driver, "policy", None), "features_extractor", None), "lookahead", None)
             if head is None:
                 raise ConfigError(f"--replay: method {f['method']!r} has no lookahead head whose predicted "
                                   "clearances could be read")
-            s = len(head.times)
-            w = int((head.times <= REPLAY_WINDOW_S + 1e-6).sum())
+            w = head.steps_within(REPLAY_WINDOW_S)
             job = Job(spec, layouts.sim, f["scene"], float(f["density"]), int(f["seed"]), run, save_trace=False,
                       scene_seed=layouts.scene_seeds.get(int(f["seed"])))
             env = make_env(job)
@@ -258,7 +262,7 @@ def replay_obstacle_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path 
                         continue
                     obs = obs_to_tensor({key: o[key] for key in driver.policy.observation_space.spaces})
                     with torch.no_grad():
-                        clear = head.action_features(obs)[0, :, s:s + w]  # A x w predicted obstacle clearances
+                        clear = head.obstacle_clearances(head.action_features(obs), w)[0]  # A x w, m
                     true = float(u.layout.geometry.signed_distance(np.asarray(u.robot[:2], float))[0])
                     steps.append({"step": tr.step - 1, "action": int(tr.action),
                                   "predicted_m": float(clear[tr.action].min()),

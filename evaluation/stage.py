@@ -64,7 +64,7 @@ from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_s
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
 from pipeline.core.executor import Executor, check_executor
-from rl.lookahead import LOOKAHEAD_HORIZON_S
+from rl.lookahead import check_shield_s
 from rl.policy import check_checkpoint_weights
 from sim.env import CrowdNavEnv, SimConfig
 from sim.planners.topomap import build_gvg, plot_topomap
@@ -131,10 +131,7 @@ class EvalConfig(BaseStageConfig):
         check_run_name(self.run_name)
         if not self.scenes:
             raise ConfigError("eval.scenes: expected at least one scene")
-        if self.shield_s is not None and not (isinstance(self.shield_s, (int, float))
-                                              and 0.0 <= self.shield_s <= LOOKAHEAD_HORIZON_S):
-            raise ConfigError(f"eval.shield_s: expected none or 0 (off) .. {LOOKAHEAD_HORIZON_S} s, got "
-                              f"{self.shield_s!r}")
+        check_shield_s(self.shield_s, "eval.shield_s", optional=True)
         for k in ("goals", "trials"):
             if not isinstance(getattr(self, k), int) or not 1 <= getattr(self, k) <= 10_000:
                 raise ConfigError(f"eval.{k}: expected an integer in [1, 10000], got {getattr(self, k)!r}")

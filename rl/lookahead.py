@@ -54,6 +54,16 @@ SHIELD_MARGIN_M = 0.02  # the obstacle shield: an arc closer than this to the sc
 SHIELD_NATS_PER_M = 1000.0  # ... and its logit is lowered by this many nats per metre of predicted intrusion
 
 
+def check_shield_s(value: Any, key: str, optional: bool = False) -> None:
+    """The obstacle shield's horizon must be 0 (off) .. :data:`LOOKAHEAD_HORIZON_S` s (or None when ``optional``);
+    else one ConfigError naming ``key``."""
+    if optional and value is None:
+        return
+    if not (isinstance(value, (int, float)) and 0.0 <= value <= LOOKAHEAD_HORIZON_S):
+        raise ConfigError(f"{key}: expected {'none or ' if optional else ''}0 (off) .. {LOOKAHEAD_HORIZON_S} s, "
+                          f"got {value!r}")
+
+
 def lookahead_times(dt_s: float) -> torch.Tensor:
     """The ``S`` lookahead times (s): the control period, then every :data:`LOOKAHEAD_STEP_S` up to
     :data:`LOOKAHEAD_HORIZON_S` — where the head places the robot and every pedestrian."""
@@ -124,8 +134,7 @@ class LookaheadHead(nn.Module):
                  scan_range_m: float, heading: str = "end", scorer_bound: float | None = None,
                  map_key: str | None = None, map_bounds: Any = None, shield_s: float = 0.0) -> None:
         super().__init__()
-        if not (math.isfinite(float(shield_s)) and 0.0 <= float(shield_s) <= LOOKAHEAD_HORIZON_S):
-            raise ConfigError(f"lookahead shield_s: expected 0 (off) .. {LOOKAHEAD_HORIZON_S} s, got {shield_s!r}")
+        check_shield_s(shield_s, "lookahead shield_s")
         if heading not in HEADING_MODES:
             raise ConfigError(f"lookahead heading: expected one of {list(HEADING_MODES)}, got {heading!r}")
         if map_key is not None and map_key not in MAP_KEYS:
@@ -143,9 +152,9 @@ class LookaheadHead(nn.Module):
         self.n_actions = len(grid)
         times = lookahead_times(dt_s)
         arcs, end = unicycle_arcs(grid, times)
-        self.shield_steps = int((times <= float(shield_s) + 1e-6).sum()) if shield_s else 0
         self.register_buffer("grid_norm", grid / grid.new_tensor([rc.v_max_mps, rc.omega_max_radps]), persistent=False)
         self.register_buffer("times", times, persistent=False)
+        self.shield_steps = self.steps_within(shield_s) if shield_s else 0
         self.register_buffer("arcs", arcs, persistent=False)  # A x S x 2
         self.register_buffer("end_heading", end[:, -1], persistent=False)  # A
         self.register_buffer("spin", grid[:, 0].abs() < 1e-6, persistent=False)  # A: the turns on the spot
@@ -220,12 +229,20 @@ class LookaheadHead(nn.Module):
             logits = logits - SHIELD_NATS_PER_M * self.shield_intrusion(feats)
         return logits
 
+    def steps_within(self, seconds: float) -> int:
+        """How many lookahead times are at most ``seconds`` from now."""
+        return int((self.times <= float(seconds) + 1e-6).sum())
+
+    def obstacle_clearances(self, feats: torch.Tensor, steps: int) -> torch.Tensor:
+        """``B x A x steps`` (m): each action's predicted clearance to the scan's obstacles at its first ``steps``
+        lookahead times, read from its :meth:`action_features` ``feats``."""
+        s = len(self.times)
+        return feats[..., s:s + steps]
+
     def shield_intrusion(self, feats: torch.Tensor) -> torch.Tensor:
         """``B x A`` (m): how far each action's arc comes inside :data:`SHIELD_MARGIN_M` of the scan's obstacles at
         the lookahead times up to ``shield_s`` (0 = admissible), from the obstacle clearances of ``feats``."""
-        s = len(self.times)
-        obs_min = feats[..., s:2 * s][..., :self.shield_steps]
-        return (SHIELD_MARGIN_M - obs_min.amin(-1)).clamp_min(0.0)
+        return (SHIELD_MARGIN_M - self.obstacle_clearances(feats, self.shield_steps).amin(-1)).clamp_min(0.0)
 
     def fitted_cost(self, feats: torch.Tensor) -> torch.Tensor:
         """``B x A x 1``: the linear cost over the last :data:`N_LINEAR` features, plus the map cost over the

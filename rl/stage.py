@@ -77,7 +77,7 @@ from rl.callbacks import checkpoint_callback, progress_callback
 from rl.dagger import bev_stats, export_iteration, load_features, run_iteration, write_done
 from rl.evaluate import evaluate, success_table
 from rl.figures import plot_learning_curve, plot_training
-from rl.lookahead import LOOKAHEAD_HORIZON_S
+from rl.lookahead import check_shield_s
 from rl.networks import STUDENT_HEADS, VARIANTS
 from rl.observe import (
     StudentEnv,
@@ -286,8 +286,7 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError(f"train.head: expected one of {list(STUDENT_HEADS)}, got {self.head!r}")
         if self.scorer_bound < 0:
             raise ConfigError(f"train.scorer_bound: expected >= 0, got {self.scorer_bound}")
-        if not 0.0 <= self.shield_s <= LOOKAHEAD_HORIZON_S:
-            raise ConfigError(f"train.shield_s: expected 0 (off) .. {LOOKAHEAD_HORIZON_S} s, got {self.shield_s}")
+        check_shield_s(self.shield_s, "train.shield_s")
         if d.linear_cost not in ("teacher", "fit"):
             raise ConfigError(f"train.dagger.linear_cost: expected 'teacher' or 'fit', got {d.linear_cost!r}")
         if not (0 <= d.beta0 <= 1 and 0 <= d.beta_decay <= 1):
