@@ -18,13 +18,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
 from evaluation.report import paired, paired_pooled
 from pipeline.core.artifacts import atomic_write_json, json_safe
-from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
+from pipeline.core.errors import (
+    ConfigError,
+    CorruptArtifactError,
+    InputMissingError,
+    reports_errors,
+)
 
 ROW_FILES = ("acceptance_episodes.jsonl", "episodes.jsonl")
 KEYS = ("scene", "density", "seed", "success", "tpz_s")
@@ -110,6 +114,7 @@ def markdown(res: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+@reports_errors
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m evaluation.compare", description=__doc__.split("\n\n")[0])
     ap.add_argument("a", type=Path, help="reference run: rows file or directory")
@@ -117,16 +122,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--labels", default="a,b", help="names of the two runs, comma-separated")
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = ap.parse_args(argv)
-    try:
-        labels = tuple(x.strip() for x in args.labels.split(","))
-        if len(labels) != 2 or not all(labels):
-            raise ConfigError(f"--labels: expected two comma-separated names, got {args.labels!r}")
-        res = compare(read_rows(args.a), read_rows(args.b), labels)
-        if args.json:
-            atomic_write_json(args.json, json_safe(res))
-    except ICrowdNavError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    labels = tuple(x.strip() for x in args.labels.split(","))
+    if len(labels) != 2 or not all(labels):
+        raise ConfigError(f"--labels: expected two comma-separated names, got {args.labels!r}")
+    res = compare(read_rows(args.a), read_rows(args.b), labels)
+    if args.json:
+        atomic_write_json(args.json, json_safe(res))
     print(markdown(res), end="")
     return 0
 

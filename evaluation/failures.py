@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from collections import Counter
 from dataclasses import replace
 from functools import cached_property
@@ -51,7 +50,12 @@ from evaluation.harness import Job, cached_driver, make_env, reset_options
 from evaluation.methods import resolve_methods
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import from_dict, read_yaml_mapping
-from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
+from pipeline.core.errors import (
+    ConfigError,
+    CorruptArtifactError,
+    InputMissingError,
+    reports_errors,
+)
 from rl.policy import obs_to_tensor
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
@@ -291,6 +295,7 @@ def replay_markdown(replays: list[dict[str, Any]]) -> str:
             + (f"{float(np.median(errs)):.3f} m" if errs else "n/a") + "\n")
 
 
+@reports_errors
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m evaluation.failures", description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path, help="an eval run directory (data/eval/<run>)")
@@ -304,21 +309,17 @@ def main(argv: list[str] | None = None) -> int:
                                                                     "run's data dir, <run>/../..)")
     args = ap.parse_args(argv)
     out = args.out or args.run / "failures"
-    try:
-        for name in ("figures", "replay"):
-            if getattr(args, name) < 0:
-                raise ConfigError(f"--{name}: expected an integer >= 0, got {getattr(args, name)}")
-        res = analyse(args.run, args.method, args.near_m, args.tail_s)
-        if args.replay:
-            res["replays"] = replay_obstacle_hits(args.run, res, args.replay, args.data_dir)
-        text = markdown(res) + (replay_markdown(res["replays"]) if args.replay else "")
-        out.mkdir(parents=True, exist_ok=True)
-        draw(args.run, res, out, args.figures)
-        atomic_write_json(out / "failures.json", json_safe(res))
-        atomic_write_text(out / "failures.md", text)
-    except ICrowdNavError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    for name in ("figures", "replay"):
+        if getattr(args, name) < 0:
+            raise ConfigError(f"--{name}: expected an integer >= 0, got {getattr(args, name)}")
+    res = analyse(args.run, args.method, args.near_m, args.tail_s)
+    if args.replay:
+        res["replays"] = replay_obstacle_hits(args.run, res, args.replay, args.data_dir)
+    text = markdown(res) + (replay_markdown(res["replays"]) if args.replay else "")
+    out.mkdir(parents=True, exist_ok=True)
+    draw(args.run, res, out, args.figures)
+    atomic_write_json(out / "failures.json", json_safe(res))
+    atomic_write_text(out / "failures.md", text)
     print(text, end="")
     return 0
 

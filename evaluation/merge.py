@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +26,7 @@ from evaluation.compare import read_protocol, read_rows
 from evaluation.methods import method_label
 from evaluation.report import paired, paired_pooled, plot_sr, report_markdown, results, results_csv
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
-from pipeline.core.errors import ConfigError, ICrowdNavError
+from pipeline.core.errors import ConfigError, reports_errors
 
 
 def parse_run(arg: str) -> tuple[Path, str | None]:
@@ -102,19 +101,16 @@ def write(rows: list[dict[str, Any]], scen: list[dict[str, Any]], runs: list[tup
                                                          scenario_rows=scen))
 
 
+@reports_errors
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m evaluation.merge", description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", help="eval run directories, RUN or RUN:NAME")
     ap.add_argument("--out", type=Path, required=True, help="output folder")
     ap.add_argument("--ref", default="full", help="the method compared with every other (default full)")
     args = ap.parse_args(argv)
-    try:
-        runs = [parse_run(a) for a in args.runs]
-        rows, scen = merge(runs)
-        write(rows, scen, runs, args.out, args.ref)
-    except ICrowdNavError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    runs = [parse_run(a) for a in args.runs]
+    rows, scen = merge(runs)
+    write(rows, scen, runs, args.out, args.ref)
     print(f"merged {len(rows)} episodes of {len({r['method'] for r in rows})} methods -> {args.out}")
     return 0
 

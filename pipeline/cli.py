@@ -45,7 +45,7 @@ from pipeline.core.config import (
     nested_dataclass,
     profiles_dir,
 )
-from pipeline.core.errors import ConfigError, ICrowdNavError, StoppedError
+from pipeline.core.errors import ConfigError, reports_errors
 from pipeline.core.stage import Stage, run_stage_ex
 
 PROG = "icrowdnav"
@@ -318,6 +318,7 @@ def setup_logging(level: int = logging.INFO) -> None:
         logger.addHandler(handler)
 
 
+@reports_errors
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``icrowdnav`` and ``python -m pipeline``.
 
@@ -341,12 +342,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             return run_stage_cli(target, rest, [PROG, *args])
         status = target(rest)
         return 0 if status is None else int(status)
-    except StoppedError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return e.exit_code
-    except ICrowdNavError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return 130

@@ -35,7 +35,7 @@ import torch
 
 from pipeline.core.config import load_config
 from pipeline.core.device import machine_facts, resolve_device
-from pipeline.core.errors import ICrowdNavError
+from pipeline.core.errors import reports_errors
 from pipeline.core.timing import time_call
 from pretrain.data import FrameStore
 from pretrain.geometry import (
@@ -249,6 +249,7 @@ def measure_intention_fit(samples_npz: Path, devices: list[str], epochs: int = 1
     return out
 
 
+@reports_errors
 def main(argv: list[str] | None = None) -> int:
     """``python -m pretrain.bench --dataset ROOT [--devices cpu,cuda] [--steps 12]``: the fit-step figures as JSON.
 
@@ -258,7 +259,6 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import json
     import os
-    import sys
 
 
     ap = argparse.ArgumentParser(prog="python -m pretrain.bench", description=main.__doc__)
@@ -280,33 +280,29 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(os.cpu_count() or 1)
     devices = args.devices.split(",")
-    try:
-        if args.write_intention_samples:
-            print(json.dumps(write_intention_samples(args.dataset, args.write_intention_samples)))
-            return 0
-        cams = cameras_from_dataset(args.dataset)
-        encoder, batch, head = EncoderConfig(), {"clips_per_batch": 4, "clip_frames": 8}, {}
-        if args.profile:
-            cfg = load_config(PretrainConfig, "pretrain", profile=args.profile)
-            encoder, batch = cfg.encoder, {"clips_per_batch": cfg.clips_per_batch, "clip_frames": cfg.clip_frames}
-            head = {"profile": args.profile, "bev_grid_cells": int(np.prod(encoder.grid.shape))}
-        batch = {k: v if getattr(args, k) is None else getattr(args, k) for k, v in batch.items()}
-        kw = {"steps": args.steps, **batch}
-        pooled = replace(encoder, fuse_pool=args.fuse_pool) if args.fuse_pool else None
-        if pooled is not None:
-            pooled.validate()
-        out = {**head, **batch, **measure_fit_steps(cams, encoder, devices, **kw)}
-        if args.legacy:
-            legacy = EncoderConfig(**{**LEGACY_ENCODER, "history_frames": 3})
-            out.update({f"{k}_legacy": v for k, v in measure_fit_steps(cams, legacy, devices, **kw).items()})
-        if pooled is not None:
-            out.update({f"{k}_fuse_pool{args.fuse_pool}": v
-                        for k, v in measure_fit_steps(cams, pooled, devices, **kw).items()})
-        if args.intention_samples:
-            out.update(measure_intention_fit(args.intention_samples, devices, args.intention_epochs))
-    except ICrowdNavError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    if args.write_intention_samples:
+        print(json.dumps(write_intention_samples(args.dataset, args.write_intention_samples)))
+        return 0
+    cams = cameras_from_dataset(args.dataset)
+    encoder, batch, head = EncoderConfig(), {"clips_per_batch": 4, "clip_frames": 8}, {}
+    if args.profile:
+        cfg = load_config(PretrainConfig, "pretrain", profile=args.profile)
+        encoder, batch = cfg.encoder, {"clips_per_batch": cfg.clips_per_batch, "clip_frames": cfg.clip_frames}
+        head = {"profile": args.profile, "bev_grid_cells": int(np.prod(encoder.grid.shape))}
+    batch = {k: v if getattr(args, k) is None else getattr(args, k) for k, v in batch.items()}
+    kw = {"steps": args.steps, **batch}
+    pooled = replace(encoder, fuse_pool=args.fuse_pool) if args.fuse_pool else None
+    if pooled is not None:
+        pooled.validate()
+    out = {**head, **batch, **measure_fit_steps(cams, encoder, devices, **kw)}
+    if args.legacy:
+        legacy = EncoderConfig(**{**LEGACY_ENCODER, "history_frames": 3})
+        out.update({f"{k}_legacy": v for k, v in measure_fit_steps(cams, legacy, devices, **kw).items()})
+    if pooled is not None:
+        out.update({f"{k}_fuse_pool{args.fuse_pool}": v
+                    for k, v in measure_fit_steps(cams, pooled, devices, **kw).items()})
+    if args.intention_samples:
+        out.update(measure_intention_fit(args.intention_samples, devices, args.intention_epochs))
     print(json.dumps(out | machine_facts()))
     return 0
 

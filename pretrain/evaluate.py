@@ -34,7 +34,7 @@ import torch
 from scipy import ndimage
 
 from pipeline.core.artifacts import atomic_write_json
-from pipeline.core.errors import ConfigError, ICrowdNavError
+from pipeline.core.errors import ConfigError, reports_errors
 from pretrain.checkpoint import load_encoder, load_heads, read_encoder_json
 from pretrain.data import PEOPLE_LABELS, check_dataset, load_frames, make_batches, make_clips
 from pretrain.geometry import check_grid_fits_cameras
@@ -276,6 +276,7 @@ def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str =
             "iou": sweep, "visible_people": visible, "note": "dataset-level IoU, field-of-view cells, valid frames"}
 
 
+@reports_errors
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m pretrain.evaluate", description=__doc__.split("\n")[0])
     ap.add_argument("checkpoint", type=Path)
@@ -286,11 +287,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="score the people targets against all people or only the seen ones (default: the label "
                          "the checkpoint was trained on)")
     a = ap.parse_args(argv)
-    try:
-        res = evaluate_checkpoint(a.checkpoint, a.dataset, a.episodes, people_label=a.people_label)
-    except ICrowdNavError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    res = evaluate_checkpoint(a.checkpoint, a.dataset, a.episodes, people_label=a.people_label)
     print(f"{res['frames']} frames of {len(res['episodes'])} episodes of {res['dataset']}")
     ths = list(next(iter(res["iou"].values())))
     print(f"{'target':<12}" + "".join(f"  p>{t:<5}" for t in ths) + "   (bayes: p > w/(1+w), w = pos_weight)")

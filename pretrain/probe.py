@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -40,7 +39,7 @@ import torch
 from torch import nn
 
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
-from pipeline.core.errors import ConfigError, ICrowdNavError, InputMissingError
+from pipeline.core.errors import ConfigError, InputMissingError, reports_errors
 from pipeline.core.keys import (
     OBS_ODOM,
     OBS_POSE_MASK,
@@ -414,6 +413,7 @@ def figure(report: dict, path: Path) -> None:
                       "Where a pedestrian is 1 s later: positions alone vs + pose (validation episodes)")
 
 
+@reports_errors
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m pretrain.probe", description=__doc__.split("\n\n")[0])
     defaults = ProbeConfig()
@@ -422,11 +422,7 @@ def main(argv: list[str] | None = None) -> int:
                         default=getattr(defaults, f.name))
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname).1s %(message)s", datefmt="%H:%M:%S")
-    try:
-        report = run_probe(ProbeConfig(**{k.replace("-", "_"): v for k, v in vars(args).items()}))
-    except ICrowdNavError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    report = run_probe(ProbeConfig(**{k.replace("-", "_"): v for k, v in vars(args).items()}))
     print(markdown(report), end="")
     return 0
 

@@ -17,7 +17,7 @@ import logging
 import sys
 from pathlib import Path
 
-from pipeline.core.errors import ICrowdNavError, InputMissingError
+from pipeline.core.errors import ICrowdNavError, InputMissingError, reports_errors
 from recorder.mcap.layout import (
     METADATA_ABORTED,
     METADATA_RECOVERY,
@@ -130,22 +130,19 @@ def recover_dir(directory: Path) -> list[str]:
     return lines
 
 
+@reports_errors
 def main(argv: list[str] | None = None) -> int:
     """CLI: print problems (exit 1) or ``ok: N episodes, M frames`` (exit 0); bad arguments exit 2."""
     ap = argparse.ArgumentParser(prog="python -m recorder.doctor_mcap", description=__doc__.split("\n")[0])
     ap.add_argument("directory", type=Path, help="directory of episode MCAPs")
     ap.add_argument("--recover", action="store_true", help="salvage every *.mcap.partial first")
     args = ap.parse_args(argv)
-    try:
-        if args.recover:
-            if not args.directory.is_dir():
-                raise InputMissingError(f"missing MCAP directory: {args.directory}")
-            for line in recover_dir(args.directory):
-                print(line)
-        problems = check_mcap_dir(args.directory)
-    except ICrowdNavError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    if args.recover:
+        if not args.directory.is_dir():
+            raise InputMissingError(f"missing MCAP directory: {args.directory}")
+        for line in recover_dir(args.directory):
+            print(line)
+    problems = check_mcap_dir(args.directory)
     if problems:
         for line in problems:
             print(line)

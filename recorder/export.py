@@ -62,7 +62,13 @@ import numpy as np
 from tqdm import tqdm
 
 from pipeline.core.artifacts import OutputDir, atomic_write_json, atomic_write_text
-from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError, InputMissingError
+from pipeline.core.errors import (
+    ConfigError,
+    CorruptArtifactError,
+    ICrowdNavError,
+    InputMissingError,
+    reports_errors,
+)
 from pipeline.core.executor import Executor, map_jobs
 from pipeline.core.keys import NEXT_DONE, NEXT_REWARD
 from recorder.dataset_info import ICROWDNAV_EPISODES, ICROWDNAV_META
@@ -779,6 +785,7 @@ def export_run(raw_dir: Path, out_dir: Path, repo_id: str, fps: int | None = Non
     return counts
 
 
+@reports_errors
 def main(argv: list[str] | None = None) -> int:
     """``python -m recorder.export RAW_DIR OUT_DIR --repo-id ID [--fps N] [--overwrite]``."""
     ap = argparse.ArgumentParser(prog="python -m recorder.export", description=__doc__.split("\n")[0])
@@ -790,12 +797,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    try:
-        counts = export_run(args.raw_dir, args.out_dir, args.repo_id, args.fps, args.overwrite,
-                            progress=not args.no_progress)
-    except ICrowdNavError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    counts = export_run(args.raw_dir, args.out_dir, args.repo_id, args.fps, args.overwrite,
+                        progress=not args.no_progress)
     print(json.dumps(counts))
     return 0
 

@@ -78,6 +78,7 @@ from pipeline.core.errors import (
     ICrowdNavError,
     InputMissingError,
     OutputExistsError,
+    reports_errors,
 )
 from pipeline.core.manifest import MANIFEST_NAME, Manifest
 from recorder.dataset_info import ICROWDNAV_EPISODES, ICROWDNAV_META, INFO
@@ -766,6 +767,7 @@ def push_staged(out_dir: Path, repo_id: str, *, private: bool = False) -> str:
     return str(url)
 
 
+@reports_errors
 def main(argv: list[str] | None = None) -> int:
     """``python -m recorder.share DATASET_DIR OUT_DIR [--repo-id owner/name] [--overwrite] [--push] [--private]``."""
     ap = argparse.ArgumentParser(prog="python -m recorder.share", description=__doc__.split("\n")[0])
@@ -777,17 +779,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--private", action="store_true", help="with --push: create the Hub repo private")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    try:
-        if args.push and not args.repo_id:
-            raise ConfigError("--push: expected --repo-id owner/name (the Hub dataset to push to), got none")
-        if args.private and not args.push:
-            raise ConfigError("--private: only meaningful with --push")
-        counts = stage_for_sharing(args.dataset_dir, args.out_dir, repo_id=args.repo_id, overwrite=args.overwrite)
-        if args.push:
-            counts["url"] = push_staged(args.out_dir, args.repo_id, private=args.private)
-    except ICrowdNavError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    if args.push and not args.repo_id:
+        raise ConfigError("--push: expected --repo-id owner/name (the Hub dataset to push to), got none")
+    if args.private and not args.push:
+        raise ConfigError("--private: only meaningful with --push")
+    counts = stage_for_sharing(args.dataset_dir, args.out_dir, repo_id=args.repo_id, overwrite=args.overwrite)
+    if args.push:
+        counts["url"] = push_staged(args.out_dir, args.repo_id, private=args.private)
     print(json.dumps(counts))
     return 0
 

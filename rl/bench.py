@@ -47,7 +47,7 @@ import torch
 
 from pipeline.core.config import load_config
 from pipeline.core.device import machine_facts, resolve_device
-from pipeline.core.errors import ICrowdNavError
+from pipeline.core.errors import reports_errors
 from pipeline.core.timing import time_call
 from pretrain.checkpoint import write_encoder_checkpoint
 from pretrain.geometry import cameras_from_dataset
@@ -353,6 +353,7 @@ def measure_student_devices(cameras, train_cfg: Any, devices: list[str], frames:
     return out
 
 
+@reports_errors
 def main(argv: list[str] | None = None) -> int:
     """``python -m rl.bench --dataset ROOT [--devices cpu,cuda] [--profile default]``: the student's update and
     frozen-encoder figures per device as JSON, with the profile's ``train`` settings and its ``pretrain.encoder``
@@ -360,7 +361,6 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import json
     import os
-    import sys
 
     ap = argparse.ArgumentParser(prog="python -m rl.bench", description=main.__doc__)
     ap.add_argument("--dataset", type=Path, required=True, help="a dataset root (only meta/info.json is read)")
@@ -370,14 +370,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fuse-pool", type=int, default=0, help="also time the encoder with this encoder.fuse_pool")
     args = ap.parse_args(argv)
     torch.set_num_threads(os.cpu_count() or 1)
-    try:
-        encoder = load_config(PretrainConfig, "pretrain", args.profile).encoder
-        out = measure_student_devices(cameras_from_dataset(args.dataset), load_config(TrainConfig, "train", args.profile),
-                                      args.devices.split(","), args.frames, args.fuse_pool, encoder)
-        out = {"profile": args.profile, "bev_grid_cells": int(np.prod(encoder.grid.shape)), **out}
-    except ICrowdNavError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    encoder = load_config(PretrainConfig, "pretrain", args.profile).encoder
+    out = measure_student_devices(cameras_from_dataset(args.dataset), load_config(TrainConfig, "train", args.profile),
+                                  args.devices.split(","), args.frames, args.fuse_pool, encoder)
+    out = {"profile": args.profile, "bev_grid_cells": int(np.prod(encoder.grid.shape)), **out}
     print(json.dumps(out | machine_facts()))
     return 0
 

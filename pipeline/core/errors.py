@@ -9,6 +9,11 @@ and is allowed to propagate with its traceback.
 
 from __future__ import annotations
 
+import functools
+import sys
+from collections.abc import Callable
+from typing import Any
+
 
 class ICrowdNavError(Exception):
     """Base class of all user-facing pipeline errors (printed as one ``error:`` line by the CLI)."""
@@ -42,3 +47,22 @@ class StoppedError(ICrowdNavError):
     def __init__(self, message: str, exit_code: int = 130):
         super().__init__(message)
         self.exit_code = exit_code
+
+
+def reports_errors(main: Callable[..., int]) -> Callable[..., int]:
+    """Decorates a tool's ``main(argv) -> int`` with the rule above, written once for every tool: an
+    :class:`ICrowdNavError` it raises becomes one ``error: <message>`` line on stderr and its exit status (2;
+    a :class:`StoppedError`'s own ``exit_code``). Any other exception propagates with its traceback."""
+
+    @functools.wraps(main)
+    def wrapper(*args: Any, **kwargs: Any) -> int:
+        try:
+            return main(*args, **kwargs)
+        except StoppedError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return e.exit_code
+        except ICrowdNavError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+
+    return wrapper
