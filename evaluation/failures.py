@@ -29,15 +29,16 @@ clearance its head predicted for the arc it chose (over the next :data:`REPLAY_W
 the best clearance any action of the grid offered, and the true clearance after the step. A hit whose chosen arcs
 were predicted to touch while a free arc existed is the cost's choice (``chose_predicted_contact``), not a
 perception miss. Episodes are deterministic given their seeds; a replay that does not end as the run's row did is
-reported as not reproduced.
+reported as not reproduced. Hits are replayed ``--workers`` at a time (a process pool), reported in hit order.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 from collections import Counter
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -47,7 +48,7 @@ import torch
 
 from evaluation.compare import read_protocol, read_rows
 from evaluation.harness import Job, cached_driver, make_env, reset_options
-from evaluation.methods import resolve_methods
+from evaluation.methods import MethodSpec, resolve_methods
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import from_dict, read_yaml_mapping
 from pipeline.core.errors import (
@@ -56,6 +57,7 @@ from pipeline.core.errors import (
     InputMissingError,
     reports_errors,
 )
+from pipeline.core.executor import map_jobs
 from rl.policy import obs_to_tensor
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
@@ -237,52 +239,76 @@ def draw(run: Path, res: dict[str, Any], out: Path, per_cause: int) -> list[Path
     return written
 
 
-def replay_obstacle_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path | None = None) -> list[dict[str, Any]]:
-    """The first ``k`` obstacle hits of ``res`` rerun with their method's policy (module docstring, ``--replay``)."""
+@dataclass(frozen=True)
+class ReplayJob:
+    """One obstacle hit of an eval run to rerun (a picklable job for :func:`pipeline.core.executor.map_jobs`)."""
+
+    run: Path
+    spec: MethodSpec
+    failure: dict[str, Any]
+
+
+def replay_head(spec: MethodSpec) -> Any:
+    """The lookahead head of ``spec``'s policy (its driver made once per process); a method without one is a
+    named error."""
+    driver = cached_driver(spec)
+    head = getattr(getattr(getattr(driver, "policy", None), "features_extractor", None), "lookahead", None)
+    if head is None:
+        raise ConfigError(f"--replay: method {spec.name!r} has no lookahead head whose predicted clearances could "
+                          "be read")
+    return head
+
+
+def replay_hit(job: ReplayJob) -> dict[str, Any]:
+    """``job``'s episode rerun with its method's policy, recording per step the clearance the head predicted for
+    the chosen arc, the best any arc offered and the true clearance (module docstring, ``--replay``)."""
+    torch.set_num_threads(1)  # one episode per worker process
+    f, spec, layouts = job.failure, job.spec, Layouts(job.run)
+    driver, head = cached_driver(spec), replay_head(spec)
+    w = head.steps_within(REPLAY_WINDOW_S)
+    ep = Job(spec, layouts.sim, f["scene"], float(f["density"]), int(f["seed"]), job.run, save_trace=False,
+             scene_seed=layouts.scene_seeds.get(int(f["seed"])))
+    env = make_env(ep)
+    u = env.unwrapped
+    steps = []
+    try:
+        for tr in episode_steps(env, driver, ep.seed, reset_options(ep)):
+            o = driver.last_obs  # what the policy saw at the previous step, when it chose tr.action
+            if tr.step == 0 or o is None:
+                continue
+            obs = obs_to_tensor({key: o[key] for key in driver.policy.observation_space.spaces})
+            with torch.no_grad():
+                clear = head.obstacle_clearances(head.action_features(obs), w)[0]  # A x w, m
+            true = float(u.layout.geometry.signed_distance(np.asarray(u.robot[:2], float))[0])
+            steps.append({"step": tr.step - 1, "action": int(tr.action),
+                          "predicted_m": float(clear[tr.action].min()),
+                          "predicted_next_m": float(clear[tr.action, 0]),
+                          "best_available_m": float(clear.min(-1).values.max()),
+                          "true_next_m": true - float(head.radius_m)})
+        trace = u.trace(method=spec.name)
+    finally:
+        env.close()
+    tail = steps[-REPLAY_STEPS:]
+    err = [abs(r["predicted_next_m"] - r["true_next_m"]) for r in steps if r["true_next_m"] < 1.0]
+    return {"method": f["method"], "scene": f["scene"], "density": f["density"], "seed": f["seed"],
+            "reproduced": trace.outcome == "collision_obstacle" and trace.n_steps == f["steps"],
+            "chose_predicted_contact": any(r["predicted_m"] < 0.0 < r["best_available_m"] for r in tail),
+            "clearance_error_m": float(np.median(err)) if err else None, "steps": tail}
+
+
+def replay_obstacle_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path | None = None,
+                         workers: int = 1, progress: bool = False) -> list[dict[str, Any]]:
+    """The first ``k`` obstacle hits of ``res`` rerun with their method's policy (module docstring, ``--replay``),
+    ``workers`` episodes at a time (a process pool; each worker loads a method's weights once), in hit order."""
     run = Path(run)
     data_dir = Path(data_dir) if data_dir is not None else run.parent.parent
     hits = [f for f in res["failures"] if f["cause"].startswith("collision_obstacle")][:k]
-    out = []
-    with Layouts(run) as layouts:
-        methods = list(dict.fromkeys(f["method"] for f in hits))
-        specs = dict(zip(methods, resolve_methods(methods, data_dir, layouts.config.get("shield_s")), strict=True))
-        for f in hits:
-            spec = specs[f["method"]]
-            driver = cached_driver(spec)
-            head = getattr(getattr(getattr(driver, "policy", None), "features_extractor", None), "lookahead", None)
-            if head is None:
-                raise ConfigError(f"--replay: method {f['method']!r} has no lookahead head whose predicted "
-                                  "clearances could be read")
-            w = head.steps_within(REPLAY_WINDOW_S)
-            job = Job(spec, layouts.sim, f["scene"], float(f["density"]), int(f["seed"]), run, save_trace=False,
-                      scene_seed=layouts.scene_seeds.get(int(f["seed"])))
-            env = make_env(job)
-            u = env.unwrapped
-            steps = []
-            try:
-                for tr in episode_steps(env, driver, job.seed, reset_options(job)):
-                    o = driver.last_obs  # what the policy saw at the previous step, when it chose tr.action
-                    if tr.step == 0 or o is None:
-                        continue
-                    obs = obs_to_tensor({key: o[key] for key in driver.policy.observation_space.spaces})
-                    with torch.no_grad():
-                        clear = head.obstacle_clearances(head.action_features(obs), w)[0]  # A x w, m
-                    true = float(u.layout.geometry.signed_distance(np.asarray(u.robot[:2], float))[0])
-                    steps.append({"step": tr.step - 1, "action": int(tr.action),
-                                  "predicted_m": float(clear[tr.action].min()),
-                                  "predicted_next_m": float(clear[tr.action, 0]),
-                                  "best_available_m": float(clear.min(-1).values.max()),
-                                  "true_next_m": true - float(head.radius_m)})
-                trace = u.trace(method=spec.name)
-            finally:
-                env.close()
-            tail = steps[-REPLAY_STEPS:]
-            err = [abs(r["predicted_next_m"] - r["true_next_m"]) for r in steps if r["true_next_m"] < 1.0]
-            out.append({"method": f["method"], "scene": f["scene"], "density": f["density"], "seed": f["seed"],
-                        "reproduced": trace.outcome == "collision_obstacle" and trace.n_steps == f["steps"],
-                        "chose_predicted_contact": any(r["predicted_m"] < 0.0 < r["best_available_m"] for r in tail),
-                        "clearance_error_m": float(np.median(err)) if err else None, "steps": tail})
-    return out
+    methods = list(dict.fromkeys(f["method"] for f in hits))
+    specs = dict(zip(methods, resolve_methods(methods, data_dir, Layouts(run).config.get("shield_s")), strict=True))
+    for spec in specs.values():  # a method without a lookahead head is refused before any episode runs
+        replay_head(spec)
+    return map_jobs(replay_hit, [ReplayJob(run, specs[f["method"]], f) for f in hits], workers, "replay",
+                    progress)
 
 
 def replay_markdown(replays: list[dict[str, Any]]) -> str:
@@ -305,16 +331,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--figures", type=int, default=2, help="failures drawn per cause")
     ap.add_argument("--out", type=Path, default=None, help="output folder (default <run>/failures)")
     ap.add_argument("--replay", type=int, default=0, help="rerun the first K obstacle hits (lookahead-head policies)")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="--replay's episodes run at a time "
+                                                                           "(default: the machine's CPUs)")
     ap.add_argument("--data-dir", type=Path, default=None, help="where --replay finds the checkpoints (default: the "
                                                                     "run's data dir, <run>/../..)")
     args = ap.parse_args(argv)
     out = args.out or args.run / "failures"
-    for name in ("figures", "replay"):
-        if getattr(args, name) < 0:
-            raise ConfigError(f"--{name}: expected an integer >= 0, got {getattr(args, name)}")
+    for name, low in (("figures", 0), ("replay", 0), ("workers", 1)):
+        if getattr(args, name) < low:
+            raise ConfigError(f"--{name}: expected an integer >= {low}, got {getattr(args, name)}")
     res = analyse(args.run, args.method, args.near_m, args.tail_s)
     if args.replay:
-        res["replays"] = replay_obstacle_hits(args.run, res, args.replay, args.data_dir)
+        res["replays"] = replay_obstacle_hits(args.run, res, args.replay, args.data_dir, args.workers, progress=True)
     text = markdown(res) + (replay_markdown(res["replays"]) if args.replay else "")
     out.mkdir(parents=True, exist_ok=True)
     draw(args.run, res, out, args.figures)

@@ -87,6 +87,8 @@ def test_cli_writes_its_tables_and_refuses_bad_input(timed_out_run, tmp_path, ca
     assert "no per-episode rows" in capsys.readouterr().err
     assert main([str(timed_out_run), "--method", "dwa", "--out", str(tmp_path / "g")]) == 2
     assert "no episode of method 'dwa'" in capsys.readouterr().err and not (tmp_path / "g").exists()
+    assert main([str(timed_out_run), "--replay", "1", "--workers", "0", "--out", str(tmp_path / "h")]) == 2
+    assert "--workers: expected an integer >= 1, got 0" in capsys.readouterr().err and not (tmp_path / "h").exists()
 
 
 @pytest.mark.slow
@@ -155,5 +157,6 @@ def test_replay_finds_a_hit_the_policy_predicted_and_the_shield_prevents_it(tmp_
     replays = replay_obstacle_hits(plain, res, len(hits))
     assert all(r["reproduced"] and r["chose_predicted_contact"] for r in replays)
     assert all(r["clearance_error_m"] < 0.05 for r in replays)  # the privileged scan: prediction = truth
+    assert replay_obstacle_hits(plain, res, len(hits), workers=2) == replays  # a pool replays the same, in order
     shielded = analyse(evaluate("shielded", 0.6))
     assert not [f for f in shielded["failures"] if f["cause"].startswith("collision_obstacle")]
