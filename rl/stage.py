@@ -524,7 +524,10 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
     device = resolve_device(cfg.device, "train.device")
     torch.manual_seed(cfg.seed)
-    policy = build_policy("student", cfg.variant, space, net).to(device)
+    # the obstacle shield (net["shield_s"]) filters the saved policy's actions — DAgger rollouts, acceptance, eval,
+    # PPO — but is not part of the distribution cloned from the teacher: a teacher action the student's perceived
+    # scan rules out would be a loss term of up to 1,000 nats per metre that the bounded scorer can only fight
+    policy = build_policy("student", cfg.variant, space, cloned_net(net)).to(device)
     inherited = has_lookahead(policy) and d.linear_cost == "teacher"
     if inherited:
         inherit_linear_cost(policy, teacher_dir)
@@ -537,7 +540,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             info = json.loads((it / "done.json").read_text())
             iters.append(info)
             frames_total = info["aggregate_frames"]
-            policy, _ = load_policy(it / "policy")
+            policy, _ = load_policy(it / "policy", shield_s=0.0 if "shield_s" in net else None)  # as cloned
             policy.to(device)
             if tune and "skipped" not in info.get("intention_tune", {"skipped": ""}):
                 int_dir = it / "intention"
@@ -672,6 +675,12 @@ def student_net(cfg: TrainConfig, grid: BEVGrid) -> dict[str, Any]:
         if cfg.map_cost:
             net.update({"map_cost": True, "map_bounds": [list(map(float, b[:2])) for b in (grid.x_bound, grid.y_bound)]})
     return net
+
+
+def cloned_net(net: dict[str, Any]) -> dict[str, Any]:
+    """``net`` without the obstacle shield: the network whose action distribution DAgger clones (the shield has no
+    weights; the saved policy.json keeps it, so everything that loads the checkpoint acts shielded)."""
+    return {k: v for k, v in net.items() if k != "shield_s"}
 
 
 def teacher_heading(teacher_dir: Path) -> str:

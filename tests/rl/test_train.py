@@ -13,6 +13,7 @@ import yaml
 from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pretrain.intention import load_forecaster
+from rl.dagger import load_features
 from rl.policy import act, build_policy, describe, load_policy, save_policy
 from rl.teacher import (
     SceneMixEnv,
@@ -281,6 +282,14 @@ def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
     policy, desc = load_policy(out)
     teacher, _ = load_policy(teacher_dir)
     assert isinstance(policy, ScoredPolicy) and desc["net"]["head"] == "lookahead"
+    # saved with the obstacle shield (it acts shielded), cloned without it: the logged cloning objective is the
+    # cross-entropy of the unshielded distribution
+    assert desc["net"]["shield_s"] == 0.6 and policy.features_extractor.lookahead.shield_steps > 0
+    new = load_features([out / "dagger" / "iter_0"])
+    new["costs"] = -new.pop("teacher_logits")
+    soft_tau = _train_cfg(tmp_path, "no_bev").dagger.soft_tau
+    assert bc_loss(load_policy(out, shield_s=0.0)[0], new, soft_tau=soft_tau) == pytest.approx(
+        it["soft_ce_new_after"], rel=1e-5)
     assert desc["intention"] == str(intention) and "peds_future" in desc["observation_space"]
     assert torch.equal(policy.features_extractor.lookahead.linear.weight,
                        teacher.features_extractor.lookahead.linear.weight)
