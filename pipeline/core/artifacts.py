@@ -185,7 +185,14 @@ def _pid_alive(pid: int) -> bool:
         return True
     except OSError:
         return False
-    return True
+    if not Path("/proc/self/stat").exists():  # no procfs (not Linux): kill() is all we know
+        return True
+    try:  # a zombie (killed, not yet reaped) exists but will never write again
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False  # it was reaped meanwhile
+    except IndexError:
+        return True
 
 
 def _is_nonempty(path: Path) -> bool:
@@ -328,6 +335,12 @@ class OutputDir:
         except BaseException:
             _remove(self.staging)
             raise
+        # again after publishing: a killed earlier run whose process was still dying when this one started (SIGKILL
+        # lands asynchronously, e.g. on a process in disk sleep) has left its staging dir by now
+        try:
+            self._cleanup_stale()
+        except OSError as e:  # the output is published; a leftover is only untidy
+            log.warning("could not remove stale directories next to %s: %s", self.final, e)
         return False
 
     def _remove_created_parents(self) -> None:

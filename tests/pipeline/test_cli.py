@@ -209,7 +209,7 @@ def test_register_verb(monkeypatch: pytest.MonkeyPatch) -> None:
 @pytest.mark.slow
 def test_python_dash_m_pipeline() -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "pipeline", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60
+        [sys.executable, "-m", "pipeline", "--help"], cwd=REPO, capture_output=True, text=True, timeout=300
     )
     assert proc.returncode == 0, proc.stderr
     assert "commands:" in proc.stdout and "rollout" in proc.stdout

@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -150,6 +151,31 @@ def test_stale_staging_of_dead_pid_is_cleaned(tmp_path: Path) -> None:
     with OutputDir(final, "new") as od:
         (od.path / "a").write_text("a")
     assert names(tmp_path) == [alive.name, "out"]
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="zombies are read from Linux's /proc")
+def test_a_killed_process_still_dying_or_unreaped_leaves_no_staging_dir(tmp_path: Path) -> None:
+    """A staging dir whose process is a zombie (killed, not reaped) is stale; one left by a process that was still
+    alive when the run started and died during it is removed once the run has published its output."""
+    final = tmp_path / "out"
+    zombie = subprocess.Popen(["true"])  # exits at once; a zombie until waited for
+    while Path(f"/proc/{zombie.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
+        time.sleep(0.01)
+    (tmp_path / f".out.staging-{zombie.pid}").mkdir()
+    dying = subprocess.Popen(["sleep", "60"])
+    (tmp_path / f".out.staging-{dying.pid}").mkdir()
+    try:
+        with OutputDir(final, "new") as od:
+            assert not (tmp_path / f".out.staging-{zombie.pid}").exists()  # cleaned on entry
+            assert (tmp_path / f".out.staging-{dying.pid}").exists()  # alive: left alone
+            dying.kill()
+            dying.wait()
+            (od.path / "a").write_text("a")
+    finally:
+        zombie.wait()
+        dying.kill()
+        dying.wait()
+    assert names(tmp_path) == ["out"]
 
 
 def test_interrupted_overwrite_restores_old(tmp_path: Path) -> None:
