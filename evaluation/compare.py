@@ -9,7 +9,8 @@ data dir.
 
 Each argument is a file of per-episode rows — ``acceptance_episodes.jsonl`` (end of ``train``) or an eval run's
 ``episodes.jsonl`` / ``scenarios/episodes.jsonl`` — or a directory holding one (``acceptance_episodes.jsonl``, then
-``episodes.jsonl``). Rows are matched by (scene, density, seed); per cell and pooled over the cells: SR of each,
+``episodes.jsonl``), or an eval run that has not finished (its ``rows/`` so far, with a warning). Rows are matched
+by (scene, density, seed); per cell and pooled over the cells: SR of each,
 the exact McNemar test, the SR difference detectable at 80 % power with these pairs, and the Wilcoxon test of the
 time in private zones (TPZ). Prints Markdown; ``--json`` writes the numbers.
 """
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +32,8 @@ from pipeline.core.errors import (
     reports_errors,
 )
 
+log = logging.getLogger("icrowdnav")
+
 ROW_FILES = ("acceptance_episodes.jsonl", "episodes.jsonl")
 KEYS = ("scene", "density", "seed", "success", "tpz_s")
 
@@ -39,6 +43,8 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
     path = Path(path)
     if path.is_dir():
         found = [path / n for n in ROW_FILES if (path / n).is_file()]
+        if not found and (path / "rows").is_dir():
+            return unfinished_run_rows(path)
         if not found:
             raise InputMissingError(f"{path}: no per-episode rows ({' or '.join(ROW_FILES)})")
         path = found[0]
@@ -58,6 +64,30 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
         rows.append(r)
     if not rows:
         raise InputMissingError(f"{path}: no rows")
+    return rows
+
+
+def unfinished_run_rows(run: Path) -> list[dict[str, Any]]:
+    """The benchmark rows an eval run that has not finished (no ``episodes.jsonl`` yet; killed, or still running)
+    has written so far: its ``rows/`` cache (one file per finished episode), without the routing, scenario and
+    long-horizon rows (a benchmark row carries its ``goal`` and its file no ``route_`` tag:
+    :func:`evaluation.stage.benchmark_jobs`). Its cells run in a fixed order, so the finished ones are not chosen by
+    their outcome; a cell in progress compares on the pairs it has."""
+    rows = []
+    for f in sorted((run / "rows").glob("*.json")):
+        try:
+            r = json.loads(f.read_text())
+        except (OSError, ValueError) as e:
+            raise CorruptArtifactError(f"{f}: unreadable episode row ({type(e).__name__}: {e})") from None
+        missing = [key for key in KEYS if key not in r]
+        if missing:
+            raise CorruptArtifactError(f"{f}: row lacks {missing}")
+        if "goal" in r and not f.name.startswith("route_"):
+            rows.append(r)
+    if not rows:
+        raise InputMissingError(f"{run}: an unfinished eval run with no finished benchmark episode yet (rows/)")
+    log.warning("%s: unfinished eval run (no episodes.jsonl): comparing its %d finished benchmark episodes",
+                run, len(rows))
     return rows
 
 
@@ -84,10 +114,15 @@ def compare(a: list[dict[str, Any]], b: list[dict[str, Any]], labels: tuple[str,
     cells = paired(rows, labels[0])
     if not cells:
         raise InputMissingError("compare: the two runs share no (scene, density, seed)")
+    def key(r: dict[str, Any]) -> tuple[str, float, int]:
+        return r["scene"], float(r["density"]), int(r["seed"])
+
+    common = {key(r) for r in a} & {key(r) for r in b}  # each SR over the pairs (an unfinished run has fewer)
     sr = {lab: {} for lab in labels}
     for lab, rs in zip(labels, (a, b), strict=True):
         for r in rs:
-            sr[lab].setdefault(f"{r['scene']}@{float(r['density']):g}", []).append(float(r["success"]))
+            if key(r) in common:
+                sr[lab].setdefault(f"{r['scene']}@{float(r['density']):g}", []).append(float(r["success"]))
     return {"reference": labels[0], "other": labels[1], "cells": cells,
             "pooled": paired_pooled(rows, labels[0]).get(labels[1]),
             "sr": {lab: {c: sum(v) / len(v) for c, v in cs.items()} for lab, cs in sr.items()}}

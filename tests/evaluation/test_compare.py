@@ -47,3 +47,27 @@ def test_bad_inputs_are_named_errors(tmp_path, capsys):
     assert compare.main([str(good), str(other)]) == 2
     assert "share no" in capsys.readouterr().err
     assert compare.main([str(good), str(good), "--labels", "same,same"]) == 2
+
+
+def test_an_unfinished_eval_run_compares_on_its_finished_benchmark_episodes(tmp_path, caplog):
+    """A run killed (or still running) before its episodes.jsonl: its rows/ cache, without the scenario rows, pairs
+    with a finished run on the episodes both have; a run with no finished episode is a named error."""
+    run = tmp_path / "eval" / "partial"
+    (run / "rows").mkdir(parents=True)
+    for r in _rows([1] * 5 + [0] * 5):  # benchmark rows carry their goal and trial
+        (run / "rows" / f"{r['scene']}_d0.1_s{r['seed']}_full.json").write_text(json.dumps({**r, "goal": 0, "trial": 0}))
+    (run / "rows" / "route_warehouse_routing_d0.1_s10000_full.json").write_text(
+        json.dumps({**_rows([1], scene="warehouse_routing")[0], "goal": 0, "trial": 0}))
+    (run / "rows" / "sc_blind_corner_d0.1_s10000_full.json").write_text(
+        json.dumps({**_rows([1], scene="blind_corner")[0], "trial": 0}))
+    rows = compare.read_rows(run)
+    assert sorted(r["seed"] for r in rows) == list(range(10000, 10010))
+    assert "unfinished eval run (no episodes.jsonl): comparing its 10 finished benchmark episodes" in caplog.text
+    _write(tmp_path / "done.jsonl", _rows([1] * 10 + [0] * 20))
+    res = compare.compare(compare.read_rows(tmp_path / "done.jsonl"), rows, ("done", "partial"))
+    assert res["cells"]["office_lobby@0.1"]["partial"]["sr"]["n"] == 10
+    assert res["sr"] == {"done": {"office_lobby@0.1": 1.0}, "partial": {"office_lobby@0.1": 0.5}}  # over the pairs
+    empty = tmp_path / "eval" / "empty"
+    (empty / "rows").mkdir(parents=True)
+    with pytest.raises(InputMissingError, match="no finished benchmark episode yet"):
+        compare.read_rows(empty)
