@@ -38,6 +38,14 @@ ROW_FILES = ("acceptance_episodes.jsonl", "episodes.jsonl")
 KEYS = ("scene", "density", "seed", "success", "tpz_s")
 
 
+def checked_row(r: dict[str, Any], where: str) -> dict[str, Any]:
+    """``r`` if it carries every key of :data:`KEYS`; otherwise a named error at ``where``."""
+    missing = [key for key in KEYS if key not in r]
+    if missing:
+        raise CorruptArtifactError(f"{where}: row lacks {missing}")
+    return r
+
+
 def read_rows(path: Path) -> list[dict[str, Any]]:
     """The per-episode rows of a run (module docstring); every row must carry :data:`KEYS`."""
     path = Path(path)
@@ -58,10 +66,7 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
             r = json.loads(line)
         except json.JSONDecodeError as e:
             raise CorruptArtifactError(f"{path}:{k}: not a JSON row ({e})") from None
-        missing = [key for key in KEYS if key not in r]
-        if missing:
-            raise CorruptArtifactError(f"{path}:{k}: row lacks {missing}")
-        rows.append(r)
+        rows.append(checked_row(r, f"{path}:{k}"))
     if not rows:
         raise InputMissingError(f"{path}: no rows")
     return rows
@@ -79,10 +84,7 @@ def unfinished_run_rows(run: Path) -> list[dict[str, Any]]:
             r = json.loads(f.read_text())
         except (OSError, ValueError) as e:
             raise CorruptArtifactError(f"{f}: unreadable episode row ({type(e).__name__}: {e})") from None
-        missing = [key for key in KEYS if key not in r]
-        if missing:
-            raise CorruptArtifactError(f"{f}: row lacks {missing}")
-        if "goal" in r and not f.name.startswith("route_"):
+        if "goal" in checked_row(r, str(f)) and not f.name.startswith("route_"):
             rows.append(r)
     if not rows:
         raise InputMissingError(f"{run}: an unfinished eval run with no finished benchmark episode yet (rows/)")
@@ -114,6 +116,7 @@ def compare(a: list[dict[str, Any]], b: list[dict[str, Any]], labels: tuple[str,
     cells = paired(rows, labels[0])
     if not cells:
         raise InputMissingError("compare: the two runs share no (scene, density, seed)")
+
     def key(r: dict[str, Any]) -> tuple[str, float, int]:
         return r["scene"], float(r["density"]), int(r["seed"])
 
