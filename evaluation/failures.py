@@ -39,7 +39,7 @@ import math
 import os
 from collections import Counter
 from dataclasses import dataclass, replace
-from functools import cached_property
+from functools import cached_property, lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -248,6 +248,12 @@ class ReplayJob:
     failure: dict[str, Any]
 
 
+@lru_cache(maxsize=4)
+def run_layouts(run: Path) -> Layouts:
+    """The run's :class:`Layouts` read once per process (its config and seeds; no env is opened through it here)."""
+    return Layouts(run)
+
+
 def replay_head(spec: MethodSpec) -> Any:
     """The lookahead head of ``spec``'s policy (its driver made once per process); a method without one is a
     named error."""
@@ -263,7 +269,7 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
     """``job``'s episode rerun with its method's policy, recording per step the clearance the head predicted for
     the chosen arc, the best any arc offered and the true clearance (module docstring, ``--replay``)."""
     torch.set_num_threads(1)  # one episode per worker process
-    f, spec, layouts = job.failure, job.spec, Layouts(job.run)
+    f, spec, layouts = job.failure, job.spec, run_layouts(job.run)
     driver, head = cached_driver(spec), replay_head(spec)
     w = head.steps_within(REPLAY_WINDOW_S)
     ep = Job(spec, layouts.sim, f["scene"], float(f["density"]), int(f["seed"]), job.run, save_trace=False,
@@ -304,7 +310,7 @@ def replay_obstacle_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path 
     data_dir = Path(data_dir) if data_dir is not None else run.parent.parent
     hits = [f for f in res["failures"] if f["cause"].startswith("collision_obstacle")][:k]
     methods = list(dict.fromkeys(f["method"] for f in hits))
-    specs = dict(zip(methods, resolve_methods(methods, data_dir, Layouts(run).config.get("shield_s")), strict=True))
+    specs = dict(zip(methods, resolve_methods(methods, data_dir, run_layouts(run).config.get("shield_s")), strict=True))
     for spec in specs.values():  # a method without a lookahead head is refused before any episode runs
         replay_head(spec)
     return map_jobs(replay_hit, [ReplayJob(run, specs[f["method"]], f) for f in hits], workers, "replay",
