@@ -5,11 +5,18 @@ input statistics the extractor standardises with) and ``policy.json`` (what to b
 shapes, network sizes, the action grid, and the provenance of the weights). :func:`load_policy` rebuilds the
 network from the JSON and loads the weights; a missing file, unreadable JSON or a weight that does not fit gives
 one error naming the file.
+
+The checkpoints a student uses (``encoder``: the BEV encoder, ``intention``: the intention model, ``teacher``: the
+policy it was distilled from) are stored **relative to the policy's own directory** (``../../bev``), so a data dir
+moved, copied or shipped whole to another machine keeps working, and so does a policy written into a staging
+directory that is then renamed into place. :func:`read_policy_json` gives them back as absolute paths; a checkpoint
+written before this (absolute paths) reads unchanged.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
 from pathlib import Path
 from typing import Any
@@ -26,6 +33,7 @@ from rl.networks import StudentExtractor, StudentLookaheadExtractor, TakeScores,
 POLICY_JSON = "policy.json"
 POLICY_WEIGHTS = "policy.safetensors"
 N_ACTIONS = 105  # the 5 x 21 (v, ω) grid of sim.robot.action_grid (the paper's)
+CHECKPOINT_REFS = ("encoder", "intention", "teacher")  # policy.json keys naming another checkpoint directory
 
 
 def space_to_json(space: gym.spaces.Dict) -> dict[str, Any]:
@@ -125,19 +133,37 @@ def save_policy(out: Path, policy: ActorCriticPolicy, desc: dict[str, Any]) -> N
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     save_safetensors(policy, out / POLICY_WEIGHTS, {"kind": str(desc["kind"]), "variant": str(desc["variant"])})
+    desc = {**desc, **{k: relative_to(desc[k], out) for k in CHECKPOINT_REFS if desc.get(k)}}
     atomic_write_text(out / POLICY_JSON, json.dumps(desc, indent=2, sort_keys=True) + "\n")
 
 
+def relative_to(path: Path | str, ckpt: Path | str) -> str:
+    """``path`` written relative to the checkpoint directory ``ckpt`` (lexically: ``../../bev``), as policy.json
+    stores the checkpoints it refers to."""
+    return os.path.relpath(os.path.abspath(path), os.path.abspath(ckpt))
+
+
+def resolved_from(ref: str, ckpt: Path | str) -> str:
+    """A reference stored in ``ckpt``'s policy.json as an absolute path (an absolute one passes through)."""
+    return os.path.normpath(os.path.join(os.path.abspath(ckpt), ref))
+
+
 def read_policy_json(ckpt: Path) -> dict[str, Any]:
+    """``ckpt``'s policy.json, its checkpoint references (:data:`CHECKPOINT_REFS`) as absolute paths.
+
+    Raises:
+        InputMissingError: no policy.json. CorruptArtifactError: not a policy description.
+    """
     path = Path(ckpt) / POLICY_JSON
     if not path.is_file():
         raise InputMissingError(f"missing policy checkpoint: {path} does not exist (run `make train`)")
     try:
         desc = json.loads(path.read_text())
         desc["kind"], desc["observation_space"], desc["net"]  # noqa: B018 - presence check
+        refs = {k: resolved_from(desc[k], ckpt) for k in CHECKPOINT_REFS if desc.get(k)}
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as e:
         raise CorruptArtifactError(f"{path}: not a policy description ({type(e).__name__}: {e})") from None
-    return desc
+    return {**desc, **refs}
 
 
 # a key of the lookahead head's learned layers as saved before the head was a module (upgrade_state_dict)

@@ -97,6 +97,7 @@ from rl.policy import (
     policy_class,
     policy_kwargs,
     read_policy_json,
+    relative_to,
     save_policy,
 )
 from rl.teacher import (
@@ -610,11 +611,12 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         write_done(it, info)
         iters.append(info)
         del data, new
-    produced = {"teacher": str(teacher_dir), "dagger_iterations": d.iterations, "dagger_frames": frames_total,
-                "ppo_finetune_steps": 0}
+    # provenance paths, like policy.json's checkpoint references, relative to the checkpoint (rl.policy)
+    produced = {"teacher": relative_to(teacher_dir, out), "dagger_iterations": d.iterations,
+                "dagger_frames": frames_total, "ppo_finetune_steps": 0}
     summary: dict[str, Any] = {"dagger": iters}
     produced["intention"] = (None if int_dir is None else "frozen" if int_dir == intention_dir(cfg)
-                             else {"tuned": str(int_dir), "epochs": cfg.intention_tune.epochs})
+                             else {"tuned": relative_to(int_dir, out), "epochs": cfg.intention_tune.epochs})
     if cfg.finetune.ppo_steps > 0:
         policy, steps, rate = _finetune(cfg, out, policy, net, pairs, enc_dir, device, int_dir)
         produced["ppo_finetune_steps"] = steps

@@ -14,7 +14,8 @@ from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pretrain.intention import load_forecaster
 from rl.dagger import load_features
-from rl.policy import act, build_policy, describe, load_policy, save_policy
+from rl.driver import PolicyDriver
+from rl.policy import act, build_policy, check_checkpoint_weights, describe, load_policy, save_policy
 from rl.teacher import (
     SceneMixEnv,
     bc_loss,
@@ -331,13 +332,29 @@ def test_intention_model_fine_tuned_on_the_students_rollouts(tmp_path, teacher_d
         assert d["tuned_from"] == str(pretrained)
     _, desc = load_policy(out)
     assert desc["intention"] == str(out / "dagger" / "iter_1" / "intention")
-    assert desc["produced_by"]["intention"]["tuned"] == desc["intention"]
+    # policy.json stores the checkpoints it uses relative to itself (read back absolute), provenance likewise
+    stored = json.loads((out / "policy.json").read_text())
+    assert stored["intention"] == "dagger/iter_1/intention" == stored["produced_by"]["intention"]["tuned"]
+    assert stored["teacher"] == "../teacher" == stored["produced_by"]["teacher"]
     # resumed after iteration 1 finished but before the final policy: the tuned model is picked up again
     for name in ("manifest.json", "policy.safetensors", "policy.json", "metrics.json"):
         (out / name).unlink()
     run(_train_cfg(tmp_path, "no_bev", resume="true", **sizes))
     _, again = load_policy(out)
     assert again["intention"] == desc["intention"]
+    # --overwrite trains into a staging directory that is renamed into place: the published policy still finds the
+    # tuned model (an absolute path named the vanished staging directory)
+    run(_train_cfg(tmp_path, "no_bev", overwrite="true", **sizes))
+    check_checkpoint_weights(out)
+    assert load_policy(out)[1]["intention"] == desc["intention"]
+    # the data dir moved whole (another disk, another machine): the student loads and acts from the new place
+    moved = tmp_path / "moved"
+    shutil.move(tmp_path / "checkpoints", moved / "checkpoints")
+    ckpt = moved / "checkpoints" / "policy" / "no_bev"
+    check_checkpoint_weights(ckpt)
+    driver = PolicyDriver(ckpt)
+    assert driver.desc["intention"] == str(ckpt / "dagger" / "iter_1" / "intention")
+    assert driver.desc["teacher"] == str(moved / "checkpoints" / "policy" / "teacher") and driver.forecaster is not None
 
 
 def tiny_intention_checkpoint(out):
