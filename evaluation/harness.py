@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
+import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -23,9 +25,10 @@ import numpy as np
 from evaluation.methods import MethodSpec
 from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError
-from pipeline.core.executor import Executor, map_jobs
+from pipeline.core.executor import Bundle, Executor, map_jobs, receive_file, returned_files
 from recorder.mcap.writer import EpisodeWriter
 from recorder.schema import episode_meta_from_env, frame_from_env
+from rl.policy import POLICY_JSON, RUNTIME_REFS, read_policy_json, relative_to
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
 from sim.metrics import episode_metrics
@@ -163,10 +166,16 @@ def run_episode(job: Job) -> dict[str, Any]:
     if job.video and frames:
         (job.out / "videos").mkdir(parents=True, exist_ok=True)
         write_video(frames, job.out / "videos" / f"{job.name}.mp4", fps=1.0 / job.sim.dt_s)
-    if job.row_cache is not None:  # last: a row on disk means every file of the episode is complete
+    write_row(job, row)
+    return row
+
+
+def write_row(job: Job, row: dict[str, Any]) -> None:
+    """``row`` into ``job``'s row cache, if it has one — last: a row on disk means every file of the episode is
+    complete."""
+    if job.row_cache is not None:
         job.row_cache.mkdir(parents=True, exist_ok=True)
         atomic_write_text(job.row_cache / f"{job.name}.json", json.dumps(row) + "\n")
-    return row
 
 
 def _video_frame(env: CrowdNavEnv, obs: dict[str, np.ndarray], info: dict, driver) -> np.ndarray:
@@ -212,5 +221,57 @@ def run_jobs_cached(jobs: list[Job], cache: Path, workers: int, desc: str, progr
 def run_jobs(jobs: list[Job], workers: int, desc: str, progress: bool = True,
              executor: Executor | None = None) -> list[dict[str, Any]]:
     """All ``jobs`` in a process pool (fork; each worker loads a method's weights once) or on Ray
-    (:mod:`pipeline.core.executor`), rows in job order."""
-    return map_jobs(run_episode, jobs, workers, desc, progress, executor=executor)
+    (:mod:`pipeline.core.executor`), rows in job order. On Ray with ``files: transfer`` no task touches the data
+    directory: the methods' checkpoints travel as one :class:`~pipeline.core.executor.Bundle`
+    (:func:`checkpoint_bundle`), each episode runs in a scratch folder of its node (:func:`run_episode_transfer`),
+    and this process writes the files it returns, then its row."""
+    if executor is None or executor.kind != "ray" or executor.files != "transfer":
+        return map_jobs(run_episode, jobs, workers, desc, progress, executor=executor)
+    rows: list[dict[str, Any]] = [{} for _ in jobs]
+
+    def arrived(i: int, result: tuple[dict[str, Any], list[tuple[str, bytes, str]]]) -> None:
+        row, files = result
+        for name, data, sha in files:
+            receive_file(jobs[i].out / name, data, sha)
+        write_row(jobs[i], row)
+        rows[i] = row
+
+    bundle = checkpoint_bundle([j.method.checkpoint for j in jobs if j.method.checkpoint is not None])
+    map_jobs(run_episode_transfer, jobs, workers, desc, progress, executor=executor, on_result=arrived,
+             keep_results=False, shared=bundle)
+    return rows
+
+
+def checkpoint_bundle(ckpts: list[Path]) -> Bundle:
+    """The files the drivers of ``ckpts`` read, for Ray nodes without the data directory: each checkpoint
+    directory's own files (not its subfolders: DAgger data, curves) and those of the checkpoints its
+    ``policy.json`` acts with (:data:`rl.policy.RUNTIME_REFS`: encoder, intention model). The bundled
+    ``policy.json`` names them relative to itself, whatever the file says, so they are found where the bundle is
+    unpacked."""
+    dirs: list[Path] = []
+    for ckpt in dict.fromkeys(Path(c) for c in ckpts):
+        desc = read_policy_json(ckpt)
+        dirs += [ckpt, *(Path(desc[k]) for k in RUNTIME_REFS if desc.get(k))]
+    files = {f: f.read_bytes() for d in dict.fromkeys(dirs) for f in sorted(d.iterdir()) if f.is_file()}
+    for ckpt in dict.fromkeys(Path(c) for c in ckpts):
+        raw = json.loads(files[ckpt / POLICY_JSON])
+        desc = read_policy_json(ckpt)
+        raw.update({k: relative_to(desc[k], ckpt) for k in RUNTIME_REFS if desc.get(k)})
+        files[ckpt / POLICY_JSON] = (json.dumps(raw, indent=2, sort_keys=True) + "\n").encode()
+    return Bundle.of(files)
+
+
+def run_episode_transfer(job: Job, shared: Bundle) -> tuple[dict[str, Any], list[tuple[str, bytes, str]]]:
+    """:func:`run_episode` on a node without the data directory: the method's checkpoint from the unpacked bundle
+    ``shared``, the episode's files written into a scratch folder and returned as ``(row, [(path relative to the
+    job's out, bytes, sha256)])``; the scratch folder is removed. A retried task (its worker died) returns the same
+    files again; the driver writes an episode's files once, when its result arrives."""
+    method = job.method
+    if method.checkpoint is not None:
+        method = replace(method, checkpoint=shared.local(shared.unpack(), method.checkpoint))
+    scratch = Path(tempfile.mkdtemp(prefix="icrowdnav-eval-"))
+    try:
+        row = run_episode(replace(job, method=method, out=scratch, row_cache=None))
+        return row, returned_files(scratch)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)

@@ -63,7 +63,7 @@ from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
-from pipeline.core.executor import Executor, check_executor
+from pipeline.core.executor import Executor, check_executor, check_ray_files
 from rl.lookahead import check_shield_s
 from rl.policy import check_checkpoint_weights
 from sim.env import CrowdNavEnv, SimConfig
@@ -115,6 +115,9 @@ class EvalConfig(BaseStageConfig):
                                                             "| local | ray (pipeline.core.executor)"})
     ray_address: str = field(default="", metadata={"help": "Ray cluster address host:port (empty: RAY_ADDRESS, or "
                                                            "a Ray instance started on this machine)"})
+    ray_files: str = field(default="shared", metadata={
+        "help": "on Ray, how checkpoints and episode files travel: shared (every node reads and writes the data dir: "
+                "a shared filesystem) | transfer (through Ray's object store; only the driver touches the data dir)"})
     figures: int = field(default=1, metadata={"help": "trajectory PNGs per cell and method (first episodes)"})
     videos: int = field(default=1, metadata={"help": "mp4 + MCAP per cell and method (first episodes, rendered)"})
     long_horizon: LongHorizonConfig = field(default_factory=LongHorizonConfig)
@@ -147,6 +150,7 @@ class EvalConfig(BaseStageConfig):
         if not self.methods:
             raise ConfigError("eval.methods: expected at least one method")
         check_executor(self.executor, self.ray_address, "eval")
+        check_ray_files(self.ray_files, "eval")
         if self.figures < 0 or self.videos < 0:
             raise ConfigError(f"eval.figures/videos: expected >= 0, got {self.figures}/{self.videos}")
         lh = self.long_horizon

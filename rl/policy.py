@@ -34,6 +34,7 @@ POLICY_JSON = "policy.json"
 POLICY_WEIGHTS = "policy.safetensors"
 N_ACTIONS = 105  # the 5 x 21 (v, ω) grid of sim.robot.action_grid (the paper's)
 CHECKPOINT_REFS = ("encoder", "intention", "teacher")  # policy.json keys naming another checkpoint directory
+RUNTIME_REFS = ("encoder", "intention")  # ... of those, the ones the policy acts with (the teacher is provenance)
 
 
 def space_to_json(space: gym.spaces.Dict) -> dict[str, Any]:

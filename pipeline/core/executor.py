@@ -20,7 +20,10 @@ names (atomically: a temporary name, then a rename), and results come back in jo
   2, nothing written). ``transfer`` (the ``record`` stage): a task writes into a scratch folder of its own node and
   returns the file's bytes through Ray's object store; the driver checks them against the row's sha256 and writes
   them atomically (:func:`receive_file`) — no node but the driver touches the data directory, which is not probed.
-  Stages that read checkpoints in their tasks (``eval``, DAgger) need the shared data directory (docs/scale-out.md);
+  ``eval`` transfers both ways: the checkpoints its methods act from go to the nodes once per run as a
+  :class:`Bundle` (one object in the store, unpacked once per node into a folder of its own), and each episode's
+  files (row, figures, traces, videos, logs) come back as bytes. DAgger still needs the shared data directory
+  (docs/scale-out.md);
 * the progress bar counts finished tasks; Ctrl-C (or SIGTERM) cancels every pending and running task
   (``ray.cancel(force=True)``), then the stage reports what finished, as with the local pool;
 * an address nobody answers is a named error after a 5 s TCP probe (``ray.init`` itself would wait for minutes).
@@ -31,11 +34,14 @@ are long-lived processes too, so per-process caches work the same way there.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 import multiprocessing as mp
 import os
+import shutil
 import socket
+import tempfile
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -81,6 +87,63 @@ def receive_file(path: Path, data: bytes, sha256: str) -> Path:
         raise CorruptArtifactError(f"{path}: the {len(data)} bytes a Ray task returned have sha256 {got[:12]}..., "
                                    f"the task computed {sha256[:12]}...; nothing written")
     return atomic_write_bytes(Path(path), data)
+
+
+@dataclass(frozen=True)
+class Bundle:
+    """Files Ray tasks read, shipped through the object store once per run (``files: transfer``): ``files`` pairs a
+    path relative to ``root`` (the deepest folder holding every shipped file, on the driver) with its bytes; ``key``
+    is the sha256 over names and bytes. A task calls :meth:`unpack` and :meth:`local` instead of reading ``root``."""
+
+    root: str
+    files: tuple[tuple[str, bytes], ...]
+    key: str
+
+    @classmethod
+    def of(cls, files: dict[Path, bytes]) -> Bundle:
+        """A bundle of ``files`` (absolute path → bytes; what a task will find under :meth:`local`)."""
+        paths = [os.path.abspath(p) for p in files]
+        root = os.path.commonpath([os.path.dirname(p) for p in paths]) if paths else "/"
+        items = tuple(sorted((os.path.relpath(os.path.abspath(p), root), bytes(b)) for p, b in files.items()))
+        h = hashlib.sha256()
+        for name, data in items:
+            h.update(name.encode() + b"\0" + hashlib.sha256(data).digest())
+        return cls(root, items, h.hexdigest())
+
+    def unpack(self) -> Path:
+        """The files on this node: written once per node and bundle into ``<tmp>/icrowdnav-files-<key>`` (a folder
+        filled under a temporary name, then renamed: concurrent tasks and a killed one leave no half-filled
+        folder); later calls return it."""
+        final = Path(tempfile.gettempdir()) / f"icrowdnav-files-{self.key[:20]}"
+        if final.is_dir():
+            return final
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}-", dir=final.parent))
+        try:
+            for name, data in self.files:
+                (tmp / name).parent.mkdir(parents=True, exist_ok=True)
+                (tmp / name).write_bytes(data)
+            os.rename(tmp, final)
+        except OSError:
+            if not final.is_dir():  # not another task that won the rename
+                raise
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        return final
+
+    def local(self, unpacked: Path, path: Path | str) -> Path:
+        """Where ``path`` (a driver path at or under :attr:`root`) is in the ``unpacked`` folder."""
+        return Path(unpacked) / os.path.relpath(os.path.abspath(path), self.root)
+
+
+def returned_files(folder: Path) -> list[tuple[str, bytes, str]]:
+    """Every file under ``folder`` as ``(path relative to it, bytes, sha256)``: what a ``transfer`` task returns
+    for the driver to write with :func:`receive_file`."""
+    out = []
+    for p in sorted(Path(folder).rglob("*")):
+        if p.is_file():
+            data = p.read_bytes()
+            out.append((p.relative_to(folder).as_posix(), data, hashlib.sha256(data).hexdigest()))
+    return out
 
 
 def resolve_executor(executor: str, address: str = "") -> str:
@@ -171,14 +234,18 @@ def ray_session(address: str, data_dir: Path, workers: int, files: str = "shared
             ray.shutdown()
 
 
-def _ray_map(fn: Callable[[J], Any], jobs: Sequence[J], desc: str, progress: bool, unit: str,
+def _ray_map(fn: Callable[..., Any], jobs: Sequence[J], desc: str, progress: bool, unit: str,
              on_result: Callable[[int, Any], None] | None, cpus_per_job: int = 1,
-             keep_results: bool = True) -> list[Any]:
+             keep_results: bool = True, shared: Any = None) -> list[Any]:
     import ray
     from ray.exceptions import RayTaskError
 
     task = ray.remote(num_cpus=cpus_per_job, max_retries=MAX_RETRIES, retry_exceptions=False)(fn)
-    pending = [task.remote(j) for j in jobs]
+    if shared is None:
+        pending = [task.remote(j) for j in jobs]
+    else:  # one object in the store; Ray hands each task its value (fetched once per node)
+        ref = ray.put(shared)
+        pending = [task.remote(j, ref) for j in jobs]
     index = {r: i for i, r in enumerate(pending)}
     out: list[Any] = [None] * len(jobs)
     bar = tqdm(total=len(jobs), desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
@@ -238,18 +305,22 @@ class Executor:
 def map_jobs(fn: Callable[[J], Any], jobs: Sequence[J], workers: int, desc: str, progress: bool = True,
              unit: str = "ep", executor: Executor | None = None,
              on_result: Callable[[int, Any], None] | None = None, start: str = "fork",
-             cpus_per_job: int = 1, keep_results: bool = True) -> list[Any]:
+             cpus_per_job: int = 1, keep_results: bool = True, shared: Any = None) -> list[Any]:
     """``[fn(j) for j in jobs]`` in job order: in this process (``workers <= 1``), a process pool of ``workers``
     (started with ``start``: ``fork``, or ``spawn`` for workers that use CUDA), or Ray tasks (``executor.kind ==
     "ray"``; inside :meth:`Executor.session` or starting one; each task holds ``cpus_per_job`` CPUs, e.g. a job
     that runs its own process pool). ``on_result(i, result)`` is called as each job finishes (in completion order
     with Ray, in job order otherwise), e.g. to record progress; with ``keep_results=False`` (Ray) a result is only
-    handed to ``on_result`` and not kept (e.g. a file's bytes, written as they arrive), and the list holds None."""
+    handed to ``on_result`` and not kept (e.g. a file's bytes, written as they arrive), and the list holds None.
+    ``shared`` (not None): ``fn(j, shared=shared)`` instead — one value every job reads (e.g. a :class:`Bundle`), put in
+    Ray's object store once instead of being pickled into every task."""
     if executor is not None and executor.kind == "ray":
         if not jobs:
             return []
         with executor.session(workers):
-            return _ray_map(fn, jobs, desc, progress, unit, on_result, cpus_per_job, keep_results)
+            return _ray_map(fn, jobs, desc, progress, unit, on_result, cpus_per_job, keep_results, shared)
+    if shared is not None:
+        fn = functools.partial(fn, shared=shared)
     if workers <= 1:
         out = []
         for i, j in enumerate(tqdm(jobs, desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)):

@@ -7,8 +7,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import signal
 import socket
+import tempfile
 import threading
 import time
 from dataclasses import replace
@@ -19,6 +21,7 @@ import pytest
 from pipeline import cli
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pipeline.core.executor import (
+    Bundle,
     Executor,
     check_executor,
     check_ray_files,
@@ -26,6 +29,7 @@ from pipeline.core.executor import (
     ray_session,
     receive_file,
     resolve_executor,
+    returned_files,
 )
 
 SCENE_ARGS = ["--scenes", "hallway", "--densities", "0.05", "--sim.camera.width-px", "64",
@@ -101,6 +105,35 @@ def test_a_transferred_file_is_written_only_when_its_bytes_match(tmp_path):
                                       "ray_files": "transfer"})()).files == "transfer"
 
 
+def test_a_bundle_unpacks_once_per_node_where_its_paths_say(tmp_path, monkeypatch):
+    """Bundle (``ray_files: transfer``): files under their deepest common folder, a key over names and bytes, unpacked
+    into one folder per bundle (a second unpack reuses it; no temporary folder left); returned_files lists a
+    scratch folder's files with their sha256."""
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path / "node"))
+    (tmp_path / "node").mkdir()
+    a, b = tmp_path / "ckpt" / "policy" / "full" / "policy.json", tmp_path / "ckpt" / "bev" / "encoder.bin"
+    bundle = Bundle.of({a: b"{}", b: b"\x00\x01"})
+    assert bundle.root == str(tmp_path / "ckpt") and [n for n, _ in bundle.files] == ["bev/encoder.bin",
+                                                                                      "policy/full/policy.json"]
+    assert bundle.key == Bundle.of({b: b"\x00\x01", a: b"{}"}).key != Bundle.of({a: b"{ }", b: b"\x00\x01"}).key
+    root = bundle.unpack()
+    assert bundle.local(root, a).read_bytes() == b"{}" and bundle.local(root, b.parent) == root / "bev"
+    (root / "marker").write_text("kept")
+    assert bundle.unpack() == root and (root / "marker").is_file()  # once per node
+    assert [p.name for p in (tmp_path / "node").iterdir()] == [root.name]
+    assert [(n, d) for n, d, _ in returned_files(root)] == [("bev/encoder.bin", b"\x00\x01"), ("marker", b"kept"),
+                                                            ("policy/full/policy.json", b"{}")]
+    assert all(h == hashlib.sha256(d).hexdigest() for _, d, h in returned_files(root))
+
+
+def _pair_with(k: int, shared: int) -> tuple[int, int]:
+    return k, shared
+
+
+def test_a_shared_value_reaches_every_job():
+    assert map_jobs(_pair_with, [1, 2, 3], 2, "t", progress=False, shared=7) == [(1, 7), (2, 7), (3, 7)]
+
+
 # ------------------------------------------------------------------------------------------ a real Ray cluster
 def _digests(d: Path) -> dict[str, str]:
     return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(d.glob("*.mcap"))}
@@ -167,6 +200,57 @@ def test_record_and_eval_on_ray_equal_the_local_pool(cluster, local_record, tmp_
         rows[ex] = (d / "episodes.jsonl").read_text()
         assert len(list((d / "figures").glob("office_lobby_*.png"))) == 1  # a file a task wrote reaches the data dir
     assert rows["ray"] == rows["local"]
+
+
+def _untrained_teacher(data: Path) -> Path:
+    """A lookahead teacher with its initial weights as ``train`` would leave it in ``data`` (manifest stub)."""
+    import torch
+
+    from rl.policy import build_policy, describe, save_policy
+    from rl.teacher import teacher_net
+    from sim.env import CrowdNavEnv, SimConfig
+
+    torch.manual_seed(0)  # the same weights in every data dir
+    sim = SimConfig()
+    env = CrowdNavEnv(config=replace(sim, scene="office_lobby", obs_mode="privileged", action_type="discrete"))
+    net = teacher_net({"encoder": "lookahead"}, sim)
+    out = data / "checkpoints" / "policy" / "teacher"
+    save_policy(out, build_policy("teacher", None, env.observation_space, net),
+                describe("teacher", None, env.observation_space, net))
+    (out / "manifest.json").write_text("{}")
+    env.close()
+    return out
+
+
+@pytest.mark.slow
+def test_eval_with_files_through_the_object_store_equals_the_local_pool(cluster, tmp_path):
+    """``eval --ray_files transfer``: the teacher's checkpoint travels to the nodes as one bundle, each episode's
+    figure and trace come back through the object store; the rows equal the local pool's, the files arrive, and the
+    data dir holds no temporary file."""
+    from evaluation.harness import checkpoint_bundle
+    from evaluation.stage import EvalConfig
+    from pipeline.verbs.eval import run
+    from sim.env import SimConfig
+
+    base = EvalConfig(methods=["expert", "teacher"], scenes=["office_lobby"], densities=[0.1], goals=2, trials=1,
+                      routing_scenes=[], scenarios=[], workers=2, figures=1, videos=0,
+                      sim=SimConfig(max_episode_s=3.0), progress=False, paired_with="teacher")
+    base.long_horizon = replace(base.long_horizon, runs=0)
+    got, ckpts = {}, {}
+    for ex, files in (("ray", "transfer"), ("local", "shared")):
+        ckpts[ex] = _untrained_teacher(tmp_path / ex)
+        run(replace(base, data_dir=str(tmp_path / ex), executor=ex, ray_files=files))
+        d = tmp_path / ex / "eval" / "benchmark"
+        got[ex] = ((d / "episodes.jsonl").read_text(),
+                   sorted(p.relative_to(d).as_posix() for p in d.rglob("*") if p.suffix in (".png", ".npz")))
+        assert not [p for p in d.rglob("*") if p.name.startswith(".") or p.suffix in (".tmp", ".partial")]
+    assert got["ray"] == got["local"]
+    assert [f for f in got["ray"][1] if "_s2000" in f] == [  # a figure per method, a trace per episode
+        *(f"figures/office_lobby_d0.1_s20000_{m}.png" for m in ("expert", "teacher")),
+        *(f"traces/office_lobby_d0.1_s{s}_{m}.npz" for s in (20000, 20001) for m in ("expert", "teacher"))]
+    unpacked = Path(tempfile.gettempdir()) / f"icrowdnav-files-{checkpoint_bundle([ckpts['ray']]).key[:20]}"
+    assert (unpacked / "policy.safetensors").is_file()  # what the nodes acted from (the bundle root: its folder)
+    shutil.rmtree(unpacked)
 
 
 def _ray_task_pids(name: str) -> list[int]:
