@@ -28,7 +28,7 @@ from pipeline.core.errors import CorruptArtifactError
 from pipeline.core.executor import Bundle, Executor, map_jobs, receive_file, returned_files
 from recorder.mcap.writer import EpisodeWriter
 from recorder.schema import episode_meta_from_env, frame_from_env
-from rl.policy import POLICY_JSON, RUNTIME_REFS, read_policy_json, relative_to
+from rl.policy import checkpoint_bundle
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
 from sim.metrics import episode_metrics
@@ -223,7 +223,7 @@ def run_jobs(jobs: list[Job], workers: int, desc: str, progress: bool = True,
     """All ``jobs`` in a process pool (fork; each worker loads a method's weights once) or on Ray
     (:mod:`pipeline.core.executor`), rows in job order. On Ray with ``files: transfer`` no task touches the data
     directory: the methods' checkpoints travel as one :class:`~pipeline.core.executor.Bundle`
-    (:func:`checkpoint_bundle`), each episode runs in a scratch folder of its node (:func:`run_episode_transfer`),
+    (:func:`rl.policy.checkpoint_bundle`), each episode runs in a scratch folder of its node (:func:`run_episode_transfer`),
     and this process writes the files it returns, then its row."""
     if executor is None or executor.kind != "ray" or executor.files != "transfer":
         return map_jobs(run_episode, jobs, workers, desc, progress, executor=executor)
@@ -240,25 +240,6 @@ def run_jobs(jobs: list[Job], workers: int, desc: str, progress: bool = True,
     map_jobs(run_episode_transfer, jobs, workers, desc, progress, executor=executor, on_result=arrived,
              keep_results=False, shared=bundle)
     return rows
-
-
-def checkpoint_bundle(ckpts: list[Path]) -> Bundle:
-    """The files the drivers of ``ckpts`` read, for Ray nodes without the data directory: each checkpoint
-    directory's own files (not its subfolders: DAgger data, curves) and those of the checkpoints its
-    ``policy.json`` acts with (:data:`rl.policy.RUNTIME_REFS`: encoder, intention model). The bundled
-    ``policy.json`` names them relative to itself, whatever the file says, so they are found where the bundle is
-    unpacked."""
-    dirs: list[Path] = []
-    for ckpt in dict.fromkeys(Path(c) for c in ckpts):
-        desc = read_policy_json(ckpt)
-        dirs += [ckpt, *(Path(desc[k]) for k in RUNTIME_REFS if desc.get(k))]
-    files = {f: f.read_bytes() for d in dict.fromkeys(dirs) for f in sorted(d.iterdir()) if f.is_file()}
-    for ckpt in dict.fromkeys(Path(c) for c in ckpts):
-        raw = json.loads(files[ckpt / POLICY_JSON])
-        desc = read_policy_json(ckpt)
-        raw.update({k: relative_to(desc[k], ckpt) for k in RUNTIME_REFS if desc.get(k)})
-        files[ckpt / POLICY_JSON] = (json.dumps(raw, indent=2, sort_keys=True) + "\n").encode()
-    return Bundle.of(files)
 
 
 def run_episode_transfer(job: Job, shared: Bundle) -> tuple[dict[str, Any], list[tuple[str, bytes, str]]]:

@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import itertools
 import json
+import shutil
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -40,14 +42,14 @@ import torch
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.device import start_method
 from pipeline.core.errors import InputMissingError
-from pipeline.core.executor import Executor, map_jobs
+from pipeline.core.executor import Bundle, Executor, map_jobs, receive_file, returned_files
 from recorder.export import export_run
 from recorder.mcap.layout import partial_path_of
 from recorder.mcap.writer import EpisodeWriter
 from recorder.schema import episode_meta_from_env, frame_from_env
 from rl.driver import cached_policy, cached_student_encoder, cached_student_forecaster, cached_student_heads
 from rl.observe import observer_for_env
-from rl.policy import act, action_logits
+from rl.policy import act, action_logits, checkpoint_bundle
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
 from sim.wrappers import PrivilegedObservation
@@ -153,16 +155,56 @@ def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, prog
     on_ray = executor is not None and executor.kind == "ray"
     if on_ray:  # Ray tasks are given CPUs only (module docstring)
         todo = [{**j, "device": "cpu"} for j in todo]
+    transfer = on_ray and executor.files == "transfer"
     with open(rows_path, "a") as f:
-        def finished(_: int, r: dict[str, Any]) -> None:
+        def finished(_: int, result: Any) -> None:
+            r = result
+            if transfer:  # (row, files): the MCAP, then the features file (last: it marks the episode done)
+                r, files = result
+                for name, data, sha in sorted(files, key=lambda x: x[0].startswith("features/")):
+                    receive_file(iter_dir / name, data, sha)
             done_rows[r["episode"]] = r
             f.write(json.dumps(r) + "\n")
             f.flush()
 
         desc = f"dagger {iter_dir.name}" + (f" ({len(jobs) - len(todo)} done before)" if len(todo) < len(jobs) else "")
-        start = start_method(todo[0].get("device", "cpu")) if todo else "fork"
-        map_jobs(dagger_episode, todo, workers, desc, progress, executor=executor, on_result=finished, start=start)
+        if transfer and todo:
+            map_jobs(dagger_episode_transfer, todo, workers, desc, progress, executor=executor, on_result=finished,
+                     keep_results=False, shared=rollout_bundle(todo[0]))
+        else:
+            start = start_method(todo[0].get("device", "cpu")) if todo else "fork"
+            map_jobs(dagger_episode, todo, workers, desc, progress, executor=executor, on_result=finished,
+                     start=start)
     return [done_rows[episode_name(j["scene"], j["density"], j["seed"])] for j in jobs]
+
+
+ROLLOUT_DIRS = ("teacher", "student", "encoder", "intention")  # the checkpoint folders a rollout job reads
+
+
+def rollout_bundle(job: dict[str, Any]) -> Bundle:
+    """What an iteration's rollouts read (every job of an iteration names the same folders), as one bundle for
+    Ray nodes without the data directory: the teacher and the student of the previous iteration (policy
+    checkpoints) and the encoder and intention model (:func:`rl.policy.checkpoint_bundle`)."""
+    policies = [Path(job[k]) for k in ("teacher", "student") if job.get(k)]
+    return checkpoint_bundle(policies, [Path(job[k]) for k in ("encoder", "intention") if job.get(k)])
+
+
+def dagger_episode_transfer(job: dict[str, Any], shared: Bundle) -> tuple[dict[str, Any], list[tuple[str, bytes,
+                                                                                                        str]]]:
+    """:func:`dagger_episode` on a node without the data directory: the checkpoints from the unpacked bundle
+    ``shared``, the episode written into a scratch iteration folder and returned as ``(row, [(path relative to
+    the iteration folder, bytes, sha256)])``; the scratch folder is removed. A retried task returns the same
+    files again; the driver writes them once, when its result arrives."""
+    root = shared.unpack()
+    scratch = Path(tempfile.mkdtemp(prefix="icrowdnav-dagger-"))
+    try:
+        for sub in ("raw", "features"):
+            (scratch / sub).mkdir()
+        local = {k: str(shared.local(root, job[k])) for k in ROLLOUT_DIRS if job.get(k)}
+        row = dagger_episode({**job, **local, "iter_dir": str(scratch)})
+        return row, returned_files(scratch)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
 
 
 def load_features(iter_dirs: list[Path]) -> dict[str, np.ndarray]:

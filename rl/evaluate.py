@@ -11,10 +11,10 @@ from typing import Any
 
 import torch
 
-from pipeline.core.executor import Executor, map_jobs
+from pipeline.core.executor import Bundle, Executor, map_jobs
 from rl.baselines import BASELINES, baseline_module
 from rl.driver import PolicyDriver, process_cached
-from rl.policy import read_policy_json
+from rl.policy import checkpoint_bundle, read_policy_json
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import Driver, run_episode
 from sim.metrics import episode_metrics
@@ -58,10 +58,20 @@ def evaluate(policy_dir: Path, sim_cfg: SimConfig, cells: list[tuple[str, float]
              workers: int = 2, method: str | None = None, progress: bool = True,
              executor: Executor | None = None) -> list[dict[str, Any]]:
     """Every (scene, density) of ``cells`` x ``seeds`` (the same seeds for every method) in a process pool or on
-    Ray (``executor``); one metrics row per episode, named ``method`` (default: the checkpoint folder's name)."""
+    Ray (``executor``; with ``files: transfer`` the checkpoint travels as one bundle,
+    :func:`rl.policy.checkpoint_bundle`); one metrics row per episode, named ``method`` (default: the checkpoint
+    folder's name)."""
     name = method or Path(policy_dir).name
     jobs = [(Path(policy_dir), name, sim_cfg, s, d, k) for s, d in cells for k in seeds]
+    if executor is not None and executor.kind == "ray" and executor.files == "transfer":
+        return map_jobs(_episode_on_bundle, jobs, workers, f"evaluate {name}", progress, executor=executor,
+                        shared=checkpoint_bundle([Path(policy_dir)]))
     return map_jobs(_episode, jobs, workers, f"evaluate {name}", progress, executor=executor)
+
+
+def _episode_on_bundle(job: tuple[Path, str, SimConfig, str, float, int], shared: Bundle) -> dict[str, Any]:
+    """:func:`_episode` on a node without the data directory: the checkpoint from the unpacked bundle ``shared``."""
+    return _episode((shared.local(shared.unpack(), job[0]), *job[1:]))
 
 
 def success_table(rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:

@@ -28,6 +28,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 
 from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
+from pipeline.core.executor import Bundle
 from rl.networks import StudentExtractor, StudentLookaheadExtractor, TakeScores, teacher_extractor_class
 
 POLICY_JSON = "policy.json"
@@ -211,6 +212,24 @@ def load_policy(ckpt: Path, shield_s: float | None = None) -> tuple[ActorCriticP
     load_safetensors(policy, ckpt / POLICY_WEIGHTS, upgrade=upgrade_state_dict)
     policy.set_training_mode(False)
     return policy, desc
+
+
+def checkpoint_bundle(ckpts: list[Path], dirs: list[Path] = ()) -> Bundle:
+    """The files the drivers of the policy checkpoints ``ckpts`` read, for Ray nodes without the data directory
+    (``ray_files: transfer``): each checkpoint directory's own files (not its subfolders: DAgger data, curves), those
+    of the checkpoints its ``policy.json`` acts with (:data:`RUNTIME_REFS`: encoder, intention model) and those of
+    ``dirs`` (other checkpoint directories a task reads). The bundled ``policy.json`` names its references relative
+    to itself, whatever the file says, so they are found where the bundle is unpacked."""
+    ckpts = list(dict.fromkeys(Path(os.path.abspath(c)) for c in ckpts))
+    descs = {c: read_policy_json(c) for c in ckpts}
+    folders = [*ckpts, *(Path(d[k]) for d in descs.values() for k in RUNTIME_REFS if d.get(k)), *map(Path, dirs)]
+    folders = list(dict.fromkeys(Path(os.path.abspath(d)) for d in folders))  # one entry per folder
+    files = {f: f.read_bytes() for d in folders for f in sorted(d.iterdir()) if f.is_file()}
+    for c, desc in descs.items():
+        raw = json.loads(files[c / POLICY_JSON])
+        raw.update({k: relative_to(desc[k], c) for k in RUNTIME_REFS if desc.get(k)})
+        files[c / POLICY_JSON] = (json.dumps(raw, indent=2, sort_keys=True) + "\n").encode()
+    return Bundle.of(files)
 
 
 def check_checkpoint_weights(ckpt: Path) -> None:

@@ -58,7 +58,7 @@ from pipeline.core.artifacts import atomic_save_npz, atomic_write_json
 from pipeline.core.config import BaseStageConfig, dump_yaml
 from pipeline.core.device import device_counts, resolve_device, start_method
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
-from pipeline.core.executor import Executor, check_executor
+from pipeline.core.executor import Executor, check_executor, check_ray_files
 from pretrain.checkpoint import read_encoder_json
 from pretrain.geometry import BEVGrid
 from pretrain.intention import (
@@ -244,6 +244,9 @@ class TrainConfig(BaseStageConfig):
     # (pipeline.core.executor; the same seeds give the same files either way); not in the config hash
     executor: str = "auto"
     ray_address: str = ""  # Ray cluster host:port (empty: RAY_ADDRESS, or a Ray instance started on this machine)
+    # on Ray, how checkpoints and episode files travel: shared (every node reads and writes the data dir: a shared
+    # filesystem) | transfer (Ray's object store; only this process touches the data dir); not in the config hash
+    ray_files: str = "shared"
     threads: int = 0  # torch threads for cloning / PPO updates (0 = every core)
     # where cloning, PPO updates and the students' frozen encoder run: auto (CUDA when this machine has it, else the
     # CPU) | cpu | cuda | cuda:N (--device cuda); not in the config hash (a run resumes on another device); the
@@ -299,6 +302,7 @@ class TrainConfig(BaseStageConfig):
             load_scene(s)  # unknown scene -> ConfigError naming it
         resolve_device(self.device, "train.device")  # cuda without CUDA: one error, before anything is written
         check_executor(self.executor, self.ray_address, "train")
+        check_ray_files(self.ray_files, "train")
 
 
 def policy_root(cfg: TrainConfig) -> Path:

@@ -4,7 +4,6 @@ one episode through the harness (trace, figure, MCAP), bad input."""
 from __future__ import annotations
 
 import json
-import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -12,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-from evaluation.harness import Job, checkpoint_bundle, initial_state, make_env, reset_options, run_episode
+from evaluation.harness import Job, initial_state, make_env, reset_options, run_episode
 from evaluation.methods import MethodSpec, resolve_methods
 from evaluation.report import paired, report_markdown, results, results_csv, shape_checks
 from pipeline.core.errors import ConfigError, InputMissingError
@@ -231,40 +230,3 @@ def test_sr_figure_tolerates_intervals_that_miss_the_mean_by_rounding(tmp_path):
     plot_sr(res, {}, tmp_path / "sr.png")
     assert (tmp_path / "sr.png").stat().st_size > 0
 
-
-def test_a_checkpoint_bundle_holds_what_the_policy_acts_with_and_finds_it_where_unpacked(tmp_path, monkeypatch):
-    """``eval --ray_files transfer`` ships each method's checkpoint as a bundle: the policy's own files and those of
-    its encoder and intention model (not the teacher it was distilled from, not its DAgger subfolders); a policy.json
-    written with absolute references (older checkpoints) is bundled with relative ones, so the unpacked copy —
-    the data dir gone — reads, verifies and points inside itself."""
-    import torch
-    from safetensors.torch import save_file
-
-    from rl.policy import check_checkpoint_weights, read_policy_json
-
-    ck = tmp_path / "data" / "checkpoints"
-    for d, name in (("bev", "encoder.safetensors"), ("intention", "forecaster.safetensors"),
-                    ("policy/teacher", "policy.safetensors"), ("policy/full", "policy.safetensors")):
-        (ck / d).mkdir(parents=True)
-        save_file({"w": torch.ones(3)}, str(ck / d / name))
-    (ck / "policy" / "full" / "dagger" / "iter_0").mkdir(parents=True)
-    (ck / "policy" / "full" / "dagger" / "iter_0" / "big.npz").write_bytes(b"x" * 1000)
-    ckpt = ck / "policy" / "full"
-    (ckpt / "policy.json").write_text(json.dumps({"kind": "student", "variant": "full", "observation_space": {},
-                                                  "net": {}, "encoder": str(ck / "bev"),
-                                                  "intention": str(ck / "intention"),
-                                                  "teacher": str(ck / "policy" / "teacher")}))
-    bundle = checkpoint_bundle([ckpt, ckpt])
-    assert bundle.root == str(ck) and [n for n, _ in bundle.files] == [
-        "bev/encoder.safetensors", "intention/forecaster.safetensors", "policy/full/policy.json",
-        "policy/full/policy.safetensors"]
-    stored = json.loads(dict(bundle.files)["policy/full/policy.json"])
-    assert (stored["encoder"], stored["intention"]) == ("../../bev", "../../intention")
-    monkeypatch.setattr("tempfile.tempdir", str(tmp_path / "node"))
-    (tmp_path / "node").mkdir()
-    shutil.rmtree(tmp_path / "data")
-    local = bundle.local(bundle.unpack(), ckpt)
-    desc = read_policy_json(local)
-    assert desc["encoder"] == str(local.parent.parent / "bev") and desc["intention"] == str(local.parent.parent /
-                                                                                            "intention")
-    check_checkpoint_weights(local)

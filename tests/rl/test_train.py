@@ -2,6 +2,7 @@
 
 import json
 import shutil
+import tempfile
 from dataclasses import replace
 from pathlib import Path
 
@@ -111,24 +112,43 @@ def _dagger_jobs(it: Path, teacher_dir: Path) -> list[dict]:
 
 @pytest.mark.slow
 def test_dagger_rollouts_on_ray_equal_the_local_pool(tmp_path, teacher_dir):
-    """The same DAgger jobs as Ray tasks (a Ray instance on this machine) and in the local pool: the same rows,
-    byte-identical MCAP logs and equal feature caches."""
+    """The same DAgger jobs as Ray tasks (a Ray instance on this machine; ``ray_files`` shared, and transfer: the
+    teacher shipped as a bundle, the episode's files returned through the object store) and in the local pool: the
+    same rows, byte-identical MCAP logs and equal feature caches."""
     pytest.importorskip("ray")
     from pipeline.core.executor import Executor
     from rl.dagger import run_iteration
 
-    its = {ex: tmp_path / ex / "iter_0" for ex in ("local", "ray")}
+    executors = {"local": Executor("local", "", tmp_path), "ray": Executor("ray", "", tmp_path),
+                 "transfer": Executor("ray", "", tmp_path, "transfer")}
+    its = {ex: tmp_path / ex / "iter_0" for ex in executors}
     rows = {ex: run_iteration(it, _dagger_jobs(it, teacher_dir), workers=2, progress=False,
-                              executor=Executor(ex, "", tmp_path)) for ex, it in its.items()}
-    assert [{k: v for k, v in r.items() if k != "seconds"} for r in rows["ray"]] == \
-        [{k: v for k, v in r.items() if k != "seconds"} for r in rows["local"]]
-    for name in ("hallway_d0.1_s1", "hallway_d0.1_s2"):
-        assert (its["ray"] / "raw" / f"{name}.mcap").read_bytes() == (its["local"] / "raw" / f"{name}.mcap").read_bytes()
-        with np.load(its["ray"] / "features" / f"{name}.npz") as a, \
-                np.load(its["local"] / "features" / f"{name}.npz") as b:
-            assert sorted(a.files) == sorted(b.files)
-            for k in a.files:
-                np.testing.assert_array_equal(a[k], b[k])
+                              executor=executors[ex]) for ex, it in its.items()}
+    for ex in ("ray", "transfer"):
+        assert [{k: v for k, v in r.items() if k != "seconds"} for r in rows[ex]] == \
+            [{k: v for k, v in r.items() if k != "seconds"} for r in rows["local"]]
+        for name in ("hallway_d0.1_s1", "hallway_d0.1_s2"):
+            assert (its[ex] / "raw" / f"{name}.mcap").read_bytes() == \
+                (its["local"] / "raw" / f"{name}.mcap").read_bytes()
+            with np.load(its[ex] / "features" / f"{name}.npz") as a, \
+                    np.load(its["local"] / "features" / f"{name}.npz") as b:
+                assert sorted(a.files) == sorted(b.files)
+                for k in a.files:
+                    np.testing.assert_array_equal(a[k], b[k])
+        assert sorted(p.name for p in its[ex].rglob("*") if p.is_file()) == \
+            sorted(p.name for p in its["local"].rglob("*") if p.is_file())  # nothing else (no scratch file)
+    # train's acceptance episodes (rl.evaluate) with the checkpoint shipped: the local pool's rows
+    from rl.dagger import rollout_bundle
+    from rl.evaluate import evaluate
+
+    acc = {ex: evaluate(teacher_dir, TINY_SIM, [("hallway", 0.1)], [1, 2], 2, progress=False,
+                        executor=executors[ex]) for ex in ("local", "transfer")}
+    assert [{k: v for k, v in r.items() if k != "seconds"} for r in acc["transfer"]] == \
+        [{k: v for k, v in r.items() if k != "seconds"} for r in acc["local"]]
+    bundle = rollout_bundle(_dagger_jobs(its["transfer"], teacher_dir)[0])
+    unpacked = Path(tempfile.gettempdir()) / f"icrowdnav-files-{bundle.key[:20]}"  # this machine's node's copy
+    assert bundle.local(unpacked, teacher_dir / "policy.safetensors").is_file()
+    shutil.rmtree(unpacked)
 
 
 def test_dagger_iteration_writes_a_loadable_dataset_and_lowers_bc_loss(tmp_path, teacher_dir):

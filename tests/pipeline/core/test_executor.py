@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from pipeline import cli
+from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pipeline.core.executor import (
     Bundle,
@@ -64,6 +65,10 @@ def test_executor_choice(monkeypatch):
         check_executor("dask", "", "record")
     with pytest.raises(ConfigError, match="ray_address"):
         check_executor("local", "10.0.0.1:6379", "eval")
+    from rl.stage import TrainConfig
+
+    with pytest.raises(ConfigError, match=r"train.ray_files: expected one of \['shared', 'transfer'\], got 'nfs'"):
+        load_config(TrainConfig, "train", "smoke", {"ray_files": "nfs"})
 
 
 def _free_port() -> int:
@@ -227,9 +232,9 @@ def test_eval_with_files_through_the_object_store_equals_the_local_pool(cluster,
     """``eval --ray_files transfer``: the teacher's checkpoint travels to the nodes as one bundle, each episode's
     figure and trace come back through the object store; the rows equal the local pool's, the files arrive, and the
     data dir holds no temporary file."""
-    from evaluation.harness import checkpoint_bundle
     from evaluation.stage import EvalConfig
     from pipeline.verbs.eval import run
+    from rl.policy import checkpoint_bundle
     from sim.env import SimConfig
 
     base = EvalConfig(methods=["expert", "teacher"], scenes=["office_lobby"], densities=[0.1], goals=2, trials=1,
