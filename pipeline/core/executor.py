@@ -20,10 +20,10 @@ names (atomically: a temporary name, then a rename), and results come back in jo
   2, nothing written). ``transfer`` (the ``record`` stage): a task writes into a scratch folder of its own node and
   returns the file's bytes through Ray's object store; the driver checks them against the row's sha256 and writes
   them atomically (:func:`receive_file`) — no node but the driver touches the data directory, which is not probed.
-  ``eval`` transfers both ways: the checkpoints its methods act from go to the nodes once per run as a
-  :class:`Bundle` (one object in the store, unpacked once per node into a folder of its own), and each episode's
-  files (row, figures, traces, videos, logs) come back as bytes. DAgger still needs the shared data directory
-  (docs/scale-out.md);
+  ``eval`` and ``train`` (DAgger rollouts, acceptance) transfer both ways: the checkpoints the episodes act from go
+  to the nodes once per run or iteration as a :class:`Bundle` (one object in the store, unpacked once per node into
+  a folder of its own), and each episode's files (figures, traces, videos, logs; DAgger's MCAP and feature cache)
+  come back as bytes (docs/scale-out.md);
 * the progress bar counts finished tasks; Ctrl-C (or SIGTERM) cancels every pending and running task
   (``ray.cancel(force=True)``), then the stage reports what finished, as with the local pool;
 * an address nobody answers is a named error after a 5 s TCP probe (``ray.init`` itself would wait for minutes).
