@@ -15,8 +15,10 @@ them). Causes, from the trace's last state:
 * ``collision_obstacle_clear`` — it hit a wall or an obstacle with nobody that close.
 
 Each failure also records the robot's mean speed and yaw rate over its last ``tail_s`` and, for a timeout, how far
-the goal still was; an obstacle hit records where the obstacle was — the bearing of its nearest surface point from
-the robot's heading, and whether that lies in the cameras' field of view (|bearing| ≤ camera yaw + half its
+the goal still was and whether the robot was *frozen* (its last :data:`FROZEN_S` within :data:`FROZEN_M` of one
+spot — a deterministic policy in a near-static scene that chose to stand still keeps choosing it) with a person
+within ``near_m`` for most of that time or not (counted as ``timeouts_frozen``); an obstacle hit records where the
+obstacle was — the bearing of its nearest surface point from the robot's heading, and whether that lies in the cameras' field of view (|bearing| ≤ camera yaw + half its
 horizontal FOV): a student only sees what its two forward cameras see, so a hit out of view is a side or rear one. Writes ``failures.json`` (the counts per method and cell, and one record per failure) and
 ``failures.md`` into ``--out`` (default ``<run>/failures``), and ``figures/<cause>_<k>.png``: the top-down view
 (:func:`sim.viz.plot_episode_topdown`) 3 m around the end, the robot and the people 1 s before and at the end. The
@@ -68,6 +70,8 @@ REPLAY_WINDOW_S = 0.6  # --replay: the predicted clearance of an arc is its mini
 REPLAY_STEPS = 10  # --replay: the last steps kept per replayed hit
 CAUSES = ("collision_pedestrian", "collision_obstacle_near_person", "collision_obstacle_clear", "timeout")
 OUT_OF_VIEW = "obstacle_hits_out_of_view"  # obstacle hits whose obstacle lay outside the cameras' field of view
+FROZEN = "timeouts_frozen"  # timeouts that ended standing still (the last FROZEN_S within FROZEN_M of one spot)
+FROZEN_S, FROZEN_M = 10.0, 0.1
 
 
 def trace_path(run: Path, row: dict[str, Any]) -> Path:
@@ -89,9 +93,18 @@ def classify(trace: EpisodeTrace, near_m: float = 1.0, tail_s: float = 0.5) -> d
         raise ConfigError(f"failure cause of a {trace.outcome!r} episode: not a failure")
     n = max(1, round(tail_s / trace.dt_s))
     cmd = trace.robot_cmd[-n:] if len(trace.robot_cmd) else np.zeros((1, 2))
-    return {"cause": cause, "nearest_person_m": nearest, "tail_speed_mps": float(np.abs(cmd[:, 0]).mean()),
-            "tail_yaw_rate_radps": float(np.abs(cmd[:, 1]).mean()),
-            "goal_distance_m": float(np.linalg.norm(trace.goal_xy - pose[:2])), "steps": int(len(trace.robot_cmd))}
+    out = {"cause": cause, "nearest_person_m": nearest, "tail_speed_mps": float(np.abs(cmd[:, 0]).mean()),
+           "tail_yaw_rate_radps": float(np.abs(cmd[:, 1]).mean()),
+           "goal_distance_m": float(np.linalg.norm(trace.goal_xy - pose[:2])), "steps": int(len(trace.robot_cmd))}
+    nf = round(FROZEN_S / trace.dt_s)
+    if cause == "timeout" and len(trace.robot_pose) > nf:
+        xy = trace.robot_pose[-nf:, :2]
+        out["frozen"] = bool(np.linalg.norm(xy - xy.mean(0), axis=-1).max() < FROZEN_M)
+        px = trace.ped_xy[-nf:]
+        gap = np.linalg.norm(px - xy[:, None], axis=-1) - trace.ped_radius[None] - trace.robot_radius_m
+        near = np.where(np.isfinite(gap), gap, np.inf).min(-1) <= near_m if px.shape[1] else np.zeros(nf, bool)
+        out["frozen_people_near"] = out["frozen"] and bool(near.mean() > 0.5)
+    return out
 
 
 def _load_trace(path: Path) -> EpisodeTrace:
@@ -136,6 +149,8 @@ def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: f
                 info["hit_bearing_deg"] = hit_bearing(layouts.layout(r, trace), trace.robot_pose[-1])
                 info["hit_in_view"] = abs(info["hit_bearing_deg"]) <= layouts.view_deg
                 c["obstacle_hits_out_of_view"] += int(not info["hit_in_view"])
+            if info.get("frozen"):
+                c[FROZEN] += 1
             records.append({"method": r["method"], "scene": r["scene"], "density": r["density"], "seed": r["seed"],
                             **info})
     return {"run": str(run), "near_m": near_m, "tail_s": tail_s,
@@ -145,9 +160,9 @@ def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: f
 
 def markdown(res: dict[str, Any]) -> str:
     lines = [f"Failure causes in {res['run']} (obstacle hits split at a person within {res['near_m']:g} m)", "",
-             "| method | cell | episodes | " + " | ".join(CAUSES) + f" | {OUT_OF_VIEW} |",
-             "|---|---|---|" + "---|" * (len(CAUSES) + 1)]
-    cols = (*CAUSES, OUT_OF_VIEW)
+             "| method | cell | episodes | " + " | ".join(CAUSES) + f" | {OUT_OF_VIEW} | {FROZEN} |",
+             "|---|---|---|" + "---|" * (len(CAUSES) + 2)]
+    cols = (*CAUSES, OUT_OF_VIEW, FROZEN)
     for m, cells in res["counts"].items():
         for cell, c in cells.items():
             lines.append(f"| {m} | {cell} | {c['episodes']} | " + " | ".join(str(c.get(k, 0)) for k in cols) + " |")

@@ -40,6 +40,27 @@ def test_obstacle_hits_are_split_by_the_nearest_person():
     assert late["cause"] == "timeout" and late["goal_distance_m"] == pytest.approx(4.0)
     with pytest.raises(ConfigError, match="not a failure"):
         classify(_trace("success", []))
+    assert "frozen" not in late  # shorter than FROZEN_S: not judged
+
+
+def test_a_timeout_that_ends_standing_still_is_frozen():
+    """The last 10 s within 0.1 m of one spot: frozen — with people near for most of it, or nobody; a robot that
+    still moves (here: 0.5 m back and forth) is not."""
+    def standing(ped_at, sway_m=0.02):
+        t1 = 150
+        x = 1.0 + sway_m * np.sin(np.arange(t1) / 3.0)
+        tr = _trace("timeout", ped_at)
+        pose = np.stack([x, np.zeros(t1), np.zeros(t1)], -1)
+        peds = np.repeat(np.asarray(ped_at, float).reshape(1, len(ped_at), 2), t1, 0)
+        return replace(tr, robot_pose=pose, robot_cmd=np.zeros((t1 - 1, 2)), ped_xy=peds, ped_vel=np.zeros_like(peds),
+                       ped_yaw=np.zeros((t1, len(ped_at))), ped_head_yaw=np.zeros((t1, len(ped_at))),
+                       static_clearance_m=np.ones(t1))
+
+    alone = classify(standing([(5.0, 3.0)]))
+    assert alone["frozen"] and not alone["frozen_people_near"]
+    crowded = classify(standing([(1.0, 1.0)]))
+    assert crowded["frozen"] and crowded["frozen_people_near"]
+    assert not classify(standing([], sway_m=0.25))["frozen"]
 
 
 def test_the_bearing_of_a_hit_obstacle_is_measured_from_the_heading():
