@@ -78,7 +78,6 @@ class PolicyDriver:
         self.forecaster = (cached_student_forecaster(self.desc["variant"], self.head, self.desc.get("intention"))
                            if self.student else None)
         self.map_cost = bool(self.desc.get("net", {}).get("map_cost", False))
-        self.route = bool(self.desc.get("net", {}).get("route", False))  # rl.route: steer by a route on its map
         self.map_heads = (cached_student_heads(self.desc["variant"], self.head, self.map_cost, self.desc.get("encoder"),
                                                self.encoder) if self.student else None)
         self.observer: StudentObserver | None = None
@@ -89,7 +88,7 @@ class PolicyDriver:
             if self.observer is None:
                 self.observer = observer_for(info["cameras"], info["config"], self.desc["variant"], self.encoder,
                                              self.head, forecaster=self.forecaster, map_cost=self.map_cost,
-                                             map_heads=self.map_heads, route=self.route)
+                                             map_heads=self.map_heads)
             self.observer.reset()
 
     def act(self, obs: dict[str, np.ndarray], info: dict[str, Any]):

@@ -177,10 +177,8 @@ class StudentLookaheadExtractor(StudentExtractor):
         if missing:
             raise ConfigError(f"the lookahead head of variant {variant!r} needs observation keys {missing}")
         base_dim = self._features_dim
-        # with a route (rl.route) the observer adds "subgoal", which the head steers by instead of the goal
         self.lookahead = LookaheadHead(observation_space, robot, dt_s, 0.25, base_dim, score_dim, context_dim,
-                                       subgoal="subgoal" in observation_space.spaces, scan_range_m=scan_range_m,
-                                       heading=heading,
+                                       subgoal=False, scan_range_m=scan_range_m, heading=heading,
                                        scorer_bound=scorer_bound, map_key=map_key(variant, map_cost),
                                        map_bounds=map_bounds, shield_s=shield_s)
         self._features_dim = self.lookahead.n_actions + base_dim

@@ -53,7 +53,6 @@ from pretrain.intention import IntentionForecaster, load_forecaster
 from pretrain.model import TARGETS, BEVEncoder, BEVStream, EncoderConfig, PretextHeads
 from rl.networks import variant_keys
 from rl.perceive import CameraView, Perception
-from rl.route import map_subgoal
 
 BEV_POOL = 2  # s_bev is average-pooled by this before caching / φ_bev
 OCC_STRIDE_PX = 2  # depth pixels lifted for the occupancy map (every 2nd row and column)
@@ -103,22 +102,14 @@ class StudentObserver:
             the tracks (``peds_future``) instead of constant velocity.
         map_cost: the lookahead head reads an occupancy map along its arcs (``bev_occ`` for variants with ``bev``).
         map_heads: the encoder checkpoint's pretext heads (:func:`load_student_heads`), which make ``bev_occ``.
-        route: also return ``subgoal``: the point 2 m along a route on the variant's own occupancy map
-            (:func:`rl.route.map_subgoal` on ``bev_occ``'s static channel, or ``occ`` for ``no_bev``; needs
-            ``map_cost``), which the lookahead head steers by instead of the goal.
-        radius_m: the robot's radius (the route's margin round obstacles).
     """
 
     def __init__(self, variant: str, cameras: list[Camera], encoder: BEVEncoder | None, max_people: int,
                  mirror: bool = False, head: str = "mlp", perception: dict[str, Any] | None = None,
                  forecaster: IntentionForecaster | None = None, map_cost: bool = False,
-                 map_heads: PretextHeads | None = None, route: bool = False, radius_m: float = 0.3) -> None:
+                 map_heads: PretextHeads | None = None) -> None:
         self.variant = variant
         self.keys = variant_keys(variant, head, map_cost)
-        self.route, self.radius_m = bool(route), float(radius_m)
-        if self.route and (head != "lookahead" or not ({"bev_occ", "occ"} & set(self.keys))):
-            raise ConfigError(f"route: the {head} head of variant {variant!r} has no occupancy map to steer by "
-                              "(a route needs the lookahead head and map_cost, or no_bev's depth occupancy)")
         self.cameras = cameras
         self.perception = None
         if head == "lookahead":
@@ -171,8 +162,6 @@ class StudentObserver:
         if "poses" in self.keys:
             d["poses"] = gym.spaces.Box(-big, big, (self.max_people, 17, 3), np.float32)
             d["pose_mask"] = gym.spaces.Box(0.0, 1.0, (self.max_people, 17), np.float32)
-        if self.route:
-            d["subgoal"] = gym.spaces.Box(-big, big, (2,), np.float32)
         if self.perception is not None:
             d["scan"] = gym.spaces.Box(0.0, big, (self.perception.scan.rays,), np.float32)
             if self.perception.people:
@@ -223,10 +212,6 @@ class StudentObserver:
             out["pose_mask"] = np.asarray(obs["pose_mask"], np.float32)
         if self.perception is not None:
             out.update(self.perception(obs))
-        if self.route:
-            static = out["bev_occ"][0] if "bev_occ" in out else out["occ"][0]
-            bounds = [self.grid.x_bound[:2], self.grid.y_bound[:2]]
-            out["subgoal"] = map_subgoal(static, out["state"][:2], bounds, self.radius_m)
         self._first = False
         return out
 
@@ -248,12 +233,12 @@ def perception_params(sim_cfg) -> dict[str, Any]:
 
 def observer_for(camera_specs, sim_cfg, variant: str, encoder: BEVEncoder | None, head: str = "mlp",
                  mirror: bool = False, forecaster: IntentionForecaster | None = None, map_cost: bool = False,
-                 map_heads: PretextHeads | None = None, route: bool = False) -> StudentObserver:
+                 map_heads: PretextHeads | None = None) -> StudentObserver:
     """The :class:`StudentObserver` of a student variant for the cameras and config an env reports at reset
     (``info["cameras"]``, ``info["config"]``)."""
     return StudentObserver(variant, cameras_of(camera_specs), encoder, sim_cfg.detector.max_people, mirror=mirror,
                            head=head, perception=perception_params(sim_cfg), forecaster=forecaster,
-                           map_cost=map_cost, map_heads=map_heads, route=route, radius_m=sim_cfg.robot.radius_m)
+                           map_cost=map_cost, map_heads=map_heads)
 
 
 def observer_for_env(env, variant: str, encoder: BEVEncoder | None, head: str = "mlp",
