@@ -173,7 +173,7 @@ def require_input(path: Path, what: str, hint: str = "") -> Path:
     return path
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
     """Whether a process with this id exists (a process of another user counts as alive)."""
     if pid <= 0:
         return False
@@ -269,7 +269,7 @@ class OutputDir:
                 if not suffix.isdigit():
                     continue
                 pid = int(suffix)
-                if pid != os.getpid() and _pid_alive(pid):
+                if pid != os.getpid() and pid_alive(pid):
                     continue
                 if pid == os.getpid() and kind == "staging":
                     continue  # our own leftover staging dir is removed in __enter__

@@ -52,7 +52,7 @@ from typing import Any, TypeVar
 
 from tqdm import tqdm
 
-from pipeline.core.artifacts import atomic_write_bytes
+from pipeline.core.artifacts import atomic_write_bytes, pid_alive
 from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError
 
 log = logging.getLogger("icrowdnav")
@@ -112,12 +112,17 @@ class Bundle:
 
     def unpack(self) -> Path:
         """The files on this node: written once per node and bundle into ``<tmp>/icrowdnav-files-<key>`` (a folder
-        filled under a temporary name, then renamed: concurrent tasks and a killed one leave no half-filled
-        folder); later calls return it."""
+        filled under a temporary name ``.icrowdnav-files-<key>-<pid>-*``, then renamed: concurrent tasks and a
+        killed one leave no half-filled folder, and the temporary folders of dead processes are removed here);
+        later calls return it."""
         final = Path(tempfile.gettempdir()) / f"icrowdnav-files-{self.key[:20]}"
         if final.is_dir():
             return final
-        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}-", dir=final.parent))
+        for stale in final.parent.glob(f".{final.name}-*-*"):
+            pid = stale.name[len(final.name) + 2:].split("-", 1)[0]
+            if pid.isdigit() and not pid_alive(int(pid)):
+                shutil.rmtree(stale, ignore_errors=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}-{os.getpid()}-", dir=final.parent))
         try:
             for name, data in self.files:
                 (tmp / name).parent.mkdir(parents=True, exist_ok=True)

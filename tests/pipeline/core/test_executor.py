@@ -129,6 +129,19 @@ def test_a_bundle_unpacks_once_per_node_where_its_paths_say(tmp_path, monkeypatc
     assert [(n, d) for n, d, _ in returned_files(root)] == [("bev/encoder.bin", b"\x00\x01"), ("marker", b"kept"),
                                                             ("policy/full/policy.json", b"{}")]
     assert all(h == hashlib.sha256(d).hexdigest() for _, d, h in returned_files(root))
+    # a task killed while unpacking left its temporary folder: removed by the next unpack on the node, while a live
+    # process's is kept
+    import subprocess
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    other = Bundle.of({a: b"{}"})
+    name = f"icrowdnav-files-{other.key[:20]}"
+    (tmp_path / "node" / f".{name}-{dead.pid}-x1").mkdir()
+    (tmp_path / "node" / f".{name}-{os.getpid()}-x2").mkdir()
+    assert other.unpack().name == name
+    assert sorted(p.name for p in (tmp_path / "node").iterdir()) == sorted([root.name, name,
+                                                                           f".{name}-{os.getpid()}-x2"])
 
 
 def _pair_with(k: int, shared: int) -> tuple[int, int]:
