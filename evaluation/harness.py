@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -25,7 +23,7 @@ import numpy as np
 from evaluation.methods import MethodSpec
 from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError
-from pipeline.core.executor import Bundle, Executor, map_jobs, receive_file, returned_files
+from pipeline.core.executor import Bundle, Executor, in_scratch, map_jobs, receive_files
 from recorder.mcap.writer import EpisodeWriter
 from recorder.schema import episode_meta_from_env, frame_from_env
 from rl.policy import checkpoint_bundle
@@ -231,8 +229,7 @@ def run_jobs(jobs: list[Job], workers: int, desc: str, progress: bool = True,
 
     def arrived(i: int, result: tuple[dict[str, Any], list[tuple[str, bytes, str]]]) -> None:
         row, files = result
-        for name, data, sha in files:
-            receive_file(jobs[i].out / name, data, sha)
+        receive_files(jobs[i].out, files)
         write_row(jobs[i], row)
         rows[i] = row
 
@@ -250,9 +247,5 @@ def run_episode_transfer(job: Job, shared: Bundle) -> tuple[dict[str, Any], list
     method = job.method
     if method.checkpoint is not None:
         method = replace(method, checkpoint=shared.local(shared.unpack(), method.checkpoint))
-    scratch = Path(tempfile.mkdtemp(prefix="icrowdnav-eval-"))
-    try:
-        row = run_episode(replace(job, method=method, out=scratch, row_cache=None))
-        return row, returned_files(scratch)
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+    return in_scratch(lambda scratch: run_episode(replace(job, method=method, out=scratch, row_cache=None)),
+                      "icrowdnav-eval-")

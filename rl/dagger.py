@@ -29,8 +29,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import shutil
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -42,7 +40,7 @@ import torch
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.device import start_method
 from pipeline.core.errors import InputMissingError
-from pipeline.core.executor import Bundle, Executor, map_jobs, receive_file, returned_files
+from pipeline.core.executor import Bundle, Executor, in_scratch, map_jobs, receive_files
 from recorder.export import export_run
 from recorder.mcap.layout import partial_path_of
 from recorder.mcap.writer import EpisodeWriter
@@ -161,8 +159,7 @@ def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, prog
             r = result
             if transfer:  # (row, files): the MCAP, then the features file (last: it marks the episode done)
                 r, files = result
-                for name, data, sha in sorted(files, key=lambda x: x[0].startswith("features/")):
-                    receive_file(iter_dir / name, data, sha)
+                receive_files(iter_dir, files, last="features/")
             done_rows[r["episode"]] = r
             f.write(json.dumps(r) + "\n")
             f.flush()
@@ -196,15 +193,14 @@ def dagger_episode_transfer(job: dict[str, Any], shared: Bundle) -> tuple[dict[s
     the iteration folder, bytes, sha256)])``; the scratch folder is removed. A retried task returns the same
     files again; the driver writes them once, when its result arrives."""
     root = shared.unpack()
-    scratch = Path(tempfile.mkdtemp(prefix="icrowdnav-dagger-"))
-    try:
+    local = {k: str(shared.local(root, job[k])) for k in ROLLOUT_DIRS if job.get(k)}
+
+    def rollout(scratch: Path) -> dict[str, Any]:
         for sub in ("raw", "features"):
             (scratch / sub).mkdir()
-        local = {k: str(shared.local(root, job[k])) for k in ROLLOUT_DIRS if job.get(k)}
-        row = dagger_episode({**job, **local, "iter_dir": str(scratch)})
-        return row, returned_files(scratch)
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+        return dagger_episode({**job, **local, "iter_dir": str(scratch)})
+
+    return in_scratch(rollout, "icrowdnav-dagger-")
 
 
 def load_features(iter_dirs: list[Path]) -> dict[str, np.ndarray]:

@@ -58,6 +58,7 @@ from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavErr
 log = logging.getLogger("icrowdnav")
 
 J = TypeVar("J")
+R = TypeVar("R")
 EXECUTORS = ("auto", "local", "ray")
 RAY_FILES = ("shared", "transfer")  # how a Ray task's files reach the driver's data directory (module docstring)
 PROBE_TIMEOUT_S = 5.0
@@ -138,6 +139,26 @@ class Bundle:
     def local(self, unpacked: Path, path: Path | str) -> Path:
         """Where ``path`` (a driver path at or under :attr:`root`) is in the ``unpacked`` folder."""
         return Path(unpacked) / os.path.relpath(os.path.abspath(path), self.root)
+
+
+def in_scratch(fn: Callable[[Path], R], prefix: str) -> tuple[R, list[tuple[str, bytes, str]]]:
+    """``fn(folder)`` run in a fresh scratch folder of this node, then its result and every file it wrote there
+    (:func:`returned_files`); the folder is removed. What a ``transfer`` task returns (a retried task returns the
+    same files again; the driver writes them once, when its result arrives: :func:`receive_files`)."""
+    scratch = Path(tempfile.mkdtemp(prefix=prefix))
+    try:
+        result = fn(scratch)
+        return result, returned_files(scratch)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def receive_files(folder: Path, files: list[tuple[str, bytes, str]], last: str = "") -> None:
+    """The files a ``transfer`` task returned (:func:`in_scratch`) written under ``folder`` with
+    :func:`receive_file`; those whose path starts with ``last`` after the others (a file that marks its episode
+    done)."""
+    for name, data, sha in sorted(files, key=lambda f: bool(last) and f[0].startswith(last)):
+        receive_file(Path(folder) / name, data, sha)
 
 
 def returned_files(folder: Path) -> list[tuple[str, bytes, str]]:
@@ -250,7 +271,7 @@ def _ray_map(fn: Callable[..., Any], jobs: Sequence[J], desc: str, progress: boo
         pending = [task.remote(j) for j in jobs]
     else:  # one object in the store; Ray hands each task its value (fetched once per node)
         ref = ray.put(shared)
-        pending = [task.remote(j, ref) for j in jobs]
+        pending = [task.remote(j, shared=ref) for j in jobs]
     index = {r: i for i, r in enumerate(pending)}
     out: list[Any] = [None] * len(jobs)
     bar = tqdm(total=len(jobs), desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
