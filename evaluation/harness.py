@@ -223,7 +223,7 @@ def run_jobs(jobs: list[Job], workers: int, desc: str, progress: bool = True,
     directory: the methods' checkpoints travel as one :class:`~pipeline.core.executor.Bundle`
     (:func:`rl.policy.checkpoint_bundle`), each episode runs in a scratch folder of its node (:func:`run_episode_transfer`),
     and this process writes the files it returns, then its row."""
-    if executor is None or executor.kind != "ray" or executor.files != "transfer":
+    if executor is None or not executor.transfers:
         return map_jobs(run_episode, jobs, workers, desc, progress, executor=executor)
     rows: list[dict[str, Any]] = [{} for _ in jobs]
 

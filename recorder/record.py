@@ -226,7 +226,7 @@ def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: l
     try:
         with graceful_signals():
             if ex.kind == "ray":
-                transfer = ex.files == "transfer"
+                transfer = ex.transfers
 
                 def finished(_: int, result) -> None:
                     r = result[0] if transfer else result

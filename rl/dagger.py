@@ -153,7 +153,7 @@ def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, prog
     on_ray = executor is not None and executor.kind == "ray"
     if on_ray:  # Ray tasks are given CPUs only (module docstring)
         todo = [{**j, "device": "cpu"} for j in todo]
-    transfer = on_ray and executor.files == "transfer"
+    transfer = on_ray and executor.transfers
     with open(rows_path, "a") as f:
         def finished(_: int, result: Any) -> None:
             r = result

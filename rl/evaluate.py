@@ -63,7 +63,7 @@ def evaluate(policy_dir: Path, sim_cfg: SimConfig, cells: list[tuple[str, float]
     folder's name)."""
     name = method or Path(policy_dir).name
     jobs = [(Path(policy_dir), name, sim_cfg, s, d, k) for s, d in cells for k in seeds]
-    if executor is not None and executor.kind == "ray" and executor.files == "transfer":
+    if executor is not None and executor.transfers:
         return map_jobs(_episode_on_bundle, jobs, workers, f"evaluate {name}", progress, executor=executor,
                         shared=checkpoint_bundle([Path(policy_dir)]))
     return map_jobs(_episode, jobs, workers, f"evaluate {name}", progress, executor=executor)

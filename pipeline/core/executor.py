@@ -318,6 +318,12 @@ class Executor:
         return cls(resolve_executor(cfg.executor, cfg.ray_address), cfg.ray_address, Path(cfg.data_dir),
                    getattr(cfg, "ray_files", "shared"))
 
+    @property
+    def transfers(self) -> bool:
+        """Ray tasks that never touch the data directory: their inputs travel in the object store and the driver
+        writes the files they return (``files: transfer``)."""
+        return self.kind == "ray" and self.files == "transfer"
+
     @contextmanager
     def session(self, workers: int) -> Iterator[None]:
         """One Ray connection for a whole stage (every :func:`map_jobs` inside reuses it); nothing for ``local``."""

@@ -106,8 +106,10 @@ def test_a_transferred_file_is_written_only_when_its_bytes_match(tmp_path):
     assert sorted(p.name for p in (tmp_path / "raw").iterdir()) == ["a.mcap"]
     with pytest.raises(ConfigError, match=r"record.ray_files: expected one of \['shared', 'transfer'\], got 'nfs'"):
         check_ray_files("nfs", "record")
-    assert Executor.of(type("C", (), {"executor": "local", "ray_address": "", "data_dir": ".",
-                                      "ray_files": "transfer"})()).files == "transfer"
+    local = Executor.of(type("C", (), {"executor": "local", "ray_address": "", "data_dir": ".",
+                                       "ray_files": "transfer"})())
+    assert local.files == "transfer" and not local.transfers  # only Ray tasks transfer their files
+    assert Executor("ray", "", Path("."), "transfer").transfers and not Executor("ray", "", Path(".")).transfers
 
 
 def test_a_bundle_unpacks_once_per_node_where_its_paths_say(tmp_path, monkeypatch):
