@@ -42,10 +42,11 @@ import os
 import shutil
 import socket
 import tempfile
+import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -61,6 +62,7 @@ J = TypeVar("J")
 R = TypeVar("R")
 EXECUTORS = ("auto", "local", "ray")
 RAY_FILES = ("shared", "transfer")  # how a Ray task's files reach the driver's data directory (module docstring)
+BUNDLE_KEEP_S = 24 * 3600.0  # an unpacked Bundle unused this long is removed from its node (Bundle.unpack)
 PROBE_TIMEOUT_S = 5.0
 MAX_RETRIES = 3  # reruns of a task whose worker died
 
@@ -115,14 +117,21 @@ class Bundle:
         """The files on this node: written once per node and bundle into ``<tmp>/icrowdnav-files-<key>`` (a folder
         filled under a temporary name ``.icrowdnav-files-<key>-<pid>-*``, then renamed: concurrent tasks and a
         killed one leave no half-filled folder, and the temporary folders of dead processes are removed here);
-        later calls return it."""
+        later calls return it and mark it used (its mtime). Unpacking a new bundle removes the bundles of this node
+        that no task has used for :data:`BUNDLE_KEEP_S` (a node serving many runs does not fill its disk)."""
         final = Path(tempfile.gettempdir()) / f"icrowdnav-files-{self.key[:20]}"
         if final.is_dir():
-            return final
+            with suppress(OSError):  # removed meanwhile as unused: the caller still gets a folder below
+                os.utime(final)
+                return final
         for stale in final.parent.glob(f".{final.name}-*-*"):
             pid = stale.name[len(final.name) + 2:].split("-", 1)[0]
             if pid.isdigit() and not pid_alive(int(pid)):
                 shutil.rmtree(stale, ignore_errors=True)
+        for old in final.parent.glob("icrowdnav-files-*"):
+            with suppress(OSError):
+                if old != final and time.time() - old.stat().st_mtime > BUNDLE_KEEP_S:
+                    shutil.rmtree(old, ignore_errors=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}-{os.getpid()}-", dir=final.parent))
         try:
             for name, data in self.files:

@@ -22,6 +22,7 @@ from pipeline import cli
 from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pipeline.core.executor import (
+    BUNDLE_KEEP_S,
     Bundle,
     Executor,
     check_executor,
@@ -114,8 +115,8 @@ def test_a_transferred_file_is_written_only_when_its_bytes_match(tmp_path):
 
 def test_a_bundle_unpacks_once_per_node_where_its_paths_say(tmp_path, monkeypatch):
     """Bundle (``ray_files: transfer``): files under their deepest common folder, a key over names and bytes, unpacked
-    into one folder per bundle (a second unpack reuses it; no temporary folder left); returned_files lists a
-    scratch folder's files with their sha256."""
+    into one folder per bundle (a second unpack reuses it; no temporary folder left; bundles unused for a day are
+    removed); returned_files lists a scratch folder's files with their sha256."""
     monkeypatch.setattr("tempfile.tempdir", str(tmp_path / "node"))
     (tmp_path / "node").mkdir()
     a, b = tmp_path / "ckpt" / "policy" / "full" / "policy.json", tmp_path / "ckpt" / "bev" / "encoder.bin"
@@ -143,6 +144,14 @@ def test_a_bundle_unpacks_once_per_node_where_its_paths_say(tmp_path, monkeypatc
     (tmp_path / "node" / f".{name}-{os.getpid()}-x2").mkdir()
     assert other.unpack().name == name
     assert sorted(p.name for p in (tmp_path / "node").iterdir()) == sorted([root.name, name,
+                                                                           f".{name}-{os.getpid()}-x2"])
+    # bundles no task used for BUNDLE_KEEP_S are removed when a new one is unpacked; using one marks it used
+    stale = time.time() - BUNDLE_KEEP_S - 60
+    os.utime(root, (stale, stale))
+    os.utime(tmp_path / "node" / name, (stale, stale))
+    assert other.unpack().name == name  # used again: kept, and no longer stale
+    third = Bundle.of({b: b"\x02"}).unpack()
+    assert sorted(p.name for p in (tmp_path / "node").iterdir()) == sorted([name, third.name,
                                                                            f".{name}-{os.getpid()}-x2"])
 
 
