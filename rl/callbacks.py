@@ -10,21 +10,26 @@ from tqdm import tqdm
 
 
 def checkpoint_callback(path: Path, model, every: int) -> BaseCallback:
-    """Saves the model to ``path / "last.zip"`` (written beside it, then renamed over it) every ``every`` env
-    steps counted from ``model``'s current step (what ``--resume`` continues from)."""
+    """Saves the model to ``path / "last.zip"`` (written beside it, then renamed over it) once at least ``every``
+    env steps, counted from ``model``'s current step, have passed since the last save (what ``--resume`` continues
+    from). It saves when a rollout starts, i.e. after the update of every step it counts: a save in the middle of
+    a rollout would count steps whose update a resumed run never makes."""
 
     class Save(BaseCallback):
         def __init__(self) -> None:
             super().__init__()
             self.next = model.num_timesteps + every
 
-        def _on_step(self) -> bool:
+        def _on_rollout_start(self) -> None:
             if self.num_timesteps >= self.next:
                 path.mkdir(parents=True, exist_ok=True)
                 tmp = path / "last.tmp.zip"
                 self.model.save(tmp)
                 tmp.replace(path / "last.zip")
-                self.next += every
+                while self.next <= self.num_timesteps:
+                    self.next += every
+
+        def _on_step(self) -> bool:
             return True
 
     return Save()

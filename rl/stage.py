@@ -181,6 +181,7 @@ class FinetuneConfig:
     n_envs: int = 2
     ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 256, "batch_size": 128, "n_epochs": 6,
                                                            "learning_rate": 5e-5, "clip_range": 0.1})
+    checkpoint_steps: int = 2048  # ppo/last.zip after the first update past every this many env steps (--resume)
 
 
 @dataclass
@@ -269,6 +270,7 @@ class TrainConfig(BaseStageConfig):
                        ("teacher.n_envs", t.n_envs), ("dagger.iterations", d.iterations),
                        ("dagger.episodes_per_iter", d.episodes_per_iter), ("dagger.bc_epochs", d.bc_epochs),
                        ("workers", self.workers), ("finetune.n_envs", self.finetune.n_envs),
+                       ("finetune.checkpoint_steps", self.finetune.checkpoint_steps),
                        ("acceptance.episodes", self.acceptance.episodes),
                        ("intention_tune.batch", self.intention_tune.batch)):
             if v < 1:
@@ -727,7 +729,7 @@ def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, e
     done = model.num_timesteps
     t0 = time.perf_counter()
     model.learn(max(0, f.ppo_steps - done), reset_num_timesteps=False, tb_log_name="finetune",
-                callback=[checkpoint_callback(out / "ppo", model, 2048),
+                callback=[checkpoint_callback(out / "ppo", model, f.checkpoint_steps),
                           progress_callback(f.ppo_steps, "student PPO", cfg.progress)])
     rate = round((model.num_timesteps - done) / max(time.perf_counter() - t0, 1e-9), 2)
     (out / "ppo").mkdir(exist_ok=True)

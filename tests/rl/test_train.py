@@ -281,6 +281,58 @@ def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir):
     assert all(it["soft_ce_new_after"] < it["soft_ce_new_before"] for it in m["dagger"])
 
 
+def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir, monkeypatch):
+    """PPO fine-tuning of a student killed in its second rollout continues from its checkpoint: the checkpoint holds
+    the first update (written when the next rollout starts, so no counted step is left untrained), the resumed run
+    loads it, does not redo DAgger, and ends at the budget with one update per rollout, as an uninterrupted run.
+    (Not byte-equal to one: SB3 resets the envs when it loads a model, so the second rollout sees other states.)"""
+    import stable_baselines3
+
+    from pipeline.verbs.train import run
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    sizes = {"head": "mlp", "finetune.ppo_steps": 64, "finetune.n_envs": 1, "finetune.checkpoint_steps": 32,
+             "finetune.ppo": "{n_steps: 32, batch_size: 32, n_epochs: 1}"}
+    out = tmp_path / "checkpoints" / "policy" / "no_bev"
+
+    class Killed(Exception):
+        pass
+
+    def killing_bar(total, desc, enabled):  # stands in for the progress bar: a kill in the second rollout
+        class Kill(stable_baselines3.common.callbacks.BaseCallback):
+            def _on_step(self) -> bool:
+                if self.num_timesteps > 40:
+                    raise Killed
+                return True
+        return Kill()
+
+    with monkeypatch.context() as m:
+        m.setattr("rl.stage.progress_callback", killing_bar)
+        with pytest.raises(Killed):
+            run(_train_cfg(tmp_path, "no_bev", **sizes))
+    saved = stable_baselines3.PPO.load(out / "ppo" / "last.zip", device="cpu")
+    assert (saved.num_timesteps, saved._n_updates) == (32, 1)  # the first rollout and its update
+    cloned, _ = load_policy(out / "dagger" / "iter_1" / "policy")
+    assert any(not torch.equal(a, b) for a, b in zip(saved.policy.state_dict().values(),
+                                                     cloned.state_dict().values(), strict=True))
+    dagger_done = (out / "dagger" / "iter_1" / "done.json").stat().st_mtime_ns
+    loaded = []
+    load = stable_baselines3.PPO.load
+
+    def recording_load(*args, **kwargs):
+        model = load(*args, **kwargs)
+        loaded.append((model.num_timesteps, model._n_updates))
+        return model
+
+    monkeypatch.setattr(stable_baselines3.PPO, "load", recording_load)
+    run(_train_cfg(tmp_path, "no_bev", resume="true", **sizes))
+    assert loaded == [(32, 1)]
+    assert (out / "dagger" / "iter_1" / "done.json").stat().st_mtime_ns == dagger_done
+    final = load(out / "ppo" / "last.zip", device="cpu")
+    assert (final.num_timesteps, final._n_updates) == (64, 2)
+    assert json.loads((out / "policy.json").read_text())["produced_by"]["ppo_finetune_steps"] == 64
+
+
 def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
     """The default student head: one DAgger iteration records perceived tracks and scans, the convex fit of the
     linear cost and the cloning lower the cross-entropy to the teacher's distribution on the iteration's frames, and
