@@ -8,9 +8,16 @@ from pathlib import Path
 from stable_baselines3.common.callbacks import BaseCallback
 from tqdm import tqdm
 
+from pipeline.core.artifacts import atomic_write_with
+
+
+def save_ppo(model, path: Path) -> Path:
+    """Saves an SB3 ``model`` to ``path`` atomically (a kill leaves the previous file or none, never half of one)."""
+    return atomic_write_with(path, model.save)
+
 
 def checkpoint_callback(path: Path, model, every: int) -> BaseCallback:
-    """Saves the model to ``path / "last.zip"`` (written beside it, then renamed over it) once at least ``every``
+    """Saves the model to ``path / "last.zip"`` (:func:`save_ppo`) once at least ``every``
     env steps, counted from ``model``'s current step, have passed since the last save (what ``--resume`` continues
     from). It saves when a rollout starts, i.e. after the update of every step it counts: a save in the middle of
     a rollout would count steps whose update a resumed run never makes."""
@@ -22,10 +29,7 @@ def checkpoint_callback(path: Path, model, every: int) -> BaseCallback:
 
         def _on_rollout_start(self) -> None:
             if self.num_timesteps >= self.next:
-                path.mkdir(parents=True, exist_ok=True)
-                tmp = path / "last.tmp.zip"
-                self.model.save(tmp)
-                tmp.replace(path / "last.zip")
+                save_ppo(self.model, path / "last.zip")
                 while self.next <= self.num_timesteps:
                     self.next += every
 

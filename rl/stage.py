@@ -73,7 +73,7 @@ from rl.baselines.common import curve_points
 from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
 from rl.baselines.sarl_om.configuration import Config as SARLOMConfig
 from rl.baselines.vint.configuration import Config as ViNTConfig
-from rl.callbacks import checkpoint_callback, progress_callback
+from rl.callbacks import checkpoint_callback, progress_callback, save_ppo
 from rl.dagger import bev_stats, export_iteration, load_features, run_iteration, write_done
 from rl.evaluate import evaluate, success_table
 from rl.figures import plot_learning_curve, plot_training
@@ -483,8 +483,7 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                     tb_log_name="ppo")
         summary["ppo_steps_per_s"] = round((model.num_timesteps - done) / max(time.perf_counter() - t0, 1e-9), 1)
         ppo_steps = int(model.num_timesteps)
-        last.parent.mkdir(parents=True, exist_ok=True)
-        model.save(last)
+        save_ppo(model, last)
         venv.close()
         policy = model.policy
     summary["ppo_steps"] = ppo_steps
@@ -732,8 +731,7 @@ def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, e
                 callback=[checkpoint_callback(out / "ppo", model, f.checkpoint_steps),
                           progress_callback(f.ppo_steps, "student PPO", cfg.progress)])
     rate = round((model.num_timesteps - done) / max(time.perf_counter() - t0, 1e-9), 2)
-    (out / "ppo").mkdir(exist_ok=True)
-    model.save(last)
+    save_ppo(model, last)
     venv.close()
     model.policy.set_training_mode(False)
     return model.policy, int(model.num_timesteps), rate

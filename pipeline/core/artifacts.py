@@ -60,7 +60,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> Path:
     Returns:
         ``path``.
     """
-    return _atomic_write(path, lambda f: f.write(data))
+    return atomic_write_with(path, lambda f: f.write(data))
 
 
 def atomic_save_npz(path: Path, arrays: dict[str, Any]) -> Path:
@@ -76,12 +76,13 @@ def atomic_save_npz(path: Path, arrays: dict[str, Any]) -> Path:
     """
     import numpy as np  # the kernel imports no numpy at import time (see _json_default): only this writer needs it
 
-    return _atomic_write(path, lambda f: np.savez(f, **arrays))
+    return atomic_write_with(path, lambda f: np.savez(f, **arrays))
 
 
-def _atomic_write(path: Path, write: Callable[[IO[bytes]], object]) -> Path:
-    """The atomic pattern of :func:`atomic_write_bytes`: ``write(f)`` fills a temporary file in the same directory,
-    which is flushed, fsynced, renamed over ``path``; then the directory is fsynced."""
+def atomic_write_with(path: Path, write: Callable[[IO[bytes]], object]) -> Path:
+    """The atomic pattern of :func:`atomic_write_bytes` for any writer: ``write(f)`` fills a temporary file in the
+    same directory (a binary file object, e.g. an SB3 model's ``save``), which is flushed, fsynced, renamed over
+    ``path``; then the directory is fsynced. Returns ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")

@@ -33,7 +33,7 @@ from rl.baselines.common import (
 from rl.baselines.drl_vo.configuration import NAME, Config, RewardConfig
 from rl.baselines.drl_vo.model import build_policy, describe_inputs, policy_kwargs
 from rl.baselines.drl_vo.observation import Observer
-from rl.callbacks import checkpoint_callback, progress_callback
+from rl.callbacks import checkpoint_callback, progress_callback, save_ppo
 from rl.policy import freeze_actor
 from rl.teacher import SceneMixEnv, curriculum_callback, discounted, ppo_kwargs
 from rl.vec_env import BatchedSubprocVecEnv
@@ -270,8 +270,7 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
         wall["ppo_s"] = round(time.perf_counter() - t0, 1)
         summary["ppo_steps_per_s"] = round((model.num_timesteps - done) / max(wall["ppo_s"], 1e-9), 1)
         ppo_steps = int(model.num_timesteps)
-        last.parent.mkdir(parents=True, exist_ok=True)
-        model.save(last)
+        save_ppo(model, last)
         venv.close()
         policy = model.policy
         policy.set_training_mode(False)
