@@ -8,8 +8,9 @@ on 2 cores (a student's 450 episodes take most of an hour), so its table is asse
 
 Each argument is an eval run directory (its ``episodes.jsonl``, and ``scenarios/episodes.jsonl`` when present);
 ``RUN:NAME`` renames the run's method (a run of one method only) so that two trainings of one method can stand side by
-side. Runs must share their protocol: the same (scene, density, seed) episodes per cell and the same scene seeds
-(``seeds.json``), else the merge stops with an error naming the run that differs. Writes into ``--out``:
+side. Runs must share their protocol: the same cells and the same seeds and scene seeds (``seeds.json``), else the
+merge stops with an error naming the run that differs; a method may have run a subset of the episodes (``eval
+--method_episodes``, a killed run): paired tests use the episodes both methods ran. Writes into ``--out``:
 ``episodes.jsonl``, ``results.json`` / ``results.csv``, ``paired.json`` (``--ref`` against every other method, per
 cell and pooled), ``report.md`` and ``figures/sr_by_cell.png`` — the files of an ``icrowdnav eval`` run
 (:mod:`evaluation.report`).
@@ -61,10 +62,11 @@ def merge(runs: list[tuple[Path, str | None]]) -> tuple[list[dict[str, Any]], li
     for run, name in runs:
         protocol = _protocol(run)
         bench = _renamed(read_rows(run / "episodes.jsonl"), run, name)
-        cells = sorted({(r["scene"], float(r["density"]), int(r["seed"])) for r in bench})
+        cells = sorted({(r["scene"], float(r["density"])) for r in bench})
         if first is None:
             first_run, first, episodes = run, protocol, cells
-        elif protocol != first or cells != episodes:
+        outside = {int(r["seed"]) for r in bench} - {seed for seed, _ in protocol}
+        if protocol != first or cells != episodes or outside:
             raise ConfigError(f"{run}: not the protocol of {first_run} (other seeds, scene seeds or cells); only "
                               "runs of the same protocol can be merged")
         for m in sorted({r["method"] for r in bench}):
@@ -92,11 +94,13 @@ def write(rows: list[dict[str, Any]], scen: list[dict[str, Any]], runs: list[tup
     atomic_write_json(out / "paired.json", json_safe({"reference": ref, "cells": paired(rows, ref),
                                                       "pooled": paired_pooled(rows, ref)}))
     plot_sr(res, labels, out / "figures" / "sr_by_cell.png")
-    n = len(rows) // max(len(methods), 1) // max(len(res), 1)
+    n = {m: sum(r["method"] == m for r in rows) // max(len(res), 1) for m in methods}
+    per = (f"{n[methods[0]]} episodes per cell and method" if len(set(n.values())) == 1 else
+           "episodes per cell " + ", ".join(f"`{m}` {k}" for m, k in n.items()) + " (paired tests use the episodes "
+           "both methods ran)")
     header = (f"# Benchmark merged from {len(runs)} runs\n\n" + ", ".join(
         f"`{run}`" + (f" (as `{name}`)" if name else "") for run, name in runs)
-        + f" — {n} episodes per cell and method, the same seeds for every method; methods: "
-        + ", ".join(f"`{m}`" for m in methods) + ".")
+        + f" — {per}, the same seeds for every method; methods: " + ", ".join(f"`{m}`" for m in methods) + ".")
     atomic_write_text(out / "report.md", report_markdown(rows, labels, header, references=refs, ref=ref,
                                                          scenario_rows=scen))
 

@@ -4,12 +4,15 @@ runs on a topological map — with tables, paired tests, figures, videos and MCA
     icrowdnav eval                                   # the profile's methods, scenes, densities, goals x trials
     icrowdnav eval --methods '[full, dwa]' --goals 5 --trials 1 --run_name quick
     icrowdnav eval --resume                          # a killed run: only the episodes without a row run again
+    icrowdnav eval --method_episodes '{full: 10}'    # full on a paired subset (10 per cell), the others on all
     make eval                                        # the same on the default profile
 
 The protocol (the paper's): per method and cell ``goals`` start-goal pairs × ``trials`` crowds (25 × 3 = 75), the
 same seeded episodes for every method; paired tests by episode (McNemar for SR, Wilcoxon for NT / PL / TPZ) with
 the smallest SR difference each comparison can detect at 80 % power (:mod:`evaluation.stats`), per cell and
-pooled over the cells; Wilson intervals. Time limits follow the route: max(``sim.max_episode_s``,
+pooled over the cells; Wilson intervals. ``method_episodes`` runs a method on fewer episodes per cell — the first in
+trial-major order, a paired subset of the others' on distinct goals — where its cost would not fit (the default
+profile: the rendered methods and the references at 10, the camera-free baselines at 75). Time limits follow the route: max(``sim.max_episode_s``,
 ``sim.timeout_s_per_m`` × the shortest start-goal path). ``routing_scenes`` (the shelf hall) are extra cells in
 which every method follows the global planner's waypoints, reported apart from the paper's cells.
 
@@ -49,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from evaluation.harness import Job, run_jobs_cached
-from evaluation.methods import MethodSpec, resolve_methods
+from evaluation.methods import MethodSpec, available_methods, resolve_methods
 from evaluation.report import (
     paired,
     paired_pooled,
@@ -98,6 +101,10 @@ class EvalConfig(BaseStageConfig):
     densities: list[float] = field(default_factory=lambda: [0.1, 0.2])
     goals: int = field(default=25, metadata={"help": "start-goal pairs per cell (the paper: 25)"})
     trials: int = field(default=3, metadata={"help": "crowds per goal (the paper: 3); N = goals x trials per cell"})
+    method_episodes: dict[str, int] = field(default_factory=dict, metadata={
+        "help": "per method, at most n episodes per cell instead of goals x trials, e.g. {full: 10}: the cell's first n in "
+                "trial-major order (trial 0 of every goal, then trial 1, ...), so a capped method runs a paired subset "
+                "of the others' episodes on distinct goals (benchmark and routing cells)"})
     routing_scenes: list[str] = field(default_factory=lambda: ["warehouse_routing"],
                                       metadata={"help": "extra cells where every method follows the global "
                                                         "planner's waypoints (reported separately)"})
@@ -129,6 +136,10 @@ class EvalConfig(BaseStageConfig):
         """Episodes per cell and method: ``goals`` × ``trials``."""
         return self.goals * self.trials
 
+    def episodes_of(self, method: str) -> int:
+        """Episodes per cell that ``method`` runs: ``goals`` × ``trials``, at most its ``method_episodes`` cap."""
+        return min(self.method_episodes.get(method, self.episodes), self.episodes)
+
     def validate(self) -> None:
         super().validate()
         check_run_name(self.run_name)
@@ -149,6 +160,11 @@ class EvalConfig(BaseStageConfig):
             raise ConfigError(f"eval.scenario_trials: expected an integer in [1, 1000], got {self.scenario_trials!r}")
         if not self.methods:
             raise ConfigError("eval.methods: expected at least one method")
+        for name, n in self.method_episodes.items():
+            if name not in available_methods():
+                raise ConfigError(f"eval.method_episodes: expected method names of {available_methods()}, got {name!r}")
+            if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 10_000:
+                raise ConfigError(f"eval.method_episodes.{name}: expected an integer in [1, 10000], got {n!r}")
         check_executor(self.executor, self.ray_address, "eval")
         check_ray_files(self.ray_files, "eval")
         if self.figures < 0 or self.videos < 0:
@@ -185,10 +201,12 @@ def seeds_of(cfg: EvalConfig) -> list[int]:
 
 
 def protocol_of(cfg: EvalConfig) -> list[dict[str, int]]:
-    """Per episode of a cell: its ``seed`` (the crowd), ``goal`` index, ``trial`` index and ``scene_seed`` (the
-    goal's clutter, start and goal — the same for every trial of the goal and every method)."""
+    """Per episode of a cell: its ``seed`` (the crowd), ``goal`` index, ``trial`` index, ``scene_seed`` (the
+    goal's clutter, start and goal — the same for every trial of the goal and every method) and ``rank``, its place
+    in trial-major order: a method capped at n episodes (``method_episodes``) runs those with ``rank < n``."""
     return [{"seed": seed, "goal": k // cfg.trials, "trial": k % cfg.trials,
-             "scene_seed": cfg.seed_base + cfg.seed + GOAL_SEED_OFFSET + k // cfg.trials}
+             "scene_seed": cfg.seed_base + cfg.seed + GOAL_SEED_OFFSET + k // cfg.trials,
+             "rank": (k % cfg.trials) * cfg.goals + k // cfg.trials}
             for k, seed in enumerate(seeds_of(cfg))]
 
 
@@ -200,6 +218,8 @@ def benchmark_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path, scenes: 
         for d in cfg.densities:
             for k, ep in enumerate(protocol_of(cfg)):
                 for m in specs:  # methods interleaved: a killed or slow run has every method on the same seeds
+                    if ep["rank"] >= cfg.episodes_of(m.name):
+                        continue
                     jobs.append(Job(m, cfg.sim, s, float(d), ep["seed"], out, figure=k < cfg.figures,
                                     video=k < cfg.videos, mcap=k < cfg.videos, scene_seed=ep["scene_seed"],
                                     route=route, tag="route_" if route else "",
@@ -292,7 +312,9 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
                                                          "routing_scenes": cfg.routing_scenes,
                                                          "scenarios": cfg.scenarios,
                                                          "scenario_trials": cfg.scenario_trials,
-                                                         "densities": cfg.densities, "episodes": protocol_of(cfg)},
+                                                         "densities": cfg.densities, "episodes": protocol_of(cfg),
+                                                         "episodes_per_method": {m.name: cfg.episodes_of(m.name)
+                                                                                 for m in specs}},
                                            "long_horizon": lh_seeds})
     atomic_write_text(out / "episodes.jsonl", "".join(json.dumps(r) + "\n" for r in json_safe(rows)))
     res = results(rows)
@@ -306,7 +328,8 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
     header = (f"# Benchmark `{cfg.run_name}`\n\n{cfg.episodes} episodes per cell = {cfg.goals} goals × {cfg.trials} "
               f"trials (seeds {seeds[0]}..{seeds[-1]}, the same for every method; the paper: 25 × 3 = 75), "
               f"time limit max({cfg.sim.max_episode_s:g} s, {cfg.sim.timeout_s_per_m:g} s/m × shortest path), "
-              f"{len(specs)} methods: " + ", ".join(f"`{m.name}` = {m.label}" for m in specs) + ".")
+              f"{len(specs)} methods: " + ", ".join(f"`{m.name}` = {m.label}" for m in specs) + "."
+              + _capped_text(cfg, specs))
     refs = [m.name for m in specs if m.reference]
     budgets = {m.name: training_budget(m.checkpoint) for m in specs if m.checkpoint is not None}
     atomic_write_text(out / "report.md", report_markdown(rows, labels, header, lh_rows, refs, budgets,
@@ -317,6 +340,16 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
         for m, agg in by.items():
             counts[f"sr_{m}_{cell}"] = round(float(agg["success"]["mean"]), 3)
     return counts
+
+
+def _capped_text(cfg: EvalConfig, specs: list[MethodSpec]) -> str:
+    """The header's sentence on methods run on fewer episodes per cell (``method_episodes``), or nothing."""
+    capped = [m.name for m in specs if cfg.episodes_of(m.name) < cfg.episodes]
+    if not capped:
+        return ""
+    return (" Fewer episodes per cell (the first in trial-major order, a subset of the others' on distinct goals; "
+            "paired tests use the episodes both methods ran): "
+            + ", ".join(f"`{m}` N = {cfg.episodes_of(m)}" for m in capped) + ".")
 
 
 def _plot_long_horizon(plans: list[dict[str, Any]], rows: list[dict[str, Any]], out: Path,

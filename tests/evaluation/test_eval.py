@@ -126,6 +126,9 @@ def test_unknown_method_and_missing_checkpoint_are_clear_errors(tmp_path):
     (["--shield_s", "5"], "eval.shield_s: expected none or 0 (off) .. 2.0 s, got 5"),
     (["--shield_s", "nan"], "config key 'shield_s': expected a finite number, got nan"),
     (["--ray_files", "nfs"], "eval.ray_files: expected one of ['shared', 'transfer'], got 'nfs'"),
+    (["--method_episodes", "{{dwa: 0}}"], "eval.method_episodes.dwa: expected an integer in [1, 10000], got 0"),
+    (["--method_episodes", "{{dwa: 2.5}}"], "method_episodes"),
+    (["--method_episodes", "{{nosuch: 1}}"], "eval.method_episodes: expected method names of"),
 ])
 def test_eval_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, match):
     """Through the CLI entry point in this process (``python -m pipeline`` itself is tested in test_cli)."""
@@ -220,6 +223,28 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
     assert rows[0].stat().st_mtime_ns == kept and rows[1].is_file() and (out / "manifest.json").is_file()
     res2 = json.loads((out / "results.json").read_text())
     assert res2["office_lobby@0.1"]["expert"]["success"] == res["office_lobby@0.1"]["expert"]["success"]
+
+
+def test_a_capped_method_runs_a_paired_subset_on_distinct_goals(tmp_path):
+    """``method_episodes``: the capped method's episodes are the cell's first in trial-major order — trial 0 of the
+    first goals — each the same (seed, scene seed) episode the uncapped methods run, with the first one's figure."""
+    from evaluation.stage import EvalConfig, _capped_text, benchmark_jobs
+
+    cfg = EvalConfig(data_dir=str(tmp_path), methods=["expert", "dwa"], scenes=["office_lobby"], densities=[0.1, 0.2],
+                     goals=4, trials=3, method_episodes={"dwa": 6}, routing_scenes=[], scenarios=[], figures=1,
+                     videos=0, sim=TINY, progress=False)
+    cfg.validate()
+    specs = resolve_methods(cfg.methods, tmp_path)
+    jobs = benchmark_jobs(cfg, specs, tmp_path)
+    by = {m: [(j.density, j.seed, j.scene_seed, j.extra["goal"], j.extra["trial"]) for j in jobs if j.method.name == m]
+          for m in cfg.methods}
+    assert len(by["expert"]) == 2 * 12 and len(by["dwa"]) == 2 * 6
+    assert set(by["dwa"]) < set(by["expert"])
+    assert sorted((g, t) for d, _, _, g, t in by["dwa"] if d == 0.1) == [(0, 0), (0, 1), (1, 0), (1, 1), (2, 0),
+                                                                        (3, 0)]
+    assert [j.figure for j in jobs if j.method.name == "dwa"] == [True] + [False] * 5 + [True] + [False] * 5
+    assert "`dwa` N = 6" in _capped_text(cfg, specs) and _capped_text(replace(cfg, method_episodes={}), specs) == ""
+    assert replace(cfg, method_episodes={"dwa": 50}).episodes_of("dwa") == 12  # a cap above goals x trials: all
 
 
 def test_sr_figure_tolerates_intervals_that_miss_the_mean_by_rounding(tmp_path):

@@ -42,12 +42,30 @@ def test_merged_runs_give_the_paired_report_of_their_methods(tmp_path):
     assert len((out / "episodes.jsonl").read_text().splitlines()) == 30
 
 
+def test_a_run_on_a_subset_of_the_episodes_merges_and_pairs_on_the_common_ones(tmp_path):
+    """A method capped by ``eval --method_episodes`` ran the first episodes of the same protocol."""
+    a = _run(tmp_path / "a", "full", 8)
+    (tmp_path / "b").mkdir()
+    b = _run(tmp_path / "b" / "run", "no_i2", 2, seeds=range(4))
+    (b / "seeds.json").write_text((a / "seeds.json").read_text())  # the same protocol, 4 of its 10 episodes run
+    main([str(a), str(b), "--out", str(tmp_path / "out")])
+    pr = json.loads((tmp_path / "out" / "paired.json").read_text())["cells"]["office_lobby@0.2"]["no_i2"]
+    assert pr["n_pairs"] == 4 and pr["sr"]["a_only"] == 2
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "episodes per cell `full` 10, `no_i2` 4" in md and "| w/o I² | 4 | 50.0%" in md
+
+
 def test_runs_of_another_protocol_or_the_same_method_are_refused(tmp_path, capsys):
     a = _run(tmp_path / "a", "full", 8)
     with pytest.raises(ConfigError, match="not the protocol"):
         merge([(a, None), (_run(tmp_path / "b", "no_i2", 4, seeds=range(1, 11)), None)])
     with pytest.raises(ConfigError, match="not the protocol"):
         merge([(a, None), (_run(tmp_path / "c", "no_i2", 4, scene_seed=7), None)])
+    other_cell = _run(tmp_path / "e", "no_i2", 4)
+    rows = [json.loads(line) for line in (other_cell / "episodes.jsonl").read_text().splitlines()]
+    (other_cell / "episodes.jsonl").write_text("".join(json.dumps({**r, "density": 0.1}) + "\n" for r in rows))
+    with pytest.raises(ConfigError, match="not the protocol"):
+        merge([(a, None), (other_cell, None)])
     with pytest.raises(ConfigError, match="already in"):
         merge([(a, None), (_run(tmp_path / "d", "full", 4), None)])
     assert main([str(a), str(a) + ":again", "--out", str(tmp_path / "o"), "--ref", "dwa"]) == 2
