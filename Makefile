@@ -20,10 +20,10 @@ STAMP := $(VENV)/.installed
 export HF_HUB_OFFLINE := 1
 export PYTHONHASHSEED := 0
 
-.PHONY: install all record pretrain train eval rollout smoke test bench lint help
+.PHONY: install all record pretrain train eval rollout smoke test bench lint timings help
 
 help:
-	@echo "targets: install all record pretrain train eval rollout smoke test bench lint   (PROFILE=$(PROFILE) DATA_DIR=$(DATA_DIR))"
+	@echo "targets: install all record pretrain train eval rollout smoke test bench lint timings   (PROFILE=$(PROFILE) DATA_DIR=$(DATA_DIR))"
 
 # The venv is rebuilt only when the lock file or pyproject.toml change (the stamp is newer otherwise).
 # uv installs the exact pins of requirements.lock; its cache (~/.cache/uv) makes a re-install fast.
@@ -74,6 +74,10 @@ test: install
 
 bench: install
 	$(PY) -m pipeline bench --profile $(PROFILE) --data-dir $(DATA_DIR)
+
+# every finished stage's wall time in DATA_DIR (from the manifests): how long `make all` took, stage by stage
+timings: install
+	$(PY) -m pipeline timings $(DATA_DIR)
 
 lint: install
 	$(VENV)/bin/ruff check pipeline sim recorder pretrain rl evaluation tests

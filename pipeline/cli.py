@@ -62,6 +62,7 @@ VERBS: dict[str, str] = {
     "eval": "pipeline.verbs.eval:STAGE",
     "doctor": "pipeline.verbs.doctor:main",
     "recover": "pipeline.verbs.recover:main",
+    "timings": "pipeline.verbs.timings:main",
 }
 
 _LOG_FORMAT = "%(asctime)s %(levelname).1s %(message)s"
