@@ -116,6 +116,9 @@ class EvalConfig(BaseStageConfig):
     shield_s: float | None = field(default=None, metadata={
         "help": "the saved policies' obstacle shield horizon in s instead of their own (rl.lookahead; 0 = off, "
                 "none = as saved): ablate or add the shield without retraining"})
+    sample_tau: float | None = field(default=None, metadata={
+        "help": "the saved policies (teacher, students) pick each action by sampling softmax(logits / tau), seeded "
+                "per episode, instead of the argmax (none = argmax, as trained policies are normally evaluated)"})
     seed_base: int = field(default=20_000, metadata={"help": "episode seeds are seed_base + seed + k"})
     workers: int = 2
     executor: str = field(default="auto", metadata={"help": "where episodes run: auto (Ray when RAY_ADDRESS is set) "
@@ -146,6 +149,9 @@ class EvalConfig(BaseStageConfig):
         if not self.scenes:
             raise ConfigError("eval.scenes: expected at least one scene")
         check_shield_s(self.shield_s, "eval.shield_s", optional=True)
+        if self.sample_tau is not None and not (math.isfinite(self.sample_tau) and 0.01 <= self.sample_tau <= 100.0):
+            raise ConfigError(f"eval.sample_tau: expected none (argmax) or a temperature in [0.01, 100], got "
+                              f"{self.sample_tau!r}")
         for k in ("goals", "trials"):
             if not isinstance(getattr(self, k), int) or not 1 <= getattr(self, k) <= 10_000:
                 raise ConfigError(f"eval.{k}: expected an integer in [1, 10000], got {getattr(self, k)!r}")
@@ -184,7 +190,7 @@ def output_dir(cfg: EvalConfig) -> Path:
 
 
 def inputs(cfg: EvalConfig) -> list[Path]:
-    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s)  # unknown / missing -> one error
+    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s, cfg.sample_tau)  # unknown / missing -> one error
     for m in specs:  # a damaged or non-finite checkpoint: one error naming the file, before any episode (or MCAP)
         if m.checkpoint is not None:
             check_checkpoint_weights(m.checkpoint)
@@ -274,7 +280,7 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
 
 
 def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
-    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s)
+    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s, cfg.sample_tau)
     labels = {m.name: m.label for m in specs}
     seeds = seeds_of(cfg)
     rows = run_jobs_cached(benchmark_jobs(cfg, specs, out), out / "rows", cfg.workers, "eval: benchmark", cfg.progress,
@@ -329,7 +335,9 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
               f"trials (seeds {seeds[0]}..{seeds[-1]}, the same for every method; the paper: 25 × 3 = 75), "
               f"time limit max({cfg.sim.max_episode_s:g} s, {cfg.sim.timeout_s_per_m:g} s/m × shortest path), "
               f"{len(specs)} methods: " + ", ".join(f"`{m.name}` = {m.label}" for m in specs) + "."
-              + _capped_text(cfg, specs))
+              + _capped_text(cfg, specs)
+              + (f" The saved policies sample their actions (softmax of the logits / {cfg.sample_tau:g}, seeded per "
+                 "episode) instead of taking the argmax." if cfg.sample_tau is not None else ""))
     refs = [m.name for m in specs if m.reference]
     budgets = {m.name: training_budget(m.checkpoint) for m in specs if m.checkpoint is not None}
     atomic_write_text(out / "report.md", report_markdown(rows, labels, header, lh_rows, refs, budgets,

@@ -23,9 +23,10 @@ from rl.observe import (
     load_student_heads,
     observer_for,
 )
-from rl.policy import act, load_policy, read_policy_json
+from rl.policy import act, action_logits, load_policy, read_policy_json
 
 _CACHE: dict[str, Any] = {}
+SAMPLE_SEED_KEY = 7_919  # mixed with the episode seed: the sampling stream differs from the env's own
 
 
 def process_cached(key: str, make: Callable[[], Any]) -> Any:
@@ -68,8 +69,12 @@ def cached_student_forecaster(variant: str, head: str, intention_ckpt: Path | st
 class PolicyDriver:
     """A saved teacher or student policy (``policy.json`` kind ``teacher`` | ``student``) as a driver."""
 
-    def __init__(self, ckpt: Path, shield_s: float | None = None) -> None:
+    def __init__(self, ckpt: Path, shield_s: float | None = None, sample_tau: float | None = None) -> None:
+        """``sample_tau``: pick each action by sampling softmax(logits / τ) with a generator seeded by the episode's
+        seed at reset (reproducible per episode), instead of the argmax (None)."""
         torch.set_num_threads(1)
+        self.sample_tau = sample_tau
+        self.rng = np.random.default_rng(0)
         self.policy = cached_policy(ckpt, shield_s)
         self.desc = read_policy_json(ckpt)
         self.student = self.desc["kind"] == "student"
@@ -84,6 +89,7 @@ class PolicyDriver:
         self.last_obs: dict[str, np.ndarray] | None = None
 
     def reset(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> None:
+        self.rng = np.random.default_rng([SAMPLE_SEED_KEY, int(info.get("episode_seed", 0))])
         if self.student:
             if self.observer is None:
                 self.observer = observer_for(info["cameras"], info["config"], self.desc["variant"], self.encoder,
@@ -95,7 +101,11 @@ class PolicyDriver:
         o = self.observer(obs) if self.student else dict(obs)
         o["state"] = obs["state"]
         self.last_obs = o
-        return act(self.policy, o)
+        if self.sample_tau is None:
+            return act(self.policy, o)
+        z = action_logits(self.policy, o).astype(np.float64) / self.sample_tau
+        p = np.exp(z - z.max())
+        return int(self.rng.choice(len(p), p=p / p.sum()))
 
     def bev_panel(self) -> np.ndarray | None:
         """An ``H x W`` map of what the policy's BEV input held at the last step (videos), or None."""

@@ -640,3 +640,23 @@ def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
     assert "shield_s" not in student_net(_train_cfg(tmp_path, "full", head="mlp"), grid)
     with pytest.raises(ConfigError, match=r"train.shield_s: expected 0 \(off\) .. 2.0 s, got 3.0"):
         _train_cfg(tmp_path, "full", shield_s=3.0)
+
+
+def test_sampled_actions_follow_the_logits_and_repeat_per_episode_seed(teacher_dir):
+    """``PolicyDriver(sample_tau=τ)`` samples softmax(logits / τ) from a generator seeded by the episode's seed: the
+    same episode gives the same actions, another episode others; τ → 0 is the argmax, a large τ spreads."""
+    from rl.policy import action_logits
+
+    env = SceneMixEnv(TINY_SIM, [("hallway", 0.1)])
+    obs, info = env.reset(seed=3)
+    env.close()
+
+    def actions(tau, episode_seed, n=40):
+        d = PolicyDriver(teacher_dir, sample_tau=tau)
+        d.reset(obs, {**info, "episode_seed": episode_seed})
+        return [d.act(obs, info) for _ in range(n)]
+
+    best = int(np.argmax(action_logits(PolicyDriver(teacher_dir).policy, obs)))
+    assert set(actions(0.01, 1)) == {best} == {PolicyDriver(teacher_dir).act(obs, info)}
+    wide = actions(100.0, 1)
+    assert wide == actions(100.0, 1) and wide != actions(100.0, 2) and len(set(wide)) > 10
