@@ -220,11 +220,13 @@ def benchmark_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path, scenes: 
                    route: bool = False) -> list:
     """Every (scene, density, episode, method) job; ``route``: the methods follow the global planner's waypoints."""
     jobs = []
+    protocol = protocol_of(cfg)
+    caps = {m.name: cfg.episodes_of(m.name) for m in specs}
     for s in cfg.scenes if scenes is None else scenes:
         for d in cfg.densities:
-            for k, ep in enumerate(protocol_of(cfg)):
+            for k, ep in enumerate(protocol):
                 for m in specs:  # methods interleaved: a killed or slow run has every method on the same seeds
-                    if ep["rank"] >= cfg.episodes_of(m.name):
+                    if ep["rank"] >= caps[m.name]:
                         continue
                     jobs.append(Job(m, cfg.sim, s, float(d), ep["seed"], out, figure=k < cfg.figures,
                                     video=k < cfg.videos, mcap=k < cfg.videos, scene_seed=ep["scene_seed"],
