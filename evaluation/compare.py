@@ -12,7 +12,9 @@ Each argument is a file of per-episode rows — ``acceptance_episodes.jsonl`` (e
 ``episodes.jsonl``), or an eval run that has not finished (its ``rows/`` so far, with a warning). Rows are matched
 by (scene, density, seed); per cell and pooled over the cells: SR of each,
 the exact McNemar test, the SR difference detectable at 80 % power with these pairs, and the Wilcoxon test of the
-time in private zones (TPZ). Prints Markdown; ``--json`` writes the numbers.
+time in private zones (TPZ); pooled over the pairs, each failure outcome the two runs' rows both carry (collision,
+pedestrian and obstacle collision, timeout: the exact McNemar test on who alone failed that way) and the mean jerk
+of each. Prints Markdown; ``--json`` writes the numbers.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from evaluation.report import paired, paired_pooled
+from evaluation.stats import mcnemar_exact
 from pipeline.core.artifacts import atomic_write_json, json_safe
 from pipeline.core.errors import (
     ConfigError,
@@ -36,6 +39,8 @@ log = logging.getLogger("icrowdnav")
 
 ROW_FILES = ("acceptance_episodes.jsonl", "episodes.jsonl")
 KEYS = ("scene", "density", "seed", "success", "tpz_s")
+OUTCOMES = ("collision", "collision_pedestrian", "collision_obstacle", "timeout")  # 0/1 per episode row
+MEANS = ("mean_jerk_mps3",)
 
 
 def checked_row(r: dict[str, Any], where: str) -> dict[str, Any]:
@@ -108,6 +113,11 @@ def read_protocol(run: Path) -> list[dict[str, Any]]:
         raise CorruptArtifactError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
 
 
+def pair_key(r: dict[str, Any]) -> tuple[str, float, int]:
+    """What pairs two runs' episodes: the cell and the episode's seed."""
+    return r["scene"], float(r["density"]), int(r["seed"])
+
+
 def compare(a: list[dict[str, Any]], b: list[dict[str, Any]], labels: tuple[str, str]) -> dict[str, Any]:
     """``a`` (labelled ``labels[0]``, the reference) against ``b`` on their common (scene, density, seed)."""
     if labels[0] == labels[1]:
@@ -117,18 +127,36 @@ def compare(a: list[dict[str, Any]], b: list[dict[str, Any]], labels: tuple[str,
     if not cells:
         raise InputMissingError("compare: the two runs share no (scene, density, seed)")
 
-    def key(r: dict[str, Any]) -> tuple[str, float, int]:
-        return r["scene"], float(r["density"]), int(r["seed"])
-
-    common = {key(r) for r in a} & {key(r) for r in b}  # each SR over the pairs (an unfinished run has fewer)
+    common = {pair_key(r) for r in a} & {pair_key(r) for r in b}  # each SR over the pairs (an unfinished run has fewer)
     sr = {lab: {} for lab in labels}
     for lab, rs in zip(labels, (a, b), strict=True):
         for r in rs:
-            if key(r) in common:
+            if pair_key(r) in common:
                 sr[lab].setdefault(f"{r['scene']}@{float(r['density']):g}", []).append(float(r["success"]))
     return {"reference": labels[0], "other": labels[1], "cells": cells,
             "pooled": paired_pooled(rows, labels[0]).get(labels[1]),
-            "sr": {lab: {c: sum(v) / len(v) for c, v in cs.items()} for lab, cs in sr.items()}}
+            "sr": {lab: {c: sum(v) / len(v) for c, v in cs.items()} for lab, cs in sr.items()},
+            **pooled_outcomes(a, b, common)}
+
+
+def pooled_outcomes(a: list[dict[str, Any]], b: list[dict[str, Any]], common: set) -> dict[str, Any]:
+    """Over the common pairs: per failure outcome of :data:`OUTCOMES` that every paired row of both runs carries,
+    the count of each and the exact McNemar test (``a_only``: only ``a`` failed that way); per key of :data:`MEANS`
+    carried by all, the mean of each. Rows of older runs without a key leave it out."""
+    pa = {pair_key(r): r for r in a if pair_key(r) in common}
+    pb = {pair_key(r): r for r in b if pair_key(r) in common}
+    order = sorted(common)
+    outcomes, means = {}, {}
+    for k in OUTCOMES:
+        if all(k in pa[c] and k in pb[c] for c in order):
+            x, y = [float(pa[c][k]) for c in order], [float(pb[c][k]) for c in order]
+            outcomes[k] = {**mcnemar_exact(x, y), "count_a": int(sum(v > 0.5 for v in x)),
+                           "count_b": int(sum(v > 0.5 for v in y))}
+    for k in MEANS:
+        if all(k in pa[c] and k in pb[c] for c in order):
+            means[k] = [sum(float(pa[c][k]) for c in order) / len(order),
+                        sum(float(pb[c][k]) for c in order) / len(order)]
+    return {"outcomes": outcomes, "means": means}
 
 
 def markdown(res: dict[str, Any]) -> str:
@@ -149,6 +177,12 @@ def markdown(res: dict[str, Any]) -> str:
     lines += ["", f"Pooled over {res['pooled']['n_cells']} cells: {pooled['n']} pairs, ΔSR ({a} − {b}) "
               f"{pooled['sr_diff']:+.3f}, {pooled['a_only']} / {pooled['b_only']} discordant, McNemar p = "
               f"{p(pooled['p_value'])}, detectable ΔSR at 80 % power {p(pooled['detectable_diff'])}."]
+    if res["outcomes"]:
+        lines += ["", f"| pooled failure outcome | {a} | {b} | only {a} / only {b} failed so | McNemar p |", "|---|---|---|---|---|"]
+        lines += [f"| {k} | {o['count_a']} | {o['count_b']} | {o['a_only']} / {o['b_only']} | {p(o['p_value'])} |"
+                  for k, o in res["outcomes"].items()]
+    for k, (ma, mb) in res["means"].items():
+        lines += ["", f"Mean of {k} over the pairs: {a} {ma:.2f}, {b} {mb:.2f}."]
     return "\n".join(lines) + "\n"
 
 

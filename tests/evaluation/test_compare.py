@@ -35,6 +35,24 @@ def test_pairs_by_seed_and_counts_the_discordant_pairs(tmp_path, capsys):
     assert "| office_lobby@0.1 | 30 | 1.00 | 0.67 | 10 / 0 |" in capsys.readouterr().out
 
 
+def test_failure_outcomes_are_tested_pooled_where_both_runs_carry_them(tmp_path, capsys):
+    def rows(outcomes: list[str], scene: str) -> list[dict]:
+        return [{**r, "collision": float(o == "c"), "timeout": float(o == "t"), "mean_jerk_mps3": 2.0 if o == "c" else 1.0}
+                for r, o in zip(_rows([int(o == "s") for o in outcomes], scene), outcomes, strict=True)]
+
+    a = rows(["c"] * 6 + ["s"] * 14, "office_lobby") + rows(["c"] * 4 + ["t"] * 2 + ["s"] * 14, "warehouse")
+    b = rows(["s"] * 6 + ["s"] * 14, "office_lobby") + rows(["t"] * 4 + ["t"] * 2 + ["s"] * 14, "warehouse")
+    b = [{k: v for k, v in r.items() if k != "mean_jerk_mps3"} if r["scene"] == "warehouse" else r for r in b]
+    res = compare.compare(a, b, ("argmax", "sampled"))
+    col, tmo = res["outcomes"]["collision"], res["outcomes"]["timeout"]
+    assert (col["count_a"], col["count_b"], col["a_only"], col["b_only"], col["n"]) == (10, 0, 10, 0, 40)
+    assert col["p_value"] == pytest.approx(2 * 0.5 ** 10)
+    assert (tmo["count_a"], tmo["count_b"], tmo["a_only"], tmo["b_only"]) == (2, 6, 0, 4)
+    assert "collision_pedestrian" not in res["outcomes"]  # neither run's rows carry it
+    assert res["means"] == {}  # one run's warehouse rows lack the jerk: no mean over part of the pairs
+    assert "| collision | 10 | 0 | 10 / 0 | 0.002 |" in compare.markdown(res)
+
+
 def test_bad_inputs_are_named_errors(tmp_path, capsys):
     with pytest.raises(InputMissingError, match="no per-episode rows"):
         compare.read_rows(tmp_path)
