@@ -74,6 +74,7 @@ def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_c
     breakdown that bounds it (module docstring). The vectorised runs alternate rollout + update chunks, so load on
     a shared machine reaches both alike; each runs for at least ``seconds``."""
     from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import Logger
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
     t = train_cfg.teacher
@@ -87,6 +88,7 @@ def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_c
         venv = make_vec_env(sim_cfg, [(scene, density)], n_envs, seed, subprocess, vec_env_cls=cls)
         model = PPO(policy_class("teacher", net), venv, policy_kwargs=policy_kwargs("teacher", None, net),
                     seed=seed, device="cpu", **ppo_kwargs(t.ppo))
+        model.set_logger(Logger(None, []))  # nothing to keep (SB3's default makes an empty folder in the temp dir)
         attach_lookahead_cache(model)
         model.learn(model.n_steps * n_envs)  # warm-up: one rollout + update
         return model
@@ -157,6 +159,7 @@ def measure_student_ppo(sim_cfg: Any, scene: str, density: float, seed: int, tra
     import tempfile
 
     from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import Logger
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     f = train_cfg.finetune
@@ -191,6 +194,7 @@ def measure_student_ppo(sim_cfg: Any, scene: str, density: float, seed: int, tra
                 try:
                     model = PPO(policy_class("student", net), venv, policy_kwargs=policy_kwargs("student", variant, net),
                                 seed=seed, device="cpu", verbose=0, **ppo_kwargs(f.ppo))
+                    model.set_logger(Logger(None, []))
                     model.learn(model.n_steps * f.n_envs)  # warm-up
                     spent = _time_phases(model)
                     t0, done = time.perf_counter(), 0

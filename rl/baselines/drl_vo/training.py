@@ -251,7 +251,7 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
             model = PPO.load(last, env=venv, device=device)
         else:
             model = PPO("MultiInputPolicy", venv, policy_kwargs=policy_kwargs(net), seed=cfg.seed, device=device,
-                        verbose=0, **ppo)
+                        verbose=0, tensorboard_log=str(out / "tb"), **ppo)
             model.policy.load_state_dict(policy.state_dict())
         done = model.num_timesteps
         if c.curve_steps and done == 0:
@@ -263,10 +263,11 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
         warm = min(c.critic_warmup_steps, c.ppo_steps)
         if done < warm:  # the cloned critic is poor: fit it on-policy before the actor moves (measured below)
             frozen = freeze_actor(model.policy)
-            model.learn(warm - done, callback=cb, reset_num_timesteps=False)
+            model.learn(warm - done, callback=cb, reset_num_timesteps=False, tb_log_name="ppo")
             for p in frozen:
                 p.requires_grad_(True)
-        model.learn(max(0, c.ppo_steps - model.num_timesteps), callback=cb, reset_num_timesteps=False)
+        model.learn(max(0, c.ppo_steps - model.num_timesteps), callback=cb, reset_num_timesteps=False,
+                    tb_log_name="ppo")
         wall["ppo_s"] = round(time.perf_counter() - t0, 1)
         summary["ppo_steps_per_s"] = round((model.num_timesteps - done) / max(wall["ppo_s"], 1e-9), 1)
         ppo_steps = int(model.num_timesteps)

@@ -21,6 +21,7 @@ def test_learns_a_trivial_scene(trained):
     phases = {p for p, _, _ in trained["log"].rows}
     assert "drl_vo_bc" in phases and "drl_vo_ppo" in phases
     assert (trained["ckpt"] / "ppo" / "last.zip").is_file()
+    assert list((trained["ckpt"] / "tb").glob("ppo_*/events.out.tfevents.*")), "PPO's curves in the checkpoint's tb/"
 
 
 def test_learning_curve_points_are_saved_and_evaluated_on_the_same_seeds(trained, tmp_path):
