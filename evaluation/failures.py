@@ -19,7 +19,10 @@ the goal still was and whether the robot was *frozen* (its last :data:`FROZEN_S`
 spot — a deterministic policy in a near-static scene that chose to stand still keeps choosing it) with a person
 within ``near_m`` for most of that time or not (counted as ``timeouts_frozen``); an obstacle hit records where the
 obstacle was — the bearing of its nearest surface point from the robot's heading, and whether that lies in the cameras' field of view (|bearing| ≤ camera yaw + half its
-horizontal FOV): a student only sees what its two forward cameras see, so a hit out of view is a side or rear one. Writes ``failures.json`` (the counts per method and cell, and one record per failure) and
+horizontal FOV): a student only sees what its two forward cameras see, so a hit out of view is a side or rear one. Per cell, the episodes whose straight start–goal segment crosses an obstacle of the layout (``line_blocked``,
+a detour is needed: the warehouse aisles allow a path up to 1.25 × the straight line) are counted with their
+successes, and the table gives the SR of those and of the rest. Writes ``failures.json`` (the counts per method and
+cell, and one record per failure) and
 ``failures.md`` into ``--out`` (default ``<run>/failures``), and ``figures/<cause>_<k>.png``: the top-down view
 (:func:`sim.viz.plot_episode_topdown`) 3 m around the end, the robot and the people 1 s before and at the end. The
 layout is rebuilt from the run's scene, scene seed and crowd seed; a trace whose start and goal do not match it
@@ -72,6 +75,8 @@ CAUSES = ("collision_pedestrian", "collision_obstacle_near_person", "collision_o
 OUT_OF_VIEW = "obstacle_hits_out_of_view"  # obstacle hits whose obstacle lay outside the cameras' field of view
 FROZEN = "timeouts_frozen"  # timeouts that ended standing still (the last FROZEN_S within FROZEN_M of one spot)
 FROZEN_S, FROZEN_M = 10.0, 0.1
+BLOCKED = "line_blocked"  # episodes whose straight start-goal segment crosses an obstacle (a detour is needed)
+BLOCKED_OK = "line_blocked_successes"
 
 
 def trace_path(run: Path, row: dict[str, Any]) -> Path:
@@ -134,12 +139,16 @@ def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: f
         rows = [r for r in rows if r.get("method") == method]
         if not rows:
             raise InputMissingError(f"{run}: no episode of method {method!r}")
-    records, counts = [], {}
+    records, counts, blocked = [], {}, {}
     with Layouts(run) as layouts:
         for r in rows:
             cell = f"{r['scene']}@{float(r['density']):g}"
             c = counts.setdefault(r["method"], {}).setdefault(cell, Counter())
             c["episodes"] += 1
+            c["successes"] += int(r["success"] > 0.5)
+            line = line_blocked(run, r, layouts, blocked)
+            c[BLOCKED] += int(line)
+            c[BLOCKED_OK] += int(line and r["success"] > 0.5)
             if r["success"]:
                 continue
             trace = _load_trace(trace_path(run, r))
@@ -158,18 +167,38 @@ def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: f
             "failures": records}
 
 
+def line_blocked(run: Path, row: dict[str, Any], layouts: Layouts, cache: dict[tuple, bool]) -> bool:
+    """Whether the straight segment from ``row``'s start to its goal crosses an obstacle of its layout (once per
+    cell and scene seed: the start, the goal and the layout are the scene seed's)."""
+    scene_seed = layouts.scene_seeds.get(int(row["seed"]))
+    key = (row["scene"], float(row["density"]), ("crowd", int(row["seed"])) if scene_seed is None else scene_seed)
+    if key not in cache:
+        trace = _load_trace(trace_path(run, row))
+        geometry = layouts.layout(row, trace).geometry
+        cache[key] = not bool(geometry.segment_clear(trace.start_xy, trace.goal_xy, 0.0)[0])
+    return cache[key]
+
+
+def _sr_split(c: dict[str, int]) -> str:
+    """``SR blocked (n) / SR clear (n)`` of one count table (:data:`BLOCKED`)."""
+    nb, sb = c.get(BLOCKED, 0), c.get(BLOCKED_OK, 0)
+    nc, sc = c["episodes"] - nb, c.get("successes", 0) - sb
+    return " / ".join(f"{k / n:.2f} ({n})" if n else f"— ({n})" for k, n in ((sb, nb), (sc, nc)))
+
+
 def markdown(res: dict[str, Any]) -> str:
     lines = [f"Failure causes in {res['run']} (obstacle hits split at a person within {res['near_m']:g} m)", "",
-             "| method | cell | episodes | " + " | ".join(CAUSES) + f" | {OUT_OF_VIEW} | {FROZEN} |",
-             "|---|---|---|" + "---|" * (len(CAUSES) + 2)]
+             "| method | cell | episodes | " + " | ".join(CAUSES) + f" | {OUT_OF_VIEW} | {FROZEN} | "
+             "SR straight line blocked (n) / clear (n) |",
+             "|---|---|---|" + "---|" * (len(CAUSES) + 3)]
     cols = (*CAUSES, OUT_OF_VIEW, FROZEN)
     for m, cells in res["counts"].items():
-        for cell, c in cells.items():
-            lines.append(f"| {m} | {cell} | {c['episodes']} | " + " | ".join(str(c.get(k, 0)) for k in cols) + " |")
         total = Counter()
-        for c in cells.values():
-            total.update(c)
-        lines.append(f"| {m} | all | {total['episodes']} | " + " | ".join(str(total.get(k, 0)) for k in cols) + " |")
+        for cell, c in [*cells.items(), ("all", total)]:
+            if cell != "all":
+                total.update(c)
+            lines.append(f"| {m} | {cell} | {c['episodes']} | " + " | ".join(str(c.get(k, 0)) for k in cols)
+                         + f" | {_sr_split(c)} |")
     return "\n".join(lines) + "\n"
 
 

@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from evaluation import failures
 from evaluation.failures import analyse, classify, draw, hit_bearing, main
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from sim.env import CrowdNavEnv, SimConfig
-from sim.geometry import Cylinder, StaticGeometry
+from sim.geometry import Box, Cylinder, StaticGeometry
 from sim.trace import EpisodeTrace
 
 
@@ -73,6 +75,28 @@ def test_the_bearing_of_a_hit_obstacle_is_measured_from_the_heading():
     assert abs(hit_bearing(Layout, np.array([1.0, 0.5, -np.pi / 2]))) == pytest.approx(180.0)  # behind
 
 
+def test_a_straight_line_through_an_obstacle_is_blocked_once_per_scene_seed(monkeypatch):
+    """The robot of :func:`_trace` starts at (0, 0) with its goal at (5, 0): a shelf across (2.5, 0) blocks the line,
+    the same shelf 1 m aside does not; the layout is looked up once per cell and scene seed."""
+    class FakeLayouts:
+        scene_seeds = {1: 100, 2: 100, 3: 101}
+
+        def __init__(self, box):
+            self.geometry, self.calls = StaticGeometry([box]), 0
+
+        def layout(self, row, trace):
+            self.calls += 1
+            return self
+
+    monkeypatch.setattr(failures, "_load_trace", lambda path: _trace("timeout", [(9.0, 9.0)]))
+    rows = [{"scene": "warehouse", "density": 0.1, "seed": k, "method": "full"} for k in (1, 2, 3)]
+    across, aside = FakeLayouts(Box((2.5, 0.0), (0.4, 3.0))), FakeLayouts(Box((2.5, 1.0), (0.4, 0.5)))
+    for lay, want in ((across, True), (aside, False)):
+        cache = {}
+        assert [failures.line_blocked(Path("run"), r, lay, cache) for r in rows] == [want] * 3
+        assert lay.calls == 2  # seeds 1 and 2 share scene seed 100
+
+
 @pytest.fixture(scope="module")
 def timed_out_run(tmp_path_factory):
     """The expert with a 2 s time limit in the lobby: both episodes time out (real failures, real traces)."""
@@ -91,7 +115,10 @@ def timed_out_run(tmp_path_factory):
 @pytest.mark.slow
 def test_a_real_run_is_counted_and_drawn_on_its_rebuilt_layout(timed_out_run, tmp_path):
     res = analyse(timed_out_run)
-    assert res["counts"]["expert"]["office_lobby@0.1"] == {"episodes": 2, "timeout": 2}
+    counts = res["counts"]["expert"]["office_lobby@0.1"]
+    assert {k: counts[k] for k in ("episodes", "timeout", "successes", "line_blocked_successes")} == {
+        "episodes": 2, "timeout": 2, "successes": 0, "line_blocked_successes": 0}
+    assert counts["line_blocked"] == 0  # this goal's straight line is clear (both trials share it)
     assert [f["cause"] for f in res["failures"]] == ["timeout", "timeout"]
     assert all(f["goal_distance_m"] > 0.3 and f["steps"] == 20 for f in res["failures"])
     (png,) = draw(timed_out_run, res, tmp_path, per_cause=1)
@@ -102,7 +129,7 @@ def test_a_real_run_is_counted_and_drawn_on_its_rebuilt_layout(timed_out_run, tm
 def test_cli_writes_its_tables_and_refuses_bad_input(timed_out_run, tmp_path, capsys):
     out = tmp_path / "f"
     assert main([str(timed_out_run), "--figures", "0", "--out", str(out)]) == 0
-    assert "| expert | office_lobby@0.1 | 2 | 0 | 0 | 0 | 2 | 0 |" in capsys.readouterr().out
+    assert "| expert | office_lobby@0.1 | 2 | 0 | 0 | 0 | 2 | 0 | 0 | — (0) / 0.00 (2) |" in capsys.readouterr().out
     assert json.loads((out / "failures.json").read_text())["counts"]["expert"]["office_lobby@0.1"]["timeout"] == 2
     assert main([str(tmp_path / "nope")]) == 2
     assert "no per-episode rows" in capsys.readouterr().err
