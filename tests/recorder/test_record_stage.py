@@ -411,8 +411,11 @@ def test_sigterm_with_two_workers_accounts_for_every_finished_episode(sigterm_pa
 
 
 def test_ctrl_c_with_an_idle_worker_prints_only_the_error_line(tmp_path_factory):
-    # one episode, two workers: one worker is always idle
-    s = _stop_two_workers(tmp_path_factory, [*LONG, "--episodes", "1", "--workers", "2"], signal.SIGINT,
+    # one episode, two workers: one worker is always idle. The episode is rendered at 320 x 240 (~3 s instead of
+    # ~0.5 s on an idle machine: the expert reaches the goal at 8 s whatever the limit), so that it is still open
+    # when the poll sees its .partial; at 64 x 48 it once finished first on an idle machine.
+    big = ["--sim.camera.width-px", "320", "--sim.camera.height-px", "240"]
+    s = _stop_two_workers(tmp_path_factory, [*LONG, "--episodes", "1", "--workers", "2", *big], signal.SIGINT,
                           group=True, ready="mcap.partial")
     assert len(error_lines(s.stderr)) == 1, s.stderr
     assert s.elapsed < STOP_TIMEOUT_S
