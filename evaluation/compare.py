@@ -25,7 +25,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from evaluation.report import paired, paired_pooled
+from evaluation.report import matched, paired, paired_pooled
 from evaluation.stats import mcnemar_exact
 from pipeline.core.artifacts import atomic_write_json, json_safe
 from pipeline.core.errors import (
@@ -136,26 +136,25 @@ def compare(a: list[dict[str, Any]], b: list[dict[str, Any]], labels: tuple[str,
     return {"reference": labels[0], "other": labels[1], "cells": cells,
             "pooled": paired_pooled(rows, labels[0]).get(labels[1]),
             "sr": {lab: {c: sum(v) / len(v) for c, v in cs.items()} for lab, cs in sr.items()},
-            **pooled_outcomes(a, b, common)}
+            **pooled_outcomes(rows, labels[0])}
 
 
-def pooled_outcomes(a: list[dict[str, Any]], b: list[dict[str, Any]], common: set) -> dict[str, Any]:
-    """Over the common pairs: per failure outcome of :data:`OUTCOMES` that every paired row of both runs carries,
-    the count of each and the exact McNemar test (``a_only``: only ``a`` failed that way); per key of :data:`MEANS`
-    carried by all, the mean of each. Rows of older runs without a key leave it out."""
-    pa = {pair_key(r): r for r in a if pair_key(r) in common}
-    pb = {pair_key(r): r for r in b if pair_key(r) in common}
-    order = sorted(common)
+def pooled_outcomes(rows: list[dict[str, Any]], ref: str) -> dict[str, Any]:
+    """Over the pairs of ``rows`` (:func:`evaluation.report.matched`, ``ref`` against the other label): per failure
+    outcome of :data:`OUTCOMES` that every paired row carries, the count of each and the exact McNemar test
+    (``a_only``: only ``ref`` failed that way); per key of :data:`MEANS` carried by all, the mean of each. Rows of
+    older runs without a key leave it out."""
+    pairs = [(x, y) for _, _, a, b in matched(rows, ref) for x, y in zip(a, b, strict=True)]
     outcomes, means = {}, {}
-    for k in OUTCOMES:
-        if all(k in pa[c] and k in pb[c] for c in order):
-            x, y = [float(pa[c][k]) for c in order], [float(pb[c][k]) for c in order]
-            outcomes[k] = {**mcnemar_exact(x, y), "count_a": int(sum(v > 0.5 for v in x)),
-                           "count_b": int(sum(v > 0.5 for v in y))}
-    for k in MEANS:
-        if all(k in pa[c] and k in pb[c] for c in order):
-            means[k] = [sum(float(pa[c][k]) for c in order) / len(order),
-                        sum(float(pb[c][k]) for c in order) / len(order)]
+    for k in (*OUTCOMES, *MEANS):
+        if not all(k in x and k in y for x, y in pairs):
+            continue
+        xs, ys = [float(x[k]) for x, _ in pairs], [float(y[k]) for _, y in pairs]
+        if k in MEANS:
+            means[k] = [sum(xs) / len(xs), sum(ys) / len(ys)]
+        else:
+            outcomes[k] = {**mcnemar_exact(xs, ys), "count_a": sum(v > 0.5 for v in xs),
+                           "count_b": sum(v > 0.5 for v in ys)}
     return {"outcomes": outcomes, "means": means}
 
 

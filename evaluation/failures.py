@@ -144,12 +144,9 @@ def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: f
         for r in rows:
             cell = f"{r['scene']}@{float(r['density']):g}"
             c = counts.setdefault(r["method"], {}).setdefault(cell, Counter())
-            c["episodes"] += 1
-            c["successes"] += int(r["success"] > 0.5)
-            line = line_blocked(run, r, layouts, blocked)
-            c[BLOCKED] += int(line)
-            c[BLOCKED_OK] += int(line and r["success"] > 0.5)
-            if r["success"]:
+            ok, line = r["success"] > 0.5, line_blocked(run, r, layouts, blocked)
+            c.update(episodes=1, successes=int(ok), **{BLOCKED: int(line), BLOCKED_OK: int(line and ok)})
+            if ok:
                 continue
             trace = _load_trace(trace_path(run, r))
             info = classify(trace, near_m, tail_s)
@@ -193,10 +190,8 @@ def markdown(res: dict[str, Any]) -> str:
              "|---|---|---|" + "---|" * (len(CAUSES) + 3)]
     cols = (*CAUSES, OUT_OF_VIEW, FROZEN)
     for m, cells in res["counts"].items():
-        total = Counter()
+        total = sum((Counter(c) for c in cells.values()), Counter())
         for cell, c in [*cells.items(), ("all", total)]:
-            if cell != "all":
-                total.update(c)
             lines.append(f"| {m} | {cell} | {c['episodes']} | " + " | ".join(str(c.get(k, 0)) for k in cols)
                          + f" | {_sr_split(c)} |")
     return "\n".join(lines) + "\n"

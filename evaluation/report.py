@@ -70,7 +70,7 @@ def _num(v: Any) -> str:
     return "" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{float(v):.6g}"
 
 
-def _matched(rows: Sequence[dict[str, Any]], ref: str):
+def matched(rows: Sequence[dict[str, Any]], ref: str):
     """Per cell with ``ref`` and per other method: ``(cell, other, ref_rows, other_rows)``, the rows of the seeds
     both ran, in seed order."""
     for scene, d in cells_of(rows):
@@ -94,7 +94,7 @@ def _sr_test(a: Sequence[dict[str, Any]], b: Sequence[dict[str, Any]]) -> dict[s
 def paired(rows: Sequence[dict[str, Any]], ref: str = "full") -> dict[str, dict[str, Any]]:
     """``{"<cell>": {other: {"sr": mcnemar, "tpz_s": wilcoxon, "nav_time_s": ..., "path_length_m": ...}}}``."""
     out: dict[str, dict[str, Any]] = {}
-    for cell, m, a, b in _matched(rows, ref):
+    for cell, m, a, b in matched(rows, ref):
         entry = {"n_pairs": len(a), "sr": _sr_test(a, b),
                  "tpz_s": paired_test([r["tpz_s"] for r in a], [r["tpz_s"] for r in b])}
         both = [(x, y) for x, y in zip(a, b, strict=True) if x["success"] == 1 and y["success"] == 1]
@@ -109,7 +109,7 @@ def paired_pooled(rows: Sequence[dict[str, Any]], ref: str = "full") -> dict[str
     detectable difference, "n_cells", "max_discordance_for_0.10": the largest discordance at which a 10-point
     difference is still detectable with these pairs}}``."""
     by_method: dict[str, list[tuple[list[float], list[float]]]] = {}
-    for _, m, a, b in _matched(rows, ref):
+    for _, m, a, b in matched(rows, ref):
         by_method.setdefault(m, []).append(([r["success"] for r in a], [r["success"] for r in b]))
     out = {}
     for m, cells in by_method.items():

@@ -21,6 +21,8 @@ from recorder.schema import EpisodeMeta, Frame  # noqa: E402
 from sim.env import CameraConfig, SimConfig  # noqa: E402
 
 TINY_W, TINY_H = 64, 48
+TINY_SEEDS = (0, 1)
+REPO_ID = "icrowdnav/tiny"
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -28,8 +30,6 @@ def _sb3_logs_in_the_session_tmp(tmp_path_factory) -> None:
     """Tests that build an SB3 model without a logger of their own: SB3 makes a folder for its default logger in the
     temp dir at every ``learn`` (``SB3_LOGDIR`` names one instead); keep them inside the session's tmp dir."""
     os.environ["SB3_LOGDIR"] = str(tmp_path_factory.mktemp("sb3_logs"))
-TINY_SEEDS = (0, 1)
-REPO_ID = "icrowdnav/tiny"
 
 
 @dataclass
