@@ -28,8 +28,10 @@ not marked optional is required)::
       metric: euclidean                # euclidean | geodesic
       clearance_m: 0.5                 # free space around start and goal
       region: [x_min, x_max, y_min, y_max]   # optional, where start and goal may lie
-      max_detour: 1.25                 # optional: shortest path <= this x the straight line (no routing
-                                       # round a shelf: the test measures crowd navigation, not route finding)
+      max_detour: 1.25                 # optional: shortest path <= this x the straight line
+      fixed_line_of_sight: true        # optional (false): the straight start-goal segment crosses none of the
+                                       # fixed obstacles (random clutter may block it): with max_detour, no
+                                       # routing round a shelf row -- the test measures crowd navigation
     pedestrians:                       # optional
       region: [x_min, x_max, y_min, y_max]   # optional spawn/goal region
       max_count: 40                    # optional cap
@@ -123,6 +125,7 @@ class StartGoalSpec:
     clearance_m: float = 0.5
     region: tuple[float, float, float, float] | None = None
     max_detour: float | None = None  # shortest path / straight line, at most
+    fixed_line_of_sight: bool = False  # the straight segment keeps clear of the fixed obstacles (not the clutter)
 
 
 @dataclass(frozen=True)
@@ -343,10 +346,16 @@ class SceneLayout:
             ok = np.isfinite(geo) & (metric >= lo) & (metric <= upper)
             if sg.max_detour is not None:  # grid lengths run up to ~3 % long: pre-select with that slack
                 ok &= geo <= sg.max_detour * 1.04 * eu + NAV_RES_M
+            if sg.fixed_line_of_sight and ok.any():  # on the fixed layout's grid, a few mm generous (exact below)
+                idx = np.nonzero(ok)[0]
+                ok[idx] = _static_layout(self.spec).segments_min_clearance(start, cand[idx]) > -0.05
             if not ok.any():
                 continue
             k = rng.choice(np.nonzero(ok)[0])
             goal = cand[k] + rng.uniform(-GRID_RES_M / 2, GRID_RES_M / 2, 2)
+            if sg.fixed_line_of_sight and not _static_layout(self.spec).geometry.segment_clear(start, goal, 0.0,
+                                                                                               step=0.01)[0]:
+                continue  # the segment grazes a fixed obstacle's corner (the grid's slack, the goal's jitter)
             if sg.metric == "euclidean" and sg.max_detour is None and not exact_length:
                 return start, goal, math.nan
             length = self.path_length(start, goal, robot_radius_m)
@@ -358,7 +367,8 @@ class SceneLayout:
         raise ConfigError(
             f"scene {self.spec.name!r}: found no connected start/goal pair with {sg.metric} distance in "
             f"[{lo}, {hi}] m" + ("" if sg.max_detour is None else f" and a path <= {sg.max_detour} x the "
-                                   "straight line") + f" after {max_tries} tries"
+                                   "straight line") + (" whose straight line crosses no fixed obstacle"
+                                                       if sg.fixed_line_of_sight else "") + f" after {max_tries} tries"
         )
 
 
@@ -626,6 +636,7 @@ class StartGoalFile:
     clearance_m: float = 0.5
     region: Rect | None = None
     max_detour: float | None = None
+    fixed_line_of_sight: bool = False
 
     def validate(self) -> None:
         _check_range("distance_m", self.distance_m)
@@ -726,7 +737,8 @@ class SceneFile:
             floor_color=self.floor_color,
             random_obstacles=None if ro is None else RandomObstacles(ro.count, ro.size_m, ro.height_m, ro.region,
                                                                      ro.clearance_m),
-            start_goal=StartGoalSpec(sg.distance_m, sg.metric, sg.clearance_m, sg.region, sg.max_detour),
+            start_goal=StartGoalSpec(sg.distance_m, sg.metric, sg.clearance_m, sg.region, sg.max_detour,
+                                     sg.fixed_line_of_sight),
             ped_region=peds.region, ped_max_count=peds.max_count, ped_goal_choice=peds.goal_choice, path=path,
         )
 
