@@ -24,7 +24,8 @@ a detour is needed: the warehouse aisles allow a path up to 1.25 × the straight
 successes, and the table gives the SR of those and of the rest. Writes ``failures.json`` (the counts per method and
 cell, and one record per failure) and
 ``failures.md`` into ``--out`` (default ``<run>/failures``), and ``figures/<cause>_<k>.png``: the top-down view
-(:func:`sim.viz.plot_episode_topdown`) 3 m around the end, the robot and the people 1 s before and at the end. The
+(:func:`sim.viz.plot_episode_topdown`) 3 m around the end (a timeout's view grown to hold its start and goal),
+the robot and the people 1 s before and at the end. The
 layout is rebuilt from the run's scene, scene seed and crowd seed; a trace whose start and goal do not match it
 (scene files changed since the run) is a named error.
 
@@ -253,6 +254,19 @@ class Layouts:
         return self.env(row, trace).layout
 
 
+def view_bounds(trace: EpisodeTrace, whole_span: bool, half_m: float = 3.0, margin_m: float = 1.0
+                ) -> tuple[float, float, float, float]:
+    """The figure's view: ``half_m`` around the robot's end, and with ``whole_span`` (a timeout: where it stopped
+    matters relative to the goal, e.g. a freeze behind a shelf) grown to hold the start and the goal with
+    ``margin_m``."""
+    end = np.asarray(trace.robot_pose[-1][:2], dtype=float)
+    lo, hi = end - half_m, end + half_m
+    if whole_span:
+        pts = np.stack([np.asarray(trace.start_xy, dtype=float), np.asarray(trace.goal_xy, dtype=float)])
+        lo, hi = np.minimum(lo, pts.min(0) - margin_m), np.maximum(hi, pts.max(0) + margin_m)
+    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
+
+
 def draw(run: Path, res: dict[str, Any], out: Path, per_cause: int) -> list[Path]:
     """The first ``per_cause`` failures of each cause (in run order), drawn at their end (module docstring)."""
     written, seen = [], Counter()
@@ -265,11 +279,10 @@ def draw(run: Path, res: dict[str, Any], out: Path, per_cause: int) -> list[Path
             seen[f["cause"]] += 1
             trace = _load_trace(trace_path(run, f))
             obstacles = layouts.layout(f, trace).obstacles
-            end = trace.robot_pose[-1]
             t_end = len(trace.robot_pose) - 1
             path = plot_episode_topdown(
                 obstacles, trace, out / "figures" / f"{f['cause']}_{k}.png",
-                bounds=(end[0] - 3.0, end[0] + 3.0, end[1] - 3.0, end[1] + 3.0),
+                bounds=view_bounds(trace, whole_span=f["cause"] == "timeout"),
                 camera_yaws_deg=(cam.yaw_deg, -cam.yaw_deg), camera_hfov_deg=cam.hfov_deg,
                 snapshot_steps=[max(0, t_end - round(1.0 / trace.dt_s)), t_end],
                 title=f"{f['method']}: {f['cause']} (nearest person {f['nearest_person_m']:.2f} m"

@@ -97,6 +97,12 @@ def test_a_straight_line_through_an_obstacle_is_blocked_once_per_scene_seed(monk
         assert lay.calls == 2  # seeds 1 and 2 share scene seed 100
 
 
+def test_a_timeouts_view_holds_its_start_and_goal_a_hits_stays_around_the_end():
+    trace = replace(_trace("timeout", []), goal_xy=np.array([9.0, -1.0]))  # the robot stopped at (1, 0)
+    assert failures.view_bounds(trace, whole_span=False) == pytest.approx((-2.0, 4.0, -3.0, 3.0))
+    assert failures.view_bounds(trace, whole_span=True) == pytest.approx((-2.0, 10.0, -3.0, 3.0))
+
+
 @pytest.fixture(scope="module")
 def timed_out_run(tmp_path_factory):
     """The expert with a 2 s time limit in the lobby: both episodes time out (real failures, real traces)."""
