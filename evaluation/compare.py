@@ -14,7 +14,9 @@ by (scene, density, seed); per cell and pooled over the cells: SR of each,
 the exact McNemar test, the SR difference detectable at 80 % power with these pairs, and the Wilcoxon test of the
 time in private zones (TPZ); pooled over the pairs, each failure outcome the two runs' rows both carry (collision,
 pedestrian and obstacle collision, timeout: the exact McNemar test on who alone failed that way) and the mean jerk
-of each. Prints Markdown; ``--json`` writes the numbers.
+of each. A run of several methods (an eval run of ``--methods '[a, b]'``) is compared on one of them:
+``--methods <first run's>,<second run's>`` (the same run may then be given twice). Prints Markdown; ``--json``
+writes the numbers.
 """
 
 from __future__ import annotations
@@ -96,6 +98,20 @@ def unfinished_run_rows(run: Path) -> list[dict[str, Any]]:
     log.warning("%s: unfinished eval run (no episodes.jsonl): comparing its %d finished benchmark episodes",
                 run, len(rows))
     return rows
+
+
+def one_method(rows: list[dict[str, Any]], method: str | None, where: Path) -> list[dict[str, Any]]:
+    """The rows of ``method`` (``None``: the run's only method) — a run of several methods (an eval run of
+    ``--methods '[a, b]'``) must be told which, or its methods' episodes would be paired as one."""
+    held = sorted({str(r["method"]) for r in rows if "method" in r})
+    if method is None:
+        if len(held) > 1:
+            raise ConfigError(f"{where}: rows of {len(held)} methods {held}; name the one to compare with "
+                              "--methods <method of the first run>,<method of the second>")
+        return rows
+    if method not in held:
+        raise ConfigError(f"--methods: {where} has no rows of method {method!r} (it holds {held or 'unnamed rows'})")
+    return [r for r in rows if r.get("method") == method]
 
 
 def read_protocol(run: Path) -> list[dict[str, Any]]:
@@ -191,12 +207,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("a", type=Path, help="reference run: rows file or directory")
     ap.add_argument("b", type=Path, help="the other run")
     ap.add_argument("--labels", default="a,b", help="names of the two runs, comma-separated")
+    ap.add_argument("--methods", default=None,
+                    help="the method of each run to compare, comma-separated (needed where a run holds several)")
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = ap.parse_args(argv)
     labels = tuple(x.strip() for x in args.labels.split(","))
     if len(labels) != 2 or not all(labels):
         raise ConfigError(f"--labels: expected two comma-separated names, got {args.labels!r}")
-    res = compare(read_rows(args.a), read_rows(args.b), labels)
+    methods: tuple[str | None, ...] = (None, None)
+    if args.methods is not None:
+        methods = tuple(x.strip() for x in args.methods.split(","))
+        if len(methods) != 2 or not all(methods):
+            raise ConfigError(f"--methods: expected two comma-separated method names, got {args.methods!r}")
+    a, b = (one_method(read_rows(p), m, p) for p, m in zip((args.a, args.b), methods, strict=True))
+    res = compare(a, b, labels)
     if args.json:
         atomic_write_json(args.json, json_safe(res))
     print(markdown(res), end="")

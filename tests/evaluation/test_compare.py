@@ -53,6 +53,25 @@ def test_failure_outcomes_are_tested_pooled_where_both_runs_carry_them(tmp_path,
     assert "| collision | 10 | 0 | 10 / 0 | 0.002 |" in compare.markdown(res)
 
 
+def test_a_run_of_several_methods_is_compared_on_the_one_named(tmp_path, capsys):
+    """An eval run of two methods holds both methods' rows on the same seeds: without ``--methods`` they would be
+    paired as one run (the SR of their mixture), so that is a named error; with it, each side is one method's."""
+    run = _write(tmp_path / "episodes.jsonl", [{**r, "method": "full"} for r in _rows([1] * 20)]
+                 + [{**r, "method": "dwa"} for r in _rows([0] * 5 + [1] * 15)])
+    alone = _write(tmp_path / "no_bev.jsonl", [{**r, "method": "no_bev"} for r in _rows([1] * 10 + [0] * 10)])
+    assert compare.main([str(alone), str(run)]) == 2
+    err = capsys.readouterr().err
+    assert "2 methods ['dwa', 'full']" in err and "--methods" in err
+    assert compare.main([str(alone), str(run), "--methods", "no_bev,full", "--labels", "no_bev,full"]) == 0
+    assert "| office_lobby@0.1 | 20 | 0.50 | 1.00 | 0 / 10 |" in capsys.readouterr().out
+    assert compare.main([str(run), str(run), "--methods", "dwa,full", "--labels", "dwa,full"]) == 0
+    assert "| office_lobby@0.1 | 20 | 0.75 | 1.00 | 0 / 5 |" in capsys.readouterr().out
+    assert compare.main([str(alone), str(run), "--methods", "no_bev,vint"]) == 2
+    assert "has no rows of method 'vint' (it holds ['dwa', 'full'])" in capsys.readouterr().err
+    assert compare.main([str(alone), str(run), "--methods", "full"]) == 2
+    assert "two comma-separated method names" in capsys.readouterr().err
+
+
 def test_bad_inputs_are_named_errors(tmp_path, capsys):
     with pytest.raises(InputMissingError, match="no per-episode rows"):
         compare.read_rows(tmp_path)
