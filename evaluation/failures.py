@@ -20,7 +20,7 @@ spot — a deterministic policy in a near-static scene that chose to stand still
 within ``near_m`` for most of that time or not (counted as ``timeouts_frozen``); an obstacle hit records where the
 obstacle was — the bearing of its nearest surface point from the robot's heading, and whether that lies in the cameras' field of view (|bearing| ≤ camera yaw + half its
 horizontal FOV): a student only sees what its two forward cameras see, so a hit out of view is a side or rear one. Per cell, the episodes whose straight start–goal segment crosses an obstacle of the layout (``line_blocked``,
-a detour is needed: the warehouse aisles allow a path up to 1.25 × the straight line) are counted with their
+a detour is needed: the warehouse allows a path up to 1.25 × the straight line, and a pallet on it) are counted with their
 successes, and the table gives the SR of those and of the rest. Writes ``failures.json`` (the counts per method and
 cell, and one record per failure) and
 ``failures.md`` into ``--out`` (default ``<run>/failures``), and ``figures/<cause>_<k>.png``: the top-down view

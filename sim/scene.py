@@ -333,6 +333,7 @@ class SceneLayout:
         """
         sg = self.spec.start_goal
         nav = self.nav(robot_radius_m + 0.05)
+        fixed = _static_layout(self.spec) if sg.fixed_line_of_sight else None  # the fixed obstacles alone
         lo, hi = sg.distance_m
         for _ in range(max_tries):
             start = self.free_points(rng, 1, max(sg.clearance_m, robot_radius_m + 0.1), sg.region)[0]
@@ -346,15 +347,14 @@ class SceneLayout:
             ok = np.isfinite(geo) & (metric >= lo) & (metric <= upper)
             if sg.max_detour is not None:  # grid lengths run up to ~3 % long: pre-select with that slack
                 ok &= geo <= sg.max_detour * 1.04 * eu + NAV_RES_M
-            if sg.fixed_line_of_sight and ok.any():  # on the fixed layout's grid, a few mm generous (exact below)
+            if fixed is not None and ok.any():  # on the fixed layout's grid, a few mm generous (exact below)
                 idx = np.nonzero(ok)[0]
-                ok[idx] = _static_layout(self.spec).segments_min_clearance(start, cand[idx]) > -0.05
+                ok[idx] = fixed.segments_min_clearance(start, cand[idx]) > -0.05
             if not ok.any():
                 continue
             k = rng.choice(np.nonzero(ok)[0])
             goal = cand[k] + rng.uniform(-GRID_RES_M / 2, GRID_RES_M / 2, 2)
-            if sg.fixed_line_of_sight and not _static_layout(self.spec).geometry.segment_clear(start, goal, 0.0,
-                                                                                               step=0.01)[0]:
+            if fixed is not None and not fixed.geometry.segment_clear(start, goal, 0.0, step=0.01)[0]:
                 continue  # the segment grazes a fixed obstacle's corner (the grid's slack, the goal's jitter)
             if sg.metric == "euclidean" and sg.max_detour is None and not exact_length:
                 return start, goal, math.nan
