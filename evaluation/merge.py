@@ -17,7 +17,9 @@ earlier version of a scene. Runs must share their protocol: the same seeds and s
 seeds (``seeds.json``), else the merge stops with an error naming the run that differs. They may cover different
 cells (a six-cell table assembled from a warehouse run and a lobby / corridor run), but each method's cell (and
 scenario) must come from one run only. A method may have run a subset of the episodes (``eval --method_episodes``, a
-killed run): paired tests use the episodes both methods ran, and pooled tests the cells both ran. Writes into ``--out``:
+killed run): paired tests use the episodes both methods ran, and pooled tests the cells both ran.
+
+Writes into ``--out``: ``seeds.json`` (the shared protocol, so that the folder is itself a run to merge or compare),
 ``episodes.jsonl``, ``results.json`` / ``results.csv``, ``paired.json`` (``--ref`` against every other method, per
 cell and pooled), ``report.md`` and ``figures/sr_by_cell.png`` — the files of an ``icrowdnav eval`` run
 (:mod:`evaluation.report`).
@@ -127,6 +129,8 @@ def write(rows: list[dict[str, Any]], scen: list[dict[str, Any]], runs: list[Run
     refs = [m for m in methods if method_label(m)[1]]
     out.mkdir(parents=True, exist_ok=True)
     res = results(rows)
+    # the protocol the runs share (merge checked it), so that the merged folder is itself a run to compare or merge
+    atomic_write_text(out / "seeds.json", (runs[0][0] / "seeds.json").read_text())
     atomic_write_text(out / "episodes.jsonl", "".join(json.dumps(r) + "\n" for r in json_safe(rows)))
     atomic_write_json(out / "results.json", json_safe(res))
     atomic_write_text(out / "results.csv", results_csv(res))

@@ -99,6 +99,9 @@ def test_cells_from_several_runs_make_one_table_and_a_run_gives_only_the_scenes_
     md = (out / "report.md").read_text()
     assert "10 episodes per cell and method" in md and "(office_lobby only)" in md
     assert not (out / "scenarios").exists() and "blind_corner" not in md  # light's scenario was not asked for
+    again = _run(tmp_path / "again", "full", 3)  # the merged folder is a run of the protocol: it merges again
+    rows, _ = merge([parse_run(f"{out}@full"), parse_run(f"{again}:full_again")])
+    assert sorted({r["method"] for r in rows}) == ["full", "full_again"] and len(rows) == 30
     with pytest.raises(ConfigError, match=r"expected scenes, scenarios or methods the run holds \(blind_corner, "
                                           r"office_lobby, sarl_om, warehouse\), got \['corridor'\]"):
         merge([parse_run(str(lobby)), parse_run(f"{light}@corridor")])
