@@ -38,7 +38,8 @@ from evaluation.report import paired, paired_pooled, plot_sr, report_markdown, r
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.errors import ConfigError, reports_errors
 
-Run = tuple[Path, str | None, tuple[str, ...] | None]  # a run directory, its method's new name, the scenes taken
+# a run directory, its method's new name, the scenes / scenarios / methods taken from it (None: all)
+Run = tuple[Path, str | None, tuple[str, ...] | None]
 
 
 def parse_run(arg: str) -> Run:
@@ -53,7 +54,7 @@ def parse_run(arg: str) -> Run:
     if sep and path and "/" not in tail:
         only = tuple(s for s in tail.split(",") if s)
         if not only:
-            raise ConfigError(f"{arg}: expected scene or scenario names after '@', got none")
+            raise ConfigError(f"{arg}: expected scene, scenario or method names after '@', got none")
         arg = path
     return Path(arg), name, only
 
@@ -100,7 +101,8 @@ def merge(runs: list[Run]) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
         sc_path = run / "scenarios" / "episodes.jsonl"
         sc = _renamed(read_rows(sc_path), run, name) if sc_path.is_file() else []
         if only is not None:
-            held_scenes, held_methods = {r["scene"] for r in bench + sc}, {r["method"] for r in bench + sc}
+            every = bench + sc
+            held_scenes, held_methods = {r["scene"] for r in every}, {r["method"] for r in every}
             unknown = set(only) - held_scenes - held_methods
             if unknown:
                 raise ConfigError(f"{run}@{','.join(only)}: expected scenes, scenarios or methods the run holds "
