@@ -36,6 +36,19 @@ the best clearance any action of the grid offered, and the true clearance after 
 were predicted to touch while a free arc existed is the cost's choice (``chose_predicted_contact``), not a
 perception miss. Episodes are deterministic given their seeds; a replay that does not end as the run's row did is
 reported as not reproduced. Hits are replayed ``--workers`` at a time (a process pool), reported in hit order.
+
+``--replay-peds K`` does the same for the first K pedestrian hits and asks whether the policy *perceived* the person
+it hit: at each of the last steps, where that person truly was (range, bearing, inside the cameras' view or not),
+whether one of the policy's reported tracks (``peds``, present) lay within :data:`PED_MATCH_M` of him, the
+pedestrian clearance the head predicted for the chosen arc (over :data:`REPLAY_WINDOW_S`, from its tracks and
+their predicted motion), the best clearance to people *and* obstacles any arc offered, and the true clearance to
+him after the step. Each hit is put in one class (:data:`PED_HIT_CLASSES`, :func:`ped_hit_class`): the person was
+not tracked at the last step before contact (``untracked``); tracked, and the chosen arcs were predicted to touch
+someone while a free arc existed (``chose_predicted_contact``); tracked, and no arc was free (``no_free_arc``);
+tracked, and the chosen arcs were predicted clear of everyone (``predicted_clear``: the track or its predicted
+motion was wrong, or the person walked into the robot).
+
+``--scene NAME`` keeps only one scene's episodes (e.g. a run whose other scenes changed since).
 """
 
 from __future__ import annotations
@@ -67,11 +80,14 @@ from pipeline.core.executor import map_jobs
 from rl.policy import obs_to_tensor
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
+from sim.geometry import world_to_robot
 from sim.trace import EpisodeTrace
 from sim.viz import plot_episode_topdown
 
 REPLAY_WINDOW_S = 0.6  # --replay: the predicted clearance of an arc is its minimum over the lookahead times up to this
 REPLAY_STEPS = 10  # --replay: the last steps kept per replayed hit
+PED_MATCH_M = 0.5  # --replay-peds: a reported track within this of the hit person's true centre is his
+PED_HIT_CLASSES = ("untracked", "chose_predicted_contact", "no_free_arc", "predicted_clear")
 CAUSES = ("collision_pedestrian", "collision_obstacle_near_person", "collision_obstacle_clear", "timeout")
 OUT_OF_VIEW = "obstacle_hits_out_of_view"  # obstacle hits whose obstacle lay outside the cameras' field of view
 FROZEN = "timeouts_frozen"  # timeouts that ended standing still (the last FROZEN_S within FROZEN_M of one spot)
@@ -130,16 +146,20 @@ def hit_bearing(layout: Any, pose: np.ndarray) -> float:
     return float(np.degrees(np.angle(np.exp(1j * (math.atan2(d[1], d[0]) - pose[2])))))
 
 
-def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: float = 0.5) -> dict[str, Any]:
-    """Counts of failure causes per method and cell, and one record per failed benchmark episode of ``run``."""
+def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: float = 0.5,
+            scene: str | None = None) -> dict[str, Any]:
+    """Counts of failure causes per method and cell, and one record per failed benchmark episode of ``run`` (only
+    ``method``'s and ``scene``'s when given)."""
     if not (near_m >= 0 and tail_s > 0):
         raise ConfigError(f"failures: expected near_m >= 0 and tail_s > 0, got {near_m}, {tail_s}")
     run = Path(run)
     rows = read_rows(run / "episodes.jsonl")
-    if method is not None:
-        rows = [r for r in rows if r.get("method") == method]
-        if not rows:
-            raise InputMissingError(f"{run}: no episode of method {method!r}")
+    for key, want in (("method", method), ("scene", scene)):
+        if want is not None:
+            held = sorted({str(r.get(key)) for r in rows})
+            rows = [r for r in rows if r.get(key) == want]
+            if not rows:
+                raise InputMissingError(f"{run}: no episode of {key} {want!r} (it holds {held})")
     records, counts, blocked = [], {}, {}
     with Layouts(run) as layouts:
         for r in rows:
@@ -318,17 +338,19 @@ def replay_head(spec: MethodSpec) -> Any:
 
 
 def replay_hit(job: ReplayJob) -> dict[str, Any]:
-    """``job``'s episode rerun with its method's policy, recording per step the clearance the head predicted for
-    the chosen arc, the best any arc offered and the true clearance (module docstring, ``--replay``)."""
+    """``job``'s episode rerun with its method's policy, recording per step what the head predicted for the chosen
+    arc and the true clearance after the step: for an obstacle hit the obstacle clearances (module docstring,
+    ``--replay``), for a pedestrian hit also the tracks and the pedestrian clearances (``--replay-peds``)."""
     torch.set_num_threads(1)  # one episode per worker process
     f, spec, layouts = job.failure, job.spec, run_layouts(job.run)
     driver, head = cached_driver(spec), replay_head(spec)
     w = head.steps_within(REPLAY_WINDOW_S)
+    ped_hit = f["cause"] == "collision_pedestrian"
     ep = Job(spec, layouts.sim, f["scene"], float(f["density"]), int(f["seed"]), job.run, save_trace=False,
              scene_seed=layouts.scene_seeds.get(int(f["seed"])))
     env = make_env(ep)
     u = env.unwrapped
-    steps = []
+    steps, tracks = [], []
     try:
         for tr in episode_steps(env, driver, ep.seed, reset_options(ep)):
             o = driver.last_obs  # what the policy saw at the previous step, when it chose tr.action
@@ -336,31 +358,93 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
                 continue
             obs = obs_to_tensor({key: o[key] for key in driver.policy.observation_space.spaces})
             with torch.no_grad():
-                clear = head.obstacle_clearances(head.action_features(obs), w)[0]  # A x w, m
+                feats = head.action_features(obs)
+            clear = head.obstacle_clearances(feats, w)[0]  # A x w, m
             true = float(u.layout.geometry.signed_distance(np.asarray(u.robot[:2], float))[0])
-            steps.append({"step": tr.step - 1, "action": int(tr.action),
-                          "predicted_m": float(clear[tr.action].min()),
-                          "predicted_next_m": float(clear[tr.action, 0]),
-                          "best_available_m": float(clear.min(-1).values.max()),
-                          "true_next_m": true - float(head.radius_m)})
+            rec = {"step": tr.step - 1, "action": int(tr.action),
+                   "predicted_m": float(clear[tr.action].min()),
+                   "predicted_next_m": float(clear[tr.action, 0]),
+                   "best_available_m": float(clear.min(-1).values.max()),
+                   "true_next_m": true - float(head.radius_m)}
+            if ped_hit:
+                pc = head.pedestrian_clearances(feats, w)[0]  # A x w, m
+                rec.update(ped_predicted_m=float(pc[tr.action].min()),
+                           best_free_m=float(torch.minimum(pc, clear).min(-1).values.max()))
+                peds = np.asarray(o.get("peds", np.zeros((0, 6))), float)
+                tracks.append(peds[peds[:, 5] > 0.5, :2] if len(peds) else np.zeros((0, 2)))
+            steps.append(rec)
         trace = u.trace(method=spec.name)
     finally:
         env.close()
+    if ped_hit:
+        _hit_person(trace, steps, tracks, layouts.view_deg)
     tail = steps[-REPLAY_STEPS:]
     err = [abs(r["predicted_next_m"] - r["true_next_m"]) for r in steps if r["true_next_m"] < 1.0]
-    return {"method": f["method"], "scene": f["scene"], "density": f["density"], "seed": f["seed"],
-            "reproduced": trace.outcome == "collision_obstacle" and trace.n_steps == f["steps"],
-            "chose_predicted_contact": any(r["predicted_m"] < 0.0 < r["best_available_m"] for r in tail),
-            "clearance_error_m": float(np.median(err)) if err else None, "steps": tail}
+    outcome = "collision_pedestrian" if ped_hit else "collision_obstacle"
+    out = {"method": f["method"], "scene": f["scene"], "density": f["density"], "seed": f["seed"],
+           "cause": f["cause"], "reproduced": trace.outcome == outcome and trace.n_steps == f["steps"],
+           "chose_predicted_contact": any(r["predicted_m"] < 0.0 < r["best_available_m"] for r in tail),
+           "clearance_error_m": float(np.median(err)) if err else None, "steps": tail}
+    if ped_hit:
+        out["class"] = ped_hit_class(tail)
+        out["chose_predicted_contact"] = out["class"] == "chose_predicted_contact"
+        out["in_view_at_contact"] = bool(tail[-1]["in_view"]) if tail else None
+        out["speed_at_contact_mps"] = float(abs(trace.robot_cmd[-1, 0])) if len(trace.robot_cmd) else 0.0
+        seen = [r for r in steps if r["tracked"]]
+        last = seen[-1] if seen else None  # when and where the hit person was last tracked
+        out["last_tracked_s_before"] = (trace.n_steps - 1 - last["step"]) * trace.dt_s if last else None
+        out["last_tracked_bearing_deg"] = last["bearing_deg"] if last else None
+        out["last_tracked_range_m"] = last["range_m"] if last else None
+    return out
 
 
-def replay_obstacle_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path | None = None,
-                         workers: int = 1, progress: bool = False) -> list[dict[str, Any]]:
-    """The first ``k`` obstacle hits of ``res`` rerun with their method's policy (module docstring, ``--replay``),
-    ``workers`` episodes at a time (a process pool; each worker loads a method's weights once), in hit order."""
+def _hit_person(trace: EpisodeTrace, steps: list[dict[str, Any]], tracks: list[np.ndarray], view_deg: float) -> None:
+    """Adds to each step record of a pedestrian hit where the person the robot hit (the nearest body at the end)
+    truly was in the robot frame when the action was chosen (``range_m``, ``bearing_deg``, ``in_view``), whether a
+    reported track lay within :data:`PED_MATCH_M` of him (``tracked``, ``track_error_m``) and his true clearance
+    after the step (``true_ped_next_m``)."""
+    pose = trace.robot_pose[-1]
+    gaps = np.linalg.norm(trace.ped_xy[-1] - pose[:2], axis=-1) - trace.ped_radius - trace.robot_radius_m
+    j = int(np.nanargmin(np.where(np.isfinite(gaps), gaps, np.inf)))
+    for rec, tr in zip(steps, tracks, strict=True):
+        k = rec["step"]
+        if not np.isfinite(trace.ped_xy[k:k + 2, j]).all():  # not yet in the scene (a scripted person)
+            rec.update(range_m=float("nan"), bearing_deg=float("nan"), in_view=False, tracked=False,
+                       track_error_m=None, true_ped_next_m=float("nan"))
+            continue
+        p = world_to_robot(trace.ped_xy[k, j][None], trace.robot_pose[k])[0]
+        err = np.linalg.norm(tr - p, axis=-1).min() if len(tr) else np.inf
+        nxt = np.linalg.norm(trace.ped_xy[k + 1, j] - trace.robot_pose[k + 1, :2])
+        rec.update(range_m=float(np.hypot(*p)), bearing_deg=float(np.degrees(np.arctan2(p[1], p[0]))),
+                   in_view=bool(abs(np.degrees(np.arctan2(p[1], p[0]))) <= view_deg),
+                   tracked=bool(err <= PED_MATCH_M), track_error_m=float(err) if np.isfinite(err) else None,
+                   true_ped_next_m=float(nxt - trace.ped_radius[j] - trace.robot_radius_m))
+
+
+def ped_hit_class(steps: list[dict[str, Any]]) -> str:
+    """The class of a replayed pedestrian hit (:data:`PED_HIT_CLASSES`) from its last step records: ``untracked``
+    when the person was not tracked at the last step before contact; else ``chose_predicted_contact`` when a chosen
+    arc was predicted to touch someone while an arc free of people and obstacles existed, ``no_free_arc`` when a
+    chosen arc was predicted to touch and none was free, ``predicted_clear`` when every chosen arc was predicted
+    clear of everyone."""
+    if not steps or not steps[-1]["tracked"]:
+        return "untracked"
+    if any(r["ped_predicted_m"] < 0.0 < r["best_free_m"] for r in steps):
+        return "chose_predicted_contact"
+    if any(r["ped_predicted_m"] < 0.0 for r in steps):
+        return "no_free_arc"
+    return "predicted_clear"
+
+
+def replay_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path | None = None, workers: int = 1,
+                progress: bool = False, pedestrian: bool = False) -> list[dict[str, Any]]:
+    """The first ``k`` obstacle hits of ``res`` (pedestrian hits with ``pedestrian``) rerun with their method's
+    policy (module docstring, ``--replay`` / ``--replay-peds``), ``workers`` episodes at a time (a process pool; each
+    worker loads a method's weights once), in hit order."""
     run = Path(run)
     data_dir = Path(data_dir) if data_dir is not None else run.parent.parent
-    hits = [f for f in res["failures"] if f["cause"].startswith("collision_obstacle")][:k]
+    hits = [f for f in res["failures"]
+            if (f["cause"] == "collision_pedestrian") == pedestrian and f["cause"] != "timeout"][:k]
     methods = list(dict.fromkeys(f["method"] for f in hits))
     specs = dict(zip(methods, resolve_methods(methods, data_dir, run_layouts(run).config.get("shield_s")), strict=True))
     for spec in specs.values():  # a method without a lookahead head is refused before any episode runs
@@ -379,6 +463,36 @@ def replay_markdown(replays: list[dict[str, Any]]) -> str:
             + (f"{float(np.median(errs)):.3f} m" if errs else "n/a") + "\n")
 
 
+def ped_replay_markdown(replays: list[dict[str, Any]]) -> str:
+    """The replayed pedestrian hits per method and class, and per hit its cell, class and last moments."""
+    lines = [f"\nReplayed pedestrian hits: {len(replays)} ({sum(r['reproduced'] for r in replays)} reproduced), "
+             f"classed from their last {REPLAY_STEPS} steps (a track within {PED_MATCH_M:g} m of the hit person = "
+             f"tracked; predicted clearances over {REPLAY_WINDOW_S:g} s)", "",
+             "| method | hits | " + " | ".join(PED_HIT_CLASSES) + " | hit person in view at contact | robot "
+             "stopped at contact (< 0.05 m/s) |", "|---|---|" + "---|" * (len(PED_HIT_CLASSES) + 2)]
+    for m in dict.fromkeys(r["method"] for r in replays):
+        rs = [r for r in replays if r["method"] == m]
+        c = Counter(r["class"] for r in rs)
+        lines.append(f"| {m} | {len(rs)} | " + " | ".join(str(c.get(k, 0)) for k in PED_HIT_CLASSES)
+                     + f" | {sum(bool(r['in_view_at_contact']) for r in rs)} | "
+                     f"{sum(r['speed_at_contact_mps'] < 0.05 for r in rs)} |")
+    lines += ["", "| method | cell | seed | class | tracked in last steps | last tracked: s before contact, range / "
+              "bearing | range / bearing 1 s before | predicted ped. clearance (chosen, min) | true clearance 1 s "
+              "before |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in replays:
+        st = r["steps"]
+        first = st[0] if st else {}
+        lines.append(f"| {r['method']} | {r['scene']}@{float(r['density']):g} | {r['seed']} | {r['class']} | "
+                     f"{sum(x['tracked'] for x in st)} / {len(st)} | "
+                     + (f"{r['last_tracked_s_before']:.1f} s, {r['last_tracked_range_m']:.2f} m / "
+                        f"{r['last_tracked_bearing_deg']:+.0f}° | " if r["last_tracked_s_before"] is not None
+                        else "never | ")
+                     + (f"{first['range_m']:.2f} m / {first['bearing_deg']:+.0f}° | " if st else "— | ")
+                     + (f"{min(x['ped_predicted_m'] for x in st):.2f} m | {first['true_ped_next_m']:.2f} m |"
+                        if st else "— | — |"))
+    return "\n".join(lines) + "\n"
+
+
 @reports_errors
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m evaluation.failures", description=__doc__.split("\n\n")[0])
@@ -389,19 +503,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--figures", type=int, default=2, help="failures drawn per cause")
     ap.add_argument("--out", type=Path, default=None, help="output folder (default <run>/failures)")
     ap.add_argument("--replay", type=int, default=0, help="rerun the first K obstacle hits (lookahead-head policies)")
+    ap.add_argument("--replay-peds", type=int, default=0, help="rerun the first K pedestrian hits (lookahead-head "
+                                                               "policies)")
+    ap.add_argument("--scene", default=None, help="only this scene's episodes")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="--replay's episodes run at a time "
                                                                            "(default: the machine's CPUs)")
     ap.add_argument("--data-dir", type=Path, default=None, help="where --replay finds the checkpoints (default: the "
                                                                     "run's data dir, <run>/../..)")
     args = ap.parse_args(argv)
     out = args.out or args.run / "failures"
-    for name, low in (("figures", 0), ("replay", 0), ("workers", 1)):
+    for name, low in (("figures", 0), ("replay", 0), ("replay_peds", 0), ("workers", 1)):
         if getattr(args, name) < low:
-            raise ConfigError(f"--{name}: expected an integer >= {low}, got {getattr(args, name)}")
-    res = analyse(args.run, args.method, args.near_m, args.tail_s)
+            raise ConfigError(f"--{name.replace('_', '-')}: expected an integer >= {low}, got {getattr(args, name)}")
+    res = analyse(args.run, args.method, args.near_m, args.tail_s, args.scene)
+    text = markdown(res)
     if args.replay:
-        res["replays"] = replay_obstacle_hits(args.run, res, args.replay, args.data_dir, args.workers, progress=True)
-    text = markdown(res) + (replay_markdown(res["replays"]) if args.replay else "")
+        res["replays"] = replay_hits(args.run, res, args.replay, args.data_dir, args.workers, progress=True)
+        text += replay_markdown(res["replays"])
+    if args.replay_peds:
+        res["ped_replays"] = replay_hits(args.run, res, args.replay_peds, args.data_dir, args.workers, progress=True,
+                                         pedestrian=True)
+        text += ped_replay_markdown(res["ped_replays"])
     out.mkdir(parents=True, exist_ok=True)
     draw(args.run, res, out, args.figures)
     atomic_write_json(out / "failures.json", json_safe(res))

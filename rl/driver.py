@@ -94,7 +94,8 @@ class PolicyDriver:
             if self.observer is None:
                 self.observer = observer_for(info["cameras"], info["config"], self.desc["variant"], self.encoder,
                                              self.head, forecaster=self.forecaster, map_cost=self.map_cost,
-                                             map_heads=self.map_heads)
+                                             map_heads=self.map_heads,
+                                             track_unseen_s=self.desc.get("net", {}).get("track_unseen_s", 0.0))
             self.observer.reset()
 
     def act(self, obs: dict[str, np.ndarray], info: dict[str, Any]):

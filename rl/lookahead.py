@@ -52,6 +52,7 @@ MAP_KEYS = ("bev_occ", "occ")  # the maps the head can read: the BEV's predicted
 MAP_PED_TIMES_S = (0.0, 0.5, 1.0)  # the times of the people channels 1.. of a ``bev_occ`` map (pretrain.model.TARGETS)
 SHIELD_MARGIN_M = 0.02  # the obstacle shield: an arc closer than this to the scan within ``shield_s`` is inadmissible
 SHIELD_NATS_PER_M = 1000.0  # ... and its logit is lowered by this many nats per metre of predicted intrusion
+PED_SHIELD_MARGIN_M = 0.0  # the people shield: an arc predicted to overlap a predicted person within ``ped_shield_s``
 
 
 def check_shield_s(value: Any, key: str, optional: bool = False) -> None:
@@ -127,14 +128,20 @@ class LookaheadHead(nn.Module):
             predicted intrusion, so it is chosen only when every action intrudes (then the least intruding). The
             robot can always stop or turn on the spot, so a predicted obstacle contact is the cost's choice, not
             forced: docs/results.md ("Why they fail") found the students choosing arcs they predicted to hit.
+        ped_shield_s: the people shield's horizon (s; 0 = off): the same rule against the head's predicted
+            pedestrians (an arc whose body comes within :data:`PED_SHIELD_MARGIN_M` of a predicted person's — i.e.
+            overlaps it — at a lookahead time up to ``ped_shield_s`` loses :data:`SHIELD_NATS_PER_M` nats per metre),
+            so a predicted contact with a person is chosen only when every action has one.
     """
 
     def __init__(self, observation_space: gym.spaces.Dict, robot: dict[str, Any] | None, dt_s: float,
                  path_spacing_m: float, base_dim: int, score_dim: int, context_dim: int, *, subgoal: bool,
                  scan_range_m: float, heading: str = "end", scorer_bound: float | None = None,
-                 map_key: str | None = None, map_bounds: Any = None, shield_s: float = 0.0) -> None:
+                 map_key: str | None = None, map_bounds: Any = None, shield_s: float = 0.0,
+                 ped_shield_s: float = 0.0) -> None:
         super().__init__()
         check_shield_s(shield_s, "lookahead shield_s")
+        check_shield_s(ped_shield_s, "lookahead ped_shield_s")
         if heading not in HEADING_MODES:
             raise ConfigError(f"lookahead heading: expected one of {list(HEADING_MODES)}, got {heading!r}")
         if map_key is not None and map_key not in MAP_KEYS:
@@ -155,6 +162,7 @@ class LookaheadHead(nn.Module):
         self.register_buffer("grid_norm", grid / grid.new_tensor([rc.v_max_mps, rc.omega_max_radps]), persistent=False)
         self.register_buffer("times", times, persistent=False)
         self.shield_steps = self.steps_within(shield_s) if shield_s else 0
+        self.ped_shield_steps = self.steps_within(ped_shield_s) if ped_shield_s else 0
         self.register_buffer("arcs", arcs, persistent=False)  # A x S x 2
         self.register_buffer("end_heading", end[:, -1], persistent=False)  # A
         self.register_buffer("spin", grid[:, 0].abs() < 1e-6, persistent=False)  # A: the turns on the spot
@@ -227,6 +235,9 @@ class LookaheadHead(nn.Module):
         logits = (SCORE_SCALE * self.fitted_cost(feats) + learned).squeeze(-1)
         if self.shield_steps:
             logits = logits - SHIELD_NATS_PER_M * self.shield_intrusion(feats)
+        if self.ped_shield_steps:
+            ped = self.pedestrian_clearances(feats, self.ped_shield_steps).amin(-1)
+            logits = logits - SHIELD_NATS_PER_M * (PED_SHIELD_MARGIN_M - ped).clamp_min(0.0)
         return logits
 
     def steps_within(self, seconds: float) -> int:
@@ -238,6 +249,11 @@ class LookaheadHead(nn.Module):
         lookahead times, read from its :meth:`action_features` ``feats``."""
         s = len(self.times)
         return feats[..., s:s + steps]
+
+    def pedestrian_clearances(self, feats: torch.Tensor, steps: int) -> torch.Tensor:
+        """``B x A x steps`` (m): each action's predicted clearance to the nearest predicted pedestrian at its first
+        ``steps`` lookahead times (body to body, clipped to [-0.5, :data:`CLEAR_CAP_M`]), from ``feats``."""
+        return feats[..., :steps]
 
     def shield_intrusion(self, feats: torch.Tensor) -> torch.Tensor:
         """``B x A`` (m): how far each action's arc comes inside :data:`SHIELD_MARGIN_M` of the scan's obstacles at

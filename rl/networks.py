@@ -171,7 +171,7 @@ class StudentLookaheadExtractor(StudentExtractor):
     def __init__(self, observation_space: gym.spaces.Dict, variant: str = "full", robot: dict[str, Any] | None = None,
                  dt_s: float = 0.1, scan_range_m: float = 10.0, score_dim: int = 64, context_dim: int = 32,
                  scorer_bound: float | None = None, heading: str = "end", map_cost: bool = False,
-                 map_bounds: Any = None, shield_s: float = 0.0, **kwargs: Any) -> None:
+                 map_bounds: Any = None, shield_s: float = 0.0, ped_shield_s: float = 0.0, **kwargs: Any) -> None:
         super().__init__(observation_space, variant, **kwargs)
         missing = [k for k in variant_keys(variant, "lookahead", map_cost) if k not in observation_space.spaces]
         if missing:
@@ -180,7 +180,7 @@ class StudentLookaheadExtractor(StudentExtractor):
         self.lookahead = LookaheadHead(observation_space, robot, dt_s, 0.25, base_dim, score_dim, context_dim,
                                        subgoal=False, scan_range_m=scan_range_m, heading=heading,
                                        scorer_bound=scorer_bound, map_key=map_key(variant, map_cost),
-                                       map_bounds=map_bounds, shield_s=shield_s)
+                                       map_bounds=map_bounds, shield_s=shield_s, ped_shield_s=ped_shield_s)
         self._features_dim = self.lookahead.n_actions + base_dim
 
     def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -269,12 +269,13 @@ class LookaheadTeacherExtractor(SetTeacherExtractor):
 
     def __init__(self, observation_space: gym.spaces.Dict, scan_range_m: float = 10.0, ped_scale_m: float = 5.0,
                  robot: dict[str, Any] | None = None, dt_s: float = 0.1, path_spacing_m: float = 0.25, score_dim: int = 64,
-                 context_dim: int = 32, heading: str = "end", shield_s: float = 0.0) -> None:
+                 context_dim: int = 32, heading: str = "end", shield_s: float = 0.0,
+                 ped_shield_s: float = 0.0) -> None:
         super().__init__(observation_space, scan_range_m, ped_scale_m)
         base_dim = self._features_dim
         self.lookahead = LookaheadHead(observation_space, robot, dt_s, path_spacing_m, base_dim, score_dim,
                                        context_dim, subgoal=self.subgoal, scan_range_m=scan_range_m, heading=heading,
-                                       shield_s=shield_s)
+                                       shield_s=shield_s, ped_shield_s=ped_shield_s)
         self._features_dim = self.lookahead.n_actions + base_dim
 
     def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:

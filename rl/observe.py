@@ -97,7 +97,7 @@ class StudentObserver:
         mirror: also return ``bev_mirror`` (module docstring); only for variants with ``bev``.
         head: the policy's actor head (``lookahead`` adds ``peds`` and ``scan``).
         perception: ``{"dt_s", "k", "rays", "range_m"}`` of the lookahead head's :class:`rl.perceive.Perception`
-            (:func:`perception_params` of the env).
+            (:func:`perception_params` of the env), optionally ``"unseen_s"`` (the policy's ``net.track_unseen_s``).
         forecaster: the pretrained intention model; with the lookahead head and a variant with poses it predicts
             the tracks (``peds_future``) instead of constant velocity.
         map_cost: the lookahead head reads an occupancy map along its arcs (``bev_occ`` for variants with ``bev``).
@@ -117,7 +117,7 @@ class StudentObserver:
                 raise ConfigError("the lookahead head's observer needs the perception parameters of the env")
             self.perception = Perception([CameraView.of(c) for c in cameras], perception["dt_s"], perception["k"],
                                          perception["rays"], perception["range_m"], people="poses" in self.keys,
-                                         forecaster=forecaster)
+                                         forecaster=forecaster, unseen_s=perception.get("unseen_s", 0.0))
         # where the frames are encoded (and the occupancy map lifted): the encoder's device
         self.device = next(encoder.parameters()).device if encoder is not None else torch.device("cpu")
         if "bev" in self.keys:
@@ -233,11 +233,13 @@ def perception_params(sim_cfg) -> dict[str, Any]:
 
 def observer_for(camera_specs, sim_cfg, variant: str, encoder: BEVEncoder | None, head: str = "mlp",
                  mirror: bool = False, forecaster: IntentionForecaster | None = None, map_cost: bool = False,
-                 map_heads: PretextHeads | None = None) -> StudentObserver:
+                 map_heads: PretextHeads | None = None, track_unseen_s: float = 0.0) -> StudentObserver:
     """The :class:`StudentObserver` of a student variant for the cameras and config an env reports at reset
-    (``info["cameras"]``, ``info["config"]``)."""
+    (``info["cameras"]``, ``info["config"]``); ``track_unseen_s``: how long its tracks of people it could not have
+    detected coast (:class:`rl.perceive.Perception`'s ``unseen_s``)."""
     return StudentObserver(variant, cameras_of(camera_specs), encoder, sim_cfg.detector.max_people, mirror=mirror,
-                           head=head, perception=perception_params(sim_cfg), forecaster=forecaster,
+                           head=head, perception={**perception_params(sim_cfg), "unseen_s": float(track_unseen_s)},
+                           forecaster=forecaster,
                            map_cost=map_cost, map_heads=map_heads)
 
 

@@ -8,7 +8,10 @@ velocities and a range scan of the *static map* (:class:`rl.networks.LookaheadTe
 * ``peds`` (``K x 6``, [x, y, vx, vy, r, present], robot frame, nearest first): the tracks of
   :class:`sim.tracking.PedestrianTracker` over the detected people (each the centre of its detected joints; greedy
   nearest-neighbour association in the odometry frame, an alpha–beta filter whose velocity is the estimate, a
-  coasting track kept for ``max_missed`` frames). ``r`` is a nominal body radius.
+  coasting track kept for ``max_missed`` frames; with ``unseen_s`` a track that could not have been detected — its
+  predicted centre outside the cameras' horizontal view, :data:`VIEW_MARGIN_DEG` inside its edge, or nearer than
+  :data:`NEAR_M` to the robot, where a body's joints leave the images — coasts up to ``unseen_s``). ``r`` is a
+  nominal body radius.
 * ``scan`` (``R`` ranges over 360° from the robot heading, ``range_m`` = no hit): :class:`DepthScan` back-projects
   the depth images (the DWA baseline's :func:`sim.planners.dwa.depth_to_points`, floor and ceiling dropped), drops the
   points within ``person_clear_m`` of a detected person (people are in ``peds``, with a velocity), keeps the rest in an
@@ -27,17 +30,22 @@ Apart from that frozen model, nothing here is learned or privileged; the numbers
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from pipeline.core.errors import ConfigError
 from pretrain.intention import IntentionForecaster, from_track_frame, track_inputs
 from rl.lookahead import lookahead_times
 from sim.depth import ObstacleMemory, depth_to_points
 from sim.geometry import robot_to_world, world_to_robot
 from sim.tracking import PedestrianTracker, person_detections
+
+VIEW_MARGIN_DEG = 5.0  # a track's centre this far inside the cameras' joint view edge counts as observable ...
+NEAR_M = 1.0  # ... when it is at least this far from the robot's centre (nearer, the joints leave the images)
 
 
 @dataclass
@@ -103,6 +111,15 @@ class DepthScan:
         return scan_from_points(base[:, :2], self.rays, self.range_m)
 
 
+def camera_view_cone(cam) -> tuple[np.ndarray, np.ndarray, float]:
+    """A camera's horizontal view in the robot's ground plane: its optical centre (x, y), the unit direction of
+    its optical axis (x, y; OpenCV axes, z forward) and half its horizontal field of view (rad)."""
+    T = np.asarray(cam.T_base_cam, np.float64)
+    axis = T[:2, 2] / max(float(np.linalg.norm(T[:2, 2])), 1e-9)
+    fx = float(np.asarray(cam.K, np.float64)[0, 0])
+    return T[:2, 3].copy(), axis, math.atan(0.5 * float(cam.width_px) / fx)
+
+
 def scan_from_points(xy: np.ndarray, rays: int, range_m: float) -> np.ndarray:
     """The nearest of ``N x 2`` robot-frame points per bearing bin (``rays`` bins, bin k centred on k·2π/rays);
     ``range_m`` where a bin has none (float32)."""
@@ -136,6 +153,8 @@ class Perception:
         k: tracks reported (the teacher's ``privileged_peds``).
         rays, range_m: the scan layout (the env's ``scan_rays`` / ``scan_range_m``).
         people: track detected people (False for a variant without poses: the people are then only depth obstacles).
+        unseen_s: how long a track that could not have been detected coasts (module docstring; 0 = as any missed
+            track, ``max_missed`` frames).
         forecaster: the pretrained intention model (:func:`pretrain.intention.load_forecaster`); each reported track
             is then predicted by it from its history and the pose detected on it now, and ``peds_future``
             (``k x S x 2``, robot frame, m) holds where it will be at the lookahead head's times
@@ -144,10 +163,15 @@ class Perception:
     """
 
     def __init__(self, cameras: Sequence, dt_s: float, k: int, rays: int, range_m: float, people: bool = True,
-                 forecaster: IntentionForecaster | None = None) -> None:
+                 forecaster: IntentionForecaster | None = None, unseen_s: float = 0.0) -> None:
         self.forecaster = forecaster if people else None
         history = forecaster.cfg.history if self.forecaster is not None else 8
-        self.tracker = PedestrianTracker(dt_s, history=history)
+        if not (isinstance(unseen_s, int | float) and 0.0 <= unseen_s <= 10.0):
+            raise ConfigError(f"perception unseen_s: expected 0 .. 10 s, got {unseen_s!r}")
+        self.unseen = float(unseen_s) > 0.0
+        self.tracker = PedestrianTracker(dt_s, history=history,
+                                         max_unseen=int(round(unseen_s / dt_s)) if self.unseen else None)
+        self.view_half = max(abs(math.atan2(axis[1], axis[0])) + half for _, axis, half in map(camera_view_cone, cameras))
         self.scan = DepthScan(cameras, rays, range_m)
         self.names = [c.name for c in cameras]
         self.dt_s, self.k, self.people = float(dt_s), int(k), bool(people)
@@ -166,13 +190,23 @@ class Perception:
         centres = None
         if self.people:
             centres, det_index = person_detections(obs["poses"], obs["pose_mask"])
-            self.tracker.update(robot_to_world(centres, pose))
+            seen = self.observable(world_to_robot(self.tracker.predicted(), pose)) if self.unseen else None
+            self.tracker.update(robot_to_world(centres, pose), seen)
             rows = self.tracker.nearest(pose, self.k)  # the reported tracks, nearest first (peds and peds_future)
             out["peds"] = self.tracker.observation(pose, self.k, order=rows)
             if self.forecaster is not None:
                 out["peds_future"] = self.forecast(pose, obs["poses"], obs["pose_mask"], det_index, rows)
         out["scan"] = self.scan.update(depths, pose, self.dt_s, centres)
         return out
+
+    def observable(self, xy: np.ndarray) -> np.ndarray:
+        """Whether a person centred at each of ``N x 2`` robot-frame points could be detected: its bearing at least
+        :data:`VIEW_MARGIN_DEG` inside the cameras' joint horizontal view (their cones side by side, as the rig
+        mounts them: the outer edge is the largest |axis yaw| + half field of view) and at least :data:`NEAR_M` from
+        the robot."""
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        bearing = np.abs(np.arctan2(xy[:, 1], xy[:, 0]))
+        return (bearing <= self.view_half - math.radians(VIEW_MARGIN_DEG)) & (np.hypot(xy[:, 0], xy[:, 1]) >= NEAR_M)
 
     @torch.no_grad()
     def forecast(self, pose: np.ndarray, poses: np.ndarray, mask: np.ndarray, det_index: np.ndarray,

@@ -87,7 +87,7 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
         pi = list(net.get("pi", [256, 256]))
         if encoder == "lookahead":  # the extractor scores the actions; the actor head only reads the scores
             ext.update({k: net[k] for k in ("robot", "dt_s", "path_spacing_m", "score_dim", "context_dim", "heading",
-                                        "shield_s")
+                                        "shield_s", "ped_shield_s")
                         if k in net})
             pi = []
         return {"features_extractor_class": teacher_extractor_class(encoder),
@@ -99,7 +99,8 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
     cls: type = StudentExtractor
     if net.get("head", "mlp") == "lookahead":  # the extractor scores the actions (rl.networks.StudentLookaheadExtractor)
         ext.update({k: net[k] for k in ("robot", "dt_s", "scan_range_m", "score_dim", "context_dim", "scorer_bound",
-                                        "heading", "map_cost", "map_bounds", "shield_s") if k in net})
+                                        "heading", "map_cost", "map_bounds", "shield_s", "ped_shield_s")
+                    if k in net})
         cls, pi = StudentLookaheadExtractor, []
     return {"features_extractor_class": cls,
             "features_extractor_kwargs": {"variant": variant, **ext},

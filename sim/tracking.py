@@ -60,14 +60,21 @@ class PedestrianTracker:
         gate_m: a detection further than ``gate_m`` from every predicted track starts a new track.
         alpha, beta: the filter's position and velocity gains.
         max_missed: frames a track coasts without a detection before it is dropped.
+        max_unseen: frames a track coasts while :meth:`update` is told it could not have been detected (outside the
+            cameras' view, or too near them for its joints to be in the images): a person who walks out of view
+            beside the robot is still there, so their absence from the images is no evidence. ``None`` = as
+            ``max_missed`` (no difference between the two). Once observable again, a track missed for more than
+            ``max_missed`` frames is dropped.
         max_speed_mps: velocity estimates are clipped to this speed (people walk at ≤ 2 m/s).
         history: positions kept per track.
     """
 
     def __init__(self, dt_s: float, gate_m: float = 0.8, alpha: float = 0.5, beta: float = 0.15,
-                 max_missed: int = 5, max_speed_mps: float = 2.0, history: int = 8) -> None:
+                 max_missed: int = 5, max_speed_mps: float = 2.0, history: int = 8,
+                 max_unseen: int | None = None) -> None:
         self.dt_s, self.gate_m, self.alpha, self.beta = float(dt_s), float(gate_m), float(alpha), float(beta)
         self.max_missed, self.max_speed, self.history = int(max_missed), float(max_speed_mps), int(history)
+        self.max_unseen = self.max_missed if max_unseen is None else int(max_unseen)
         self.reset()
 
     def reset(self) -> None:
@@ -80,10 +87,15 @@ class PedestrianTracker:
         self.hist = np.zeros((0, self.history, 2))
         self._next_id = 0
 
-    def update(self, detections_w: np.ndarray) -> None:
-        """One frame: ``M x 2`` odometry-frame detections."""
+    def predicted(self) -> np.ndarray:
+        """``N x 2`` odometry-frame positions the live tracks are predicted at in the next frame."""
+        return self.pos + self.dt_s * self.vel
+
+    def update(self, detections_w: np.ndarray, observable: np.ndarray | None = None) -> None:
+        """One frame: ``M x 2`` odometry-frame detections; ``observable``: per live track (the order of ``pos``),
+        whether it could have been detected at its :meth:`predicted` position (None = all could)."""
         z = np.asarray(detections_w, np.float64).reshape(-1, 2)
-        pred = self.pos + self.dt_s * self.vel
+        pred = self.predicted()
         n, m = len(pred), len(z)
         det_of = np.full(n, -1)
         used = np.zeros(m, bool)
@@ -104,6 +116,8 @@ class PedestrianTracker:
         vel *= np.minimum(1.0, self.max_speed / np.maximum(speed, 1e-9))
         missed = np.where(hit, 0, self.missed + 1)
         alive = missed <= self.max_missed
+        if observable is not None:
+            alive |= ~np.asarray(observable, bool) & (missed <= self.max_unseen)
         new_idx = np.flatnonzero(~used)
         new = z[new_idx]
         hist = np.concatenate([self.hist[alive, 1:], pos[alive, None]], 1)

@@ -12,7 +12,7 @@ import pytest
 
 from evaluation import failures
 from evaluation.failures import analyse, classify, draw, hit_bearing, main
-from pipeline.core.errors import ConfigError, CorruptArtifactError
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from sim.env import CrowdNavEnv, SimConfig
 from sim.geometry import Box, Cylinder, StaticGeometry
 from sim.trace import EpisodeTrace
@@ -190,7 +190,7 @@ def test_replay_finds_a_hit_the_policy_predicted_and_the_shield_prevents_it(tmp_
     """A teacher that drives straight into the lobby's clutter: its obstacle hits replay exactly, each one an arc it
     predicted to touch while turning on the spot was free; the same checkpoint evaluated with ``shield_s`` on the
     same seeds hits no obstacle."""
-    from evaluation.failures import replay_obstacle_hits
+    from evaluation.failures import replay_hits
     from evaluation.stage import EvalConfig
     from pipeline.verbs.eval import run
 
@@ -208,9 +208,53 @@ def test_replay_finds_a_hit_the_policy_predicted_and_the_shield_prevents_it(tmp_
     res = analyse(plain)
     hits = [f for f in res["failures"] if f["cause"].startswith("collision_obstacle")]
     assert hits, res["failures"]
-    replays = replay_obstacle_hits(plain, res, len(hits))
+    replays = replay_hits(plain, res, len(hits))
     assert all(r["reproduced"] and r["chose_predicted_contact"] for r in replays)
     assert all(r["clearance_error_m"] < 0.05 for r in replays)  # the privileged scan: prediction = truth
-    assert replay_obstacle_hits(plain, res, len(hits), workers=2) == replays  # a pool replays the same, in order
+    assert replay_hits(plain, res, len(hits), workers=2) == replays  # a pool replays the same, in order
     shielded = analyse(evaluate("shielded", 0.6))
     assert not [f for f in shielded["failures"] if f["cause"].startswith("collision_obstacle")]
+
+
+def _step(tracked, ped_m, free_m):
+    return {"tracked": tracked, "ped_predicted_m": ped_m, "best_free_m": free_m}
+
+
+def test_a_pedestrian_hit_is_classed_by_what_the_policy_perceived_and_chose():
+    from evaluation.failures import ped_hit_class
+
+    assert ped_hit_class([_step(True, 0.2, 0.5), _step(False, 0.2, 0.5)]) == "untracked"  # lost at the end
+    assert ped_hit_class([]) == "untracked"
+    assert ped_hit_class([_step(False, 0.3, 0.5), _step(True, -0.1, 0.2)]) == "chose_predicted_contact"
+    assert ped_hit_class([_step(True, -0.1, -0.05), _step(True, -0.2, -0.1)]) == "no_free_arc"
+    assert ped_hit_class([_step(True, 0.1, 0.5), _step(True, 0.05, 0.4)]) == "predicted_clear"
+
+
+@pytest.mark.slow
+def test_replay_of_pedestrian_hits_finds_the_person_tracked_and_the_contact_chosen(tmp_path):
+    """The straight-driving teacher in a dense lobby runs into people: each pedestrian hit replays exactly, the
+    privileged tracks hold the hit person at every step (the teacher's ``peds`` are the truth), and where an arc
+    free of everyone existed the teacher chose one predicted to touch; the markdown counts them per class."""
+    from evaluation.failures import PED_HIT_CLASSES, ped_replay_markdown, replay_hits
+    from evaluation.stage import EvalConfig
+    from pipeline.verbs.eval import run
+
+    sim = SimConfig(max_episode_s=12.0, timeout_s_per_m=0.0)
+    _straight_teacher(tmp_path, replace(sim, scene="office_lobby"))
+    run(EvalConfig(data_dir=str(tmp_path), methods=["teacher"], scenes=["office_lobby"], densities=[0.4], goals=6,
+                   trials=1, routing_scenes=[], scenarios=[], workers=1, figures=0, videos=0, sim=sim, progress=False,
+                   paired_with="teacher", run_name="dense", long_horizon=replace(EvalConfig().long_horizon, runs=0)))
+    out = tmp_path / "eval" / "dense"
+    res = analyse(out, scene="office_lobby")
+    hits = [f for f in res["failures"] if f["cause"] == "collision_pedestrian"]
+    assert hits, res["failures"]
+    replays = replay_hits(out, res, len(hits), pedestrian=True)
+    assert len(replays) == len(hits)
+    for r in replays:
+        assert r["reproduced"] and r["class"] in PED_HIT_CLASSES and r["class"] != "untracked"
+        assert all(s["tracked"] and s["track_error_m"] < 0.05 for s in r["steps"])  # privileged tracks: the truth
+        assert r["last_tracked_s_before"] == pytest.approx(0.0)
+    assert any(r["class"] == "chose_predicted_contact" for r in replays)
+    assert f"| teacher | {len(replays)} |" in ped_replay_markdown(replays)
+    with pytest.raises(InputMissingError, match="no episode of scene 'warehouse'"):
+        analyse(out, scene="warehouse")

@@ -248,3 +248,35 @@ def test_shield_can_be_set_on_a_saved_checkpoint_without_touching_its_files(tmp_
     off, _ = load_policy(tmp_path / "t", shield_s=0.0)
     assert off.features_extractor.lookahead.shield_steps == 0
     assert {p.name: p.read_bytes() for p in (tmp_path / "t").iterdir() if p.is_file()} == before
+
+
+def test_people_shield_lowers_exactly_the_arcs_predicted_to_overlap_a_person(space):
+    """With ``ped_shield_s`` the head lowers the logit of every action whose arc overlaps a predicted pedestrian by
+    then (a person standing 0.8 m ahead: the fast straight arcs), by the predicted overlap, leaves the others
+    (standing still, turning on the spot) as they were and changes nothing with nobody near; it stacks with the
+    obstacle shield; an out-of-range horizon is one ConfigError."""
+    torch.manual_seed(0)
+    plain = build_policy("teacher", None, space, teacher_net({"encoder": "lookahead"}, SIM))
+    shielded = build_policy("teacher", None, space, {**teacher_net({"encoder": "lookahead"}, SIM), "ped_shield_s": 0.6})
+    shielded.load_state_dict(plain.state_dict())
+    head = shielded.features_extractor.lookahead
+    obs = _obs(peds=[(0.8, 0.0, 0.0, 0.0)])
+    overlap = (-head.pedestrian_clearances(head.action_features(obs), head.ped_shield_steps).amin(-1)[0]).clamp_min(0)
+    straight_fast = 4 * N_ROT + N_ROT // 2
+    assert overlap[straight_fast] > 0.1 and overlap[:N_ROT].abs().max() == 0  # v = 0: no overlap
+    a = plain.features_extractor(obs)[0, :head.n_actions]
+    b = shielded.features_extractor(obs)[0, :head.n_actions]
+    torch.testing.assert_close(a - b, SHIELD_NATS_PER_M * overlap)
+    assert int(b.argmax()) not in torch.nonzero(overlap > 0).flatten().tolist()
+    free = _obs()
+    torch.testing.assert_close(plain.features_extractor(free), shielded.features_extractor(free))
+    both = build_policy("teacher", None, space, {**teacher_net({"encoder": "lookahead"}, SIM), "ped_shield_s": 0.6,
+                                                 "shield_s": 0.6})
+    both.load_state_dict(plain.state_dict())
+    wall = _obs(peds=[(0.8, 0.0, 0.0, 0.0)], scan_m=0.6)
+    c = both.features_extractor(wall)[0, :head.n_actions]
+    intr = both.features_extractor.lookahead.shield_intrusion(head.action_features(wall))[0]
+    torch.testing.assert_close(plain.features_extractor(wall)[0, :head.n_actions] - c,
+                               SHIELD_NATS_PER_M * (intr + overlap))
+    with pytest.raises(ConfigError, match="ped_shield_s"):
+        build_policy("teacher", None, space, {**teacher_net({"encoder": "lookahead"}, SIM), "ped_shield_s": -1.0})

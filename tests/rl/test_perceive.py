@@ -1,5 +1,6 @@
 """The student's perception for its lookahead head (rl.perceive) and the head itself (StudentLookaheadExtractor)."""
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -408,3 +409,26 @@ def test_observer_makes_the_bev_occupancy_from_the_pretext_heads(lobby):
     assert out["bev_occ"].shape == (4, nx // 2, ny // 2) == ob.observation_space["bev_occ"].shape
     assert out["bev_occ"].min() >= 0.0 and out["bev_occ"].max() <= 1.0
     assert "bev_occ" not in observer_for_env(lobby, "full", enc, head="lookahead").observation_space.spaces
+
+
+def test_tracks_of_people_the_cameras_cannot_see_coast_with_unseen_s(lobby):
+    """``unseen_s``: a track is observable inside a camera's horizontal view (by the margin) and at least NEAR_M
+    from the robot; only then does a missed detection count towards dropping it. Out of range is one ConfigError."""
+    from pipeline.core.errors import ConfigError
+    from rl.perceive import NEAR_M, Perception
+
+    env = lobby
+    env.reset(seed=3)
+    observer = observer_for_env(env, "no_bev", None, head="lookahead")
+    tracker = observer.perception.tracker  # the default: unseen tracks coast as any missed one
+    assert tracker.max_unseen == tracker.max_missed
+    views = [CameraView.of(c) for c in observer.cameras]
+    p = Perception(views, 0.1, 10, 72, 10.0, unseen_s=2.0)
+    assert p.tracker.max_unseen == 20
+    # the joint view: the cameras' axes yawed by ±yaw_deg, each seeing half its horizontal field of view beyond
+    assert math.degrees(p.view_half) == pytest.approx(env.cfg.camera.yaw_deg + env.cfg.camera.hfov_deg / 2, abs=0.5)
+    pts = np.array([[3.0, 0.0], [3.0 * math.cos(1.0), 3.0 * math.sin(1.0)], [0.0, 2.0], [-2.0, 0.0],
+                    [0.5 * NEAR_M, 0.0]])
+    assert p.observable(pts).tolist() == [True, True, False, False, False]  # ahead, 57° left, beside, behind, near
+    with pytest.raises(ConfigError, match="unseen_s"):
+        Perception(views, 0.1, 10, 72, 10.0, unseen_s=-1.0)

@@ -68,3 +68,30 @@ def test_person_detections_name_the_kept_people():
     mask[1:, :5] = True
     c, idx = person_detections(poses, mask)
     assert idx.tolist() == [1, 2] and c.shape == (2, 2)
+
+
+def test_a_track_that_cannot_be_seen_coasts_until_max_unseen():
+    """A person who walks out of the cameras' view is kept coasting up to ``max_unseen`` frames while the caller
+    says he could not have been detected; a track that could have been and was not is dropped after ``max_missed``
+    as before — also once it is observable again after coasting unseen."""
+    def walker(max_unseen):
+        tr = PedestrianTracker(dt_s=0.1, max_missed=5, max_unseen=max_unseen)
+        for t in range(10):
+            tr.update(np.array([[0.1 * t, 1.0]]))
+        return tr
+
+    tr = walker(20)
+    for _ in range(20):  # out of view: coasting at its velocity
+        tr.update(np.zeros((0, 2)), observable=np.zeros(len(tr.pos), bool))
+    assert len(tr.pos) == 1 and tr.pos[0] == pytest.approx([0.9 + 0.1 * 20, 1.0], abs=0.05)
+    tr.update(np.zeros((0, 2)), observable=np.zeros(1, bool))  # past max_unseen: gone
+    assert len(tr.pos) == 0
+    tr = walker(20)
+    for _ in range(8):
+        tr.update(np.zeros((0, 2)), observable=np.zeros(1, bool))
+    tr.update(np.zeros((0, 2)), observable=np.ones(1, bool))  # back in view, not detected, missed 9 > 5: dropped
+    assert len(tr.pos) == 0
+    tr = walker(None)  # the default: no difference between unseen and missed
+    for _ in range(6):
+        tr.update(np.zeros((0, 2)), observable=np.zeros(len(tr.pos), bool))
+    assert len(tr.pos) == 0
