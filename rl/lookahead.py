@@ -122,6 +122,10 @@ class LookaheadHead(nn.Module):
             ``C x X x Y`` over ``map_bounds``; channel 0 static, channels 1.. people at :data:`MAP_PED_TIMES_S`);
             ``None`` = no map features (the teacher; students trained before the option).
         map_bounds: ``((x_min, x_max), (y_min, y_max))`` of the map (m, robot frame; the BEV grid).
+        map_view_deg: read the map only inside this bearing from the heading (deg; the cameras' joint view): cells
+            outside it read as 0, like cells outside the map. The pretrained BEV marks what its cameras do not see as
+            occupied in the static *and* the people channels, so a cost over the whole map scores turning arcs by
+            that artefact (docs/notes/2026-11-pedestrian-hits-untracked-people.md). ``None`` = the whole map.
         shield_s: the obstacle shield's horizon (s; 0 = off). An action whose arc comes closer than
             :data:`SHIELD_MARGIN_M` to the scan's obstacles at a lookahead time up to ``shield_s`` is inadmissible, as
             in DWA's admissible velocities: its logit is lowered by :data:`SHIELD_NATS_PER_M` nats per metre of
@@ -138,7 +142,7 @@ class LookaheadHead(nn.Module):
                  path_spacing_m: float, base_dim: int, score_dim: int, context_dim: int, *, subgoal: bool,
                  scan_range_m: float, heading: str = "end", scorer_bound: float | None = None,
                  map_key: str | None = None, map_bounds: Any = None, shield_s: float = 0.0,
-                 ped_shield_s: float = 0.0) -> None:
+                 ped_shield_s: float = 0.0, map_view_deg: float | None = None) -> None:
         super().__init__()
         check_shield_s(shield_s, "lookahead shield_s")
         check_shield_s(ped_shield_s, "lookahead ped_shield_s")
@@ -180,7 +184,7 @@ class LookaheadHead(nn.Module):
         self.map_key = map_key
         self.n_map = N_MAP if map_key else 0
         if map_key:
-            self._init_map(observation_space[map_key].shape, map_bounds, arcs, times, rc.radius_m)
+            self._init_map(observation_space[map_key].shape, map_bounds, arcs, times, rc.radius_m, map_view_deg)
         self.n_feat = 2 * len(times) + 4 + 4 + 2 + self.n_map + N_LINEAR
 
         # the learned part: a context vector from the embedding, the MLP scorer, the linear cost
@@ -193,11 +197,12 @@ class LookaheadHead(nn.Module):
         self.scorer_bound = float(scorer_bound) if scorer_bound else None
 
     def _init_map(self, shape: tuple[int, ...], bounds: Any, arcs: torch.Tensor, times: torch.Tensor,
-                  radius_m: float) -> None:
+                  radius_m: float, view_deg: float | None = None) -> None:
         """Buffers of the map sampling: ``map_uv`` ``1 x A x S x 2`` the arcs' points in ``grid_sample``
         coordinates (the map's last axis is y, the one before it x; outside the map = unknown, read as free),
         ``map_ped_ch`` ``S`` the people channel nearest in time to each lookahead time (none for a 1-channel map),
-        and the robot footprint's max-pool kernel in cells."""
+        the robot footprint's max-pool kernel in cells and, with ``view_deg``, ``map_view`` ``1 x 1 x X x Y`` (1 for
+        the cells whose centre lies within ``view_deg`` of the heading, else 0)."""
         try:
             (x0, x1), (y0, y1) = ((float(a), float(b)) for a, b in bounds)
         except (TypeError, ValueError):
@@ -221,6 +226,15 @@ class LookaheadHead(nn.Module):
             ch = torch.zeros(len(times), dtype=torch.long)
         self.register_buffer("map_ped_ch", ch, persistent=False)
         self.map_people = c > 1
+        self.map_view_deg = None if view_deg is None else float(view_deg)
+        if view_deg is not None:
+            if not (isinstance(view_deg, int | float) and 0.0 < view_deg <= 180.0):
+                raise ConfigError(f"lookahead map_view_deg: expected none or a bearing in (0, 180] deg, got {view_deg!r}")
+            xc = x0 + (torch.arange(nx) + 0.5) * (x1 - x0) / nx
+            yc = y0 + (torch.arange(ny) + 0.5) * (y1 - y0) / ny
+            bearing = torch.atan2(yc[None, :], xc[:, None]).abs()
+            self.register_buffer("map_view", (bearing <= math.radians(view_deg)).float()[None, None],
+                                 persistent=False)
 
     def forward(self, base: torch.Tensor, obs: dict[str, torch.Tensor],
                 action_features: torch.Tensor | None = None) -> torch.Tensor:
@@ -273,8 +287,10 @@ class LookaheadHead(nn.Module):
         """``B x A x`` :data:`N_MAP` features of the occupancy map ``occ`` ``B x C x X x Y`` (probabilities or 0/1)
         along every arc: the static channel's maximum and discounted mean over the lookahead times, the people
         channels' (each time reading the nearest channel in time) maximum and discounted mean (zero for a
-        1-channel map). The map is max-pooled over the robot's footprint first."""
-        m = F.max_pool2d(occ.float(), self.map_kernel, stride=1, padding=self.map_kernel // 2)
+        1-channel map). The map is masked to ``map_view_deg`` (when set) and max-pooled over the robot's footprint
+        first."""
+        m = occ.float() * self.map_view if self.map_view_deg is not None else occ.float()
+        m = F.max_pool2d(m, self.map_kernel, stride=1, padding=self.map_kernel // 2)
         b = m.shape[0]
         a, s = self.map_uv.shape[1:3]
         v = F.grid_sample(m, self.map_uv.expand(b, -1, -1, -1), mode="bilinear", padding_mode="zeros",

@@ -171,7 +171,8 @@ class StudentLookaheadExtractor(StudentExtractor):
     def __init__(self, observation_space: gym.spaces.Dict, variant: str = "full", robot: dict[str, Any] | None = None,
                  dt_s: float = 0.1, scan_range_m: float = 10.0, score_dim: int = 64, context_dim: int = 32,
                  scorer_bound: float | None = None, heading: str = "end", map_cost: bool = False,
-                 map_bounds: Any = None, shield_s: float = 0.0, ped_shield_s: float = 0.0, **kwargs: Any) -> None:
+                 map_bounds: Any = None, shield_s: float = 0.0, ped_shield_s: float = 0.0,
+                 map_view_deg: float | None = None, **kwargs: Any) -> None:
         super().__init__(observation_space, variant, **kwargs)
         missing = [k for k in variant_keys(variant, "lookahead", map_cost) if k not in observation_space.spaces]
         if missing:
@@ -180,7 +181,8 @@ class StudentLookaheadExtractor(StudentExtractor):
         self.lookahead = LookaheadHead(observation_space, robot, dt_s, 0.25, base_dim, score_dim, context_dim,
                                        subgoal=False, scan_range_m=scan_range_m, heading=heading,
                                        scorer_bound=scorer_bound, map_key=map_key(variant, map_cost),
-                                       map_bounds=map_bounds, shield_s=shield_s, ped_shield_s=ped_shield_s)
+                                       map_bounds=map_bounds, shield_s=shield_s, ped_shield_s=ped_shield_s,
+                                       map_view_deg=map_view_deg)
         self._features_dim = self.lookahead.n_actions + base_dim
 
     def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:

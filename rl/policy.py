@@ -99,7 +99,8 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
     cls: type = StudentExtractor
     if net.get("head", "mlp") == "lookahead":  # the extractor scores the actions (rl.networks.StudentLookaheadExtractor)
         ext.update({k: net[k] for k in ("robot", "dt_s", "scan_range_m", "score_dim", "context_dim", "scorer_bound",
-                                        "heading", "map_cost", "map_bounds", "shield_s", "ped_shield_s")
+                                        "heading", "map_cost", "map_bounds", "shield_s", "ped_shield_s",
+                                        "map_view_deg")
                     if k in net})
         cls, pi = StudentLookaheadExtractor, []
     return {"features_extractor_class": cls,

@@ -237,6 +237,10 @@ class TrainConfig(BaseStageConfig):
     # the pretrained BEV's predicted occupancy (static, people now / +0.5 s / +1.0 s) for full and no_i2, the depth
     # occupancy (the w/o BEV substitute) for no_bev; the mlp head has no costs and ignores it
     map_cost: bool = False
+    # lookahead head with map_cost: read the map only inside the cameras' joint view (|bearing| <= camera yaw + half
+    # its field of view); the pretrained BEV marks the unseen as occupied in every channel, which a cost over the
+    # whole map reads as a preference among turning arcs (docs/notes/2026-11-pedestrian-hits-untracked-people.md)
+    map_view: bool = False
     drl_vo: DRLVOConfig = field(default_factory=DRLVOConfig)  # the learned baselines (rl.baselines.<name>)
     sarl_om: SARLOMConfig = field(default_factory=SARLOMConfig)
     vint: ViNTConfig = field(default_factory=ViNTConfig)
@@ -681,6 +685,8 @@ def student_net(cfg: TrainConfig, grid: BEVGrid) -> dict[str, Any]:
             net["shield_s"] = cfg.shield_s
         if cfg.map_cost:
             net.update({"map_cost": True, "map_bounds": [list(map(float, b[:2])) for b in (grid.x_bound, grid.y_bound)]})
+            if cfg.map_view:
+                net["map_view_deg"] = abs(float(cfg.sim.camera.yaw_deg)) + float(cfg.sim.camera.hfov_deg) / 2.0
     return net
 
 

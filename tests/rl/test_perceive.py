@@ -302,7 +302,7 @@ def _block(occ, ch, x0, x1, y0, y1):
     return occ
 
 
-def _map_head(lobby, channels):
+def _map_head(lobby, channels, view_deg=None):
     from dataclasses import asdict
 
     import gymnasium as gym
@@ -314,7 +314,7 @@ def _map_head(lobby, channels):
     spaces["bev_occ"] = gym.spaces.Box(0.0, 1.0, (channels, 30, 48), np.float32)
     c = lobby.cfg
     return LookaheadHead(gym.spaces.Dict(spaces), asdict(c.robot), c.dt_s, 0.25, 8, 8, 4, subgoal=False,
-                         scan_range_m=c.scan_range_m, map_key="bev_occ", map_bounds=BOUNDS)
+                         scan_range_m=c.scan_range_m, map_key="bev_occ", map_bounds=BOUNDS, map_view_deg=view_deg)
 
 
 def _map_obs(lobby, occ):
@@ -432,3 +432,21 @@ def test_tracks_of_people_the_cameras_cannot_see_coast_with_unseen_s(lobby):
     assert p.observable(pts).tolist() == [True, True, False, False, False]  # ahead, 57° left, beside, behind, near
     with pytest.raises(ConfigError, match="unseen_s"):
         Perception(views, 0.1, 10, 72, 10.0, unseen_s=-1.0)
+
+
+def test_the_map_is_read_only_inside_the_cameras_view_with_map_view_deg(lobby):
+    """With ``map_view_deg`` the cells beside the robot (outside the view, where the pretrained BEV marks the unseen as
+    occupied) read as free: a block at bearing ~80° no longer reaches the turning arcs' features, one straight ahead
+    reads as without the mask; an out-of-range bearing is one ConfigError."""
+    from pipeline.core.errors import ConfigError
+
+    whole, masked = _map_head(lobby, 4), _map_head(lobby, 4, view_deg=70.0)
+    side = _block(torch.zeros(1, 4, 30, 48), 0, 0.0, 0.2, 0.8, 4.8)  # beside the robot, left: bearing > 80°
+    side = _block(side, 3, 0.0, 0.2, 0.8, 4.8)  # and people predicted there at +1.0 s
+    fw, fm = (h.action_features(_map_obs(lobby, side))[0, :, -N_LINEAR - 4:-N_LINEAR] for h in (whole, masked))
+    assert fw[:, 0].max() > 0.9 and fw[:, 2].max() > 0.5  # the whole map: turning left runs into it
+    assert fm[:, 0].max() < fw[:, 0].max() - 0.5 and fm[:, 2].max() < fw[:, 2].max() - 0.4
+    ahead = _block(torch.zeros(1, 4, 30, 48), 0, 1.2, 1.8, -0.4, 0.4)
+    torch.testing.assert_close(*(h.action_features(_map_obs(lobby, ahead)) for h in (whole, masked)))
+    with pytest.raises(ConfigError, match="map_view_deg"):
+        _map_head(lobby, 4, view_deg=270.0)
