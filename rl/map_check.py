@@ -33,6 +33,7 @@ from rl.lookahead import N_LINEAR, N_MAP, SCORE_SCALE
 from rl.policy import obs_to_tensor
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
+from sim.viz import save_figure
 
 MAP_TERMS = ("static_max", "static_mean", "people_max", "people_mean")  # LookaheadHead.map_features, in order
 PEOPLE = slice(2, 4)  # the people terms of MAP_TERMS
@@ -103,8 +104,6 @@ def draw(results: list[dict[str, Any]], path: Path, bounds: Any) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from sim.viz import save_figure
 
     (x0, x1), (y0, y1) = bounds
     names = ["static", "people now", "people +0.5 s", "people +1.0 s"]
