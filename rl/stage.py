@@ -239,7 +239,8 @@ class TrainConfig(BaseStageConfig):
     map_cost: bool = False
     # lookahead head with map_cost: read the map only inside the cameras' joint view (|bearing| <= camera yaw + half
     # its field of view); the pretrained BEV marks the unseen as occupied in every channel, which a cost over the
-    # whole map reads as a preference among turning arcs (docs/notes/2026-11-pedestrian-hits-untracked-people.md)
+    # whole map reads as a preference among turning arcs. One training: no SR gain on development seeds (-0.04,
+    # p = 0.44), so off (docs/notes/2026-11-pedestrian-hits-untracked-people.md)
     map_view: bool = False
     drl_vo: DRLVOConfig = field(default_factory=DRLVOConfig)  # the learned baselines (rl.baselines.<name>)
     sarl_om: SARLOMConfig = field(default_factory=SARLOMConfig)
