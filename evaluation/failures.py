@@ -383,9 +383,10 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
     outcome = "collision_pedestrian" if ped_hit else "collision_obstacle"
     out = {"method": f["method"], "scene": f["scene"], "density": f["density"], "seed": f["seed"],
            "cause": f["cause"], "reproduced": trace.outcome == outcome and trace.n_steps == f["steps"],
-           "chose_predicted_contact": any(r["predicted_m"] < 0.0 < r["best_available_m"] for r in tail),
            "clearance_error_m": float(np.median(err)) if err else None, "steps": tail}
-    if ped_hit:
+    if not ped_hit:
+        out["chose_predicted_contact"] = any(r["predicted_m"] < 0.0 < r["best_available_m"] for r in tail)
+    else:
         out["class"] = ped_hit_class(tail)
         out["chose_predicted_contact"] = out["class"] == "chose_predicted_contact"
         out["in_view_at_contact"] = bool(tail[-1]["in_view"]) if tail else None
@@ -415,8 +416,8 @@ def _hit_person(trace: EpisodeTrace, steps: list[dict[str, Any]], tracks: list[n
         p = world_to_robot(trace.ped_xy[k, j][None], trace.robot_pose[k])[0]
         err = np.linalg.norm(tr - p, axis=-1).min() if len(tr) else np.inf
         nxt = np.linalg.norm(trace.ped_xy[k + 1, j] - trace.robot_pose[k + 1, :2])
-        rec.update(range_m=float(np.hypot(*p)), bearing_deg=float(np.degrees(np.arctan2(p[1], p[0]))),
-                   in_view=bool(abs(np.degrees(np.arctan2(p[1], p[0]))) <= view_deg),
+        bearing = float(np.degrees(np.arctan2(p[1], p[0])))
+        rec.update(range_m=float(np.hypot(*p)), bearing_deg=bearing, in_view=abs(bearing) <= view_deg,
                    tracked=bool(err <= PED_MATCH_M), track_error_m=float(err) if np.isfinite(err) else None,
                    true_ped_next_m=float(nxt - trace.ped_radius[j] - trace.robot_radius_m))
 

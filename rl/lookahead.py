@@ -65,6 +65,12 @@ def check_shield_s(value: Any, key: str, optional: bool = False) -> None:
                           f"got {value!r}")
 
 
+def intrusion(clearances: torch.Tensor, margin_m: float) -> torch.Tensor:
+    """``... x A`` (m): how far each action's clearances ``... x A x steps`` come inside ``margin_m`` at their
+    closest (0 = admissible) — the rule of both shields."""
+    return (margin_m - clearances.amin(-1)).clamp_min(0.0)
+
+
 def lookahead_times(dt_s: float) -> torch.Tensor:
     """The ``S`` lookahead times (s): the control period, then every :data:`LOOKAHEAD_STEP_S` up to
     :data:`LOOKAHEAD_HORIZON_S` — where the head places the robot and every pedestrian."""
@@ -250,8 +256,8 @@ class LookaheadHead(nn.Module):
         if self.shield_steps:
             logits = logits - SHIELD_NATS_PER_M * self.shield_intrusion(feats)
         if self.ped_shield_steps:
-            ped = self.pedestrian_clearances(feats, self.ped_shield_steps).amin(-1)
-            logits = logits - SHIELD_NATS_PER_M * (PED_SHIELD_MARGIN_M - ped).clamp_min(0.0)
+            logits = logits - SHIELD_NATS_PER_M * intrusion(
+                self.pedestrian_clearances(feats, self.ped_shield_steps), PED_SHIELD_MARGIN_M)
         return logits
 
     def steps_within(self, seconds: float) -> int:
@@ -272,7 +278,7 @@ class LookaheadHead(nn.Module):
     def shield_intrusion(self, feats: torch.Tensor) -> torch.Tensor:
         """``B x A`` (m): how far each action's arc comes inside :data:`SHIELD_MARGIN_M` of the scan's obstacles at
         the lookahead times up to ``shield_s`` (0 = admissible), from the obstacle clearances of ``feats``."""
-        return (SHIELD_MARGIN_M - self.obstacle_clearances(feats, self.shield_steps).amin(-1)).clamp_min(0.0)
+        return intrusion(self.obstacle_clearances(feats, self.shield_steps), SHIELD_MARGIN_M)
 
     def fitted_cost(self, feats: torch.Tensor) -> torch.Tensor:
         """``B x A x 1``: the linear cost over the last :data:`N_LINEAR` features, plus the map cost over the

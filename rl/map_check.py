@@ -95,17 +95,18 @@ def run_check(policy: Path, scene: str, density: float, seeds: list[int], steps:
             "weights_nats": (SCORE_SCALE * head.map_cost.weight[0]).tolist(),
             "spread_nats": dict(zip(MAP_TERMS, spread.mean(0).round(3).tolist(), strict=True)),
             "people_mean_level": float(np.mean([r["people_level"] for r in rows])),
-            "changed_without_people_terms": float(np.mean([r["changed"] for r in rows])), "snapshot": snapshot}
+            "changed_without_people_terms": float(np.mean([r["changed"] for r in rows])), "snapshot": snapshot,
+            "map_bounds": driver.desc["net"]["map_bounds"]}
 
 
-def draw(results: list[dict[str, Any]], path: Path, bounds: Any) -> Path:
+def draw(results: list[dict[str, Any]], path: Path) -> Path:
     """One row per result: each channel of its snapshot map (robot frame, x forward up, y left to the left)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    (x0, x1), (y0, y1) = bounds
+    (x0, x1), (y0, y1) = results[0]["map_bounds"]
     names = ["static", "people now", "people +0.5 s", "people +1.0 s"]
     n = max(len(r["snapshot"]) for r in results)
     fig, axes = plt.subplots(len(results), n, figsize=(2.4 * n, 2.6 * len(results)), squeeze=False)
@@ -159,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         sim = from_dict(SimConfig, read_yaml_mapping(where, "eval config").get("sim", {}), str(where))
     results = [run_check(args.policy, args.scene, d, seeds, args.steps, sim) for d in densities]
     if args.figure:
-        draw(results, args.figure, PolicyDriver(args.policy).desc["net"]["map_bounds"])
+        draw(results, args.figure)
     if args.json:
         args.json.write_text(json.dumps([{k: v for k, v in r.items() if k != "snapshot"} for r in results], indent=2))
     print(markdown(results), end="")

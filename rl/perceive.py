@@ -111,13 +111,12 @@ class DepthScan:
         return scan_from_points(base[:, :2], self.rays, self.range_m)
 
 
-def camera_view_cone(cam) -> tuple[np.ndarray, np.ndarray, float]:
-    """A camera's horizontal view in the robot's ground plane: its optical centre (x, y), the unit direction of
-    its optical axis (x, y; OpenCV axes, z forward) and half its horizontal field of view (rad)."""
+def camera_half_view(cam) -> float:
+    """How far (rad) from the robot's heading a camera sees horizontally: |the yaw of its optical axis (OpenCV axes,
+    z forward)| + half its horizontal field of view."""
     T = np.asarray(cam.T_base_cam, np.float64)
-    axis = T[:2, 2] / max(float(np.linalg.norm(T[:2, 2])), 1e-9)
     fx = float(np.asarray(cam.K, np.float64)[0, 0])
-    return T[:2, 3].copy(), axis, math.atan(0.5 * float(cam.width_px) / fx)
+    return abs(math.atan2(T[1, 2], T[0, 2])) + math.atan(0.5 * float(cam.width_px) / fx)
 
 
 def scan_from_points(xy: np.ndarray, rays: int, range_m: float) -> np.ndarray:
@@ -171,7 +170,7 @@ class Perception:
         self.unseen = float(unseen_s) > 0.0
         self.tracker = PedestrianTracker(dt_s, history=history,
                                          max_unseen=int(round(unseen_s / dt_s)) if self.unseen else None)
-        self.view_half = max(abs(math.atan2(axis[1], axis[0])) + half for _, axis, half in map(camera_view_cone, cameras))
+        self.view_half = max(map(camera_half_view, cameras))
         self.scan = DepthScan(cameras, rays, range_m)
         self.names = [c.name for c in cameras]
         self.dt_s, self.k, self.people = float(dt_s), int(k), bool(people)

@@ -205,15 +205,20 @@ def test_best_heading_prefers_the_turn_towards_the_route(space):
         build_policy("teacher", None, space, teacher_net({"encoder": "lookahead", "heading": "sideways"}, SIM))
 
 
+def _plain_and(space, **extra):
+    """A lookahead teacher and the same weights built with ``extra`` net keys (the shields have no weights)."""
+    torch.manual_seed(0)
+    plain = build_policy("teacher", None, space, teacher_net({"encoder": "lookahead"}, SIM))
+    other = build_policy("teacher", None, space, {**teacher_net({"encoder": "lookahead"}, SIM), **extra})
+    other.load_state_dict(plain.state_dict())
+    return plain, other
+
+
 def test_obstacle_shield_lowers_exactly_the_arcs_predicted_to_hit(space):
     """With ``shield_s`` the head lowers the logit of every action whose arc comes within the margin of the scan's
     obstacles by then (a wall 0.6 m ahead: the fast straight arcs), leaves the others (standing still, turning on
     the spot) as they were, and is off by default; an out-of-range horizon is one ConfigError."""
-    torch.manual_seed(0)
-    plain = build_policy("teacher", None, space, teacher_net({"encoder": "lookahead"}, SIM))
-    torch.manual_seed(0)
-    shielded = build_policy("teacher", None, space, {**teacher_net({"encoder": "lookahead"}, SIM), "shield_s": 0.6})
-    shielded.load_state_dict(plain.state_dict())
+    plain, shielded = _plain_and(space, shield_s=0.6)
     head = shielded.features_extractor.lookahead
     obs = _obs(scan_m=0.6)
     feats = head.action_features(obs)
@@ -255,10 +260,7 @@ def test_people_shield_lowers_exactly_the_arcs_predicted_to_overlap_a_person(spa
     then (a person standing 0.8 m ahead: the fast straight arcs), by the predicted overlap, leaves the others
     (standing still, turning on the spot) as they were and changes nothing with nobody near; it stacks with the
     obstacle shield; an out-of-range horizon is one ConfigError."""
-    torch.manual_seed(0)
-    plain = build_policy("teacher", None, space, teacher_net({"encoder": "lookahead"}, SIM))
-    shielded = build_policy("teacher", None, space, {**teacher_net({"encoder": "lookahead"}, SIM), "ped_shield_s": 0.6})
-    shielded.load_state_dict(plain.state_dict())
+    plain, shielded = _plain_and(space, ped_shield_s=0.6)
     head = shielded.features_extractor.lookahead
     obs = _obs(peds=[(0.8, 0.0, 0.0, 0.0)])
     overlap = (-head.pedestrian_clearances(head.action_features(obs), head.ped_shield_steps).amin(-1)[0]).clamp_min(0)
@@ -270,9 +272,7 @@ def test_people_shield_lowers_exactly_the_arcs_predicted_to_overlap_a_person(spa
     assert int(b.argmax()) not in torch.nonzero(overlap > 0).flatten().tolist()
     free = _obs()
     torch.testing.assert_close(plain.features_extractor(free), shielded.features_extractor(free))
-    both = build_policy("teacher", None, space, {**teacher_net({"encoder": "lookahead"}, SIM), "ped_shield_s": 0.6,
-                                                 "shield_s": 0.6})
-    both.load_state_dict(plain.state_dict())
+    both = _plain_and(space, ped_shield_s=0.6, shield_s=0.6)[1]
     wall = _obs(peds=[(0.8, 0.0, 0.0, 0.0)], scan_m=0.6)
     c = both.features_extractor(wall)[0, :head.n_actions]
     intr = both.features_extractor.lookahead.shield_intrusion(head.action_features(wall))[0]
