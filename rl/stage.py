@@ -102,6 +102,7 @@ from rl.policy import (
 )
 from rl.teacher import (
     FITTED_PREFIXES,
+    MAP_SIGNS,
     CurriculumStage,
     SceneMixEnv,
     attach_lookahead_cache,
@@ -242,6 +243,9 @@ class TrainConfig(BaseStageConfig):
     # whole map reads as a preference among turning arcs. One training: no SR gain on development seeds (-0.04,
     # p = 0.44), so off (docs/notes/2026-11-pedestrian-hits-untracked-people.md)
     map_view: bool = False
+    # lookahead head with map_cost: the fitted map weights' signs — free (the convex fit's), or costs (every map term
+    # constrained to lower an arc's score: occupancy is never a bonus; rl.teacher.fit_lookahead_linear)
+    map_signs: str = "free"
     drl_vo: DRLVOConfig = field(default_factory=DRLVOConfig)  # the learned baselines (rl.baselines.<name>)
     sarl_om: SARLOMConfig = field(default_factory=SARLOMConfig)
     vint: ViNTConfig = field(default_factory=ViNTConfig)
@@ -298,6 +302,8 @@ class TrainConfig(BaseStageConfig):
         if self.scorer_bound < 0:
             raise ConfigError(f"train.scorer_bound: expected >= 0, got {self.scorer_bound}")
         check_shield_s(self.shield_s, "train.shield_s")
+        if self.map_signs not in MAP_SIGNS:
+            raise ConfigError(f"train.map_signs: expected one of {list(MAP_SIGNS)}, got {self.map_signs!r}")
         if d.linear_cost not in ("teacher", "fit"):
             raise ConfigError(f"train.dagger.linear_cost: expected 'teacher' or 'fit', got {d.linear_cost!r}")
         if not (0 <= d.beta0 <= 1 and 0 <= d.beta_decay <= 1):
@@ -590,11 +596,13 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             map_head = policy.features_extractor.lookahead.n_map > 0
             if soft and (not inherited or map_head):  # the map cost is fitted on top of an inherited linear cost
                 linear_fit = fit_lookahead_linear(policy, data, d.soft_tau, seed=cfg.seed + k, mirror=d.mirror,
-                                                  n_rot=n_rot, cache=cache, terms="map" if inherited else "all")
-                log.info("student %s iteration %d: %s cost fit on %d frames, cross-entropy %.3f -> %.3f%s",
+                                                  n_rot=n_rot, cache=cache, terms="map" if inherited else "all",
+                                                  map_signs=cfg.map_signs)
+                log.info("student %s iteration %d: %s cost fit on %d frames, cross-entropy %.3f -> %.3f%s%s",
                          cfg.variant, k, "map" if inherited else "linear", linear_fit["frames"],
                          linear_fit["ce_before"], linear_fit["ce_after"],
-                         f", map weights {linear_fit['map_weights']}" if map_head else "")
+                         f", map weights {linear_fit['map_weights']}" if map_head else "",
+                         f", pinned at 0: {linear_fit['map_pinned']}" if "map_pinned" in linear_fit else "")
         hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, cfg.seed + k, progress=cfg.progress,
                                soft_tau=d.soft_tau if soft else 0.0, mirror=d.mirror, n_rot=n_rot,
                                frozen=FITTED_PREFIXES if (linear_fit or inherited) else (), cache=cache)

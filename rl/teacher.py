@@ -336,7 +336,7 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
 def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, max_frames: int = 20_000,
                          seed: int = 0, mirror: bool = True, n_rot: int = 21,
                          cache: tuple[np.ndarray, np.ndarray | None] | None = None,
-                         terms: str = "all") -> dict[str, Any]:
+                         terms: str = "all", map_signs: str = "free") -> dict[str, Any]:
     """Fits the linear path of a lookahead teacher (:class:`rl.networks.LookaheadTeacherExtractor`) to the expert's
     softmin targets by convex multinomial regression (L-BFGS), and zeroes the MLP scorer's output layer, so cloning
     starts from the best linear cost over the rollout features instead of from random logits (Adam would need
@@ -344,11 +344,15 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
     sees every frame reflected. ``cache``: :func:`lookahead_feature_cache` of all of ``data`` (with the same
     ``mirror``) when the caller has it; otherwise only the subsample's features are computed. ``terms``: ``"all"``
     fits the linear cost and, when the head reads an occupancy map, its map cost; ``"map"`` only the map cost, on
-    top of the linear cost a student inherited from its teacher. Returns the cross-entropy to the targets before
-    and after (and the fitted map weights). Runs on the policy's device."""
+    top of the linear cost a student inherited from its teacher. ``map_signs``: ``"free"`` fits the map weights
+    unconstrained; ``"costs"`` constrains every one to be a cost (occupancy along an arc never raises its score:
+    weight <= 0), solved exactly by an active-set loop (:func:`_fit_nonpositive`). Returns the cross-entropy to the
+    targets before and after (and the fitted map weights). Runs on the policy's device."""
     head = policy.features_extractor.lookahead  # rl.lookahead.LookaheadHead
     if terms not in ("all", "map") or (terms == "map" and not head.n_map):
         raise ConfigError(f"fit_lookahead_linear terms: expected 'all', or 'map' for a head with a map, got {terms!r}")
+    if map_signs not in MAP_SIGNS:
+        raise ConfigError(f"fit_lookahead_linear map_signs: expected one of {list(MAP_SIGNS)}, got {map_signs!r}")
     dev = policy.device
     rng = np.random.default_rng(seed)
     n = len(data["action"])
@@ -378,19 +382,65 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
         before = float(ce())
     params = [*(head.linear.parameters() if terms == "all" else ()),
               *(head.map_cost.parameters() if head.n_map else ())]
+    pinned = _fit_nonpositive(params, head.map_cost.weight, ce) if head.n_map and map_signs == "costs" else None
+    if pinned is None:
+        _lbfgs(params, ce)
+    out: dict[str, Any] = {"frames": int(len(cost)), "ce_before": before, "ce_after": float(ce().detach())}
+    if pinned is not None:  # the map terms the sign constraint holds at 0
+        out["map_pinned"] = pinned
+    if head.n_map:  # nats per unit of each map feature (static max, static mean, people max, people mean)
+        out["map_weights"] = [round(float(w) * SCORE_SCALE, 3) for w in head.map_cost.weight.detach().view(-1)]
+    return out
+
+
+MAP_SIGNS = ("free", "costs")  # fit_lookahead_linear(map_signs=...)
+
+
+def _lbfgs(params: list[torch.Tensor], loss_fn) -> None:
+    """Minimises the convex ``loss_fn()`` over ``params`` by L-BFGS (strong Wolfe line search)."""
     opt = torch.optim.LBFGS(params, lr=1.0, max_iter=200, line_search_fn="strong_wolfe")
 
     def closure() -> torch.Tensor:
         opt.zero_grad()
-        loss = ce()
+        loss = loss_fn()
         loss.backward()
         return loss
 
     opt.step(closure)
-    out: dict[str, Any] = {"frames": int(len(cost)), "ce_before": before, "ce_after": float(ce().detach())}
-    if head.n_map:  # nats per unit of each map feature (static max, static mean, people max, people mean)
-        out["map_weights"] = [round(float(w) * SCORE_SCALE, 3) for w in head.map_cost.weight.detach().view(-1)]
-    return out
+
+
+def _fit_nonpositive(params: list[torch.Tensor], w: torch.Tensor, loss_fn, rounds: int = 8) -> list[int]:
+    """Minimises the convex ``loss_fn()`` over ``params`` subject to every entry of ``w`` (one of ``params``) being
+    <= 0, by an active-set loop: entries held at 0 get no gradient (so L-BFGS's steps leave them there); after each
+    fit, free entries that came out positive are pinned at 0, and pinned entries whose gradient at 0 is positive
+    (lowering them would lower the loss) are freed. Stops when neither happens — the KKT conditions of the
+    constrained problem — or after ``rounds`` fits. Returns the pinned indices (of ``w.view(-1)``)."""
+    pinned = torch.zeros(w.numel(), dtype=torch.bool, device=w.device)
+    masking = [True]
+    hook = w.register_hook(lambda g: g.masked_fill(pinned.view_as(g), 0.0) if masking[0] else g)
+    try:
+        for _ in range(rounds):
+            with torch.no_grad():
+                w.view(-1)[pinned] = 0.0
+            _lbfgs(params, loss_fn)
+            violating = ~pinned & (w.detach().view(-1) > 0)
+            if violating.any():
+                pinned |= violating
+                continue
+            masking[0] = False
+            (grad,) = torch.autograd.grad(loss_fn(), w)
+            masking[0] = True
+            release = pinned & (grad.view(-1) > 0)
+            if not release.any():
+                break
+            pinned &= ~release
+        with torch.no_grad():
+            w.view(-1)[pinned] = 0.0
+    finally:
+        hook.remove()
+        for p in params:
+            p.grad = None
+    return [int(i) for i in torch.nonzero(pinned).view(-1)]
 
 
 FITTED_PREFIXES = ("features_extractor.lookahead.linear.", "features_extractor.lookahead.map_cost.")

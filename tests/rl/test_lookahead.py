@@ -20,7 +20,14 @@ from rl.policy import (
     save_policy,
     upgrade_state_dict,
 )
-from rl.teacher import behaviour_clone, collect_expert, fit_lookahead_linear, mirror_batch, teacher_net
+from rl.teacher import (
+    _fit_nonpositive,
+    behaviour_clone,
+    collect_expert,
+    fit_lookahead_linear,
+    mirror_batch,
+    teacher_net,
+)
 from sim.env import CrowdNavEnv, SimConfig
 from sim.robot import action_grid, unicycle_step
 from tests.rl.helpers_lookahead import HEAD_KEYS, pre_head_layout
@@ -137,6 +144,29 @@ def test_checkpoint_from_before_the_head_module_loads_into_the_same_policy(tmp_p
     save_file(old, str(ckpt / POLICY_WEIGHTS))
     with pytest.raises(CorruptArtifactError, match="lookahead.linear.bias"):
         load_policy(ckpt)
+
+
+def test_sign_constrained_fit_is_the_nonnegative_least_squares_solution():
+    """``_fit_nonpositive`` (the map cost's ``map_signs: costs``) solves min |A w + c u - b|² with w <= 0 and u free
+    exactly: scipy's NNLS on the same problem (v = -w >= 0, u eliminated by projection) gives the same w, and some
+    of the unconstrained solution's entries were positive, so the constraint is active."""
+    from scipy.optimize import nnls
+
+    gen = torch.Generator().manual_seed(3)
+    a = torch.randn(200, 6, generator=gen, dtype=torch.float64)
+    c = torch.randn(200, 1, generator=gen, dtype=torch.float64)
+    b = a @ torch.tensor([1.5, -2.0, 0.7, -0.3, 2.5, -1.0], dtype=torch.float64) + 0.8 * c[:, 0] \
+        + 0.1 * torch.randn(200, generator=gen, dtype=torch.float64)
+    free = torch.linalg.lstsq(torch.cat([a, c], 1), b).solution[:6]
+    assert (free > 0).sum() >= 2
+    w = torch.zeros(1, 6, dtype=torch.float64, requires_grad=True)
+    u = torch.zeros(1, dtype=torch.float64, requires_grad=True)
+    pinned = _fit_nonpositive([w, u], w, lambda: ((a @ w[0] + c[:, 0] * u - b) ** 2).mean())
+    proj = torch.eye(200, dtype=torch.float64) - c @ c.T / (c.T @ c)  # removes the free column
+    v, _ = nnls((-proj @ a).numpy(), (proj @ b).numpy())
+    assert np.allclose(w.detach()[0].numpy(), -v, atol=1e-5)
+    assert (w.detach() <= 0).all() and pinned == [int(i) for i in np.flatnonzero(v == 0)] and pinned
+    assert w.grad is None and u.grad is None
 
 
 def test_linear_fit_and_cloning_lower_the_cross_entropy(space):

@@ -8,6 +8,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
+from pipeline.core.errors import ConfigError
 from pretrain.intention import STANDING_MPS, ForecasterConfig, IntentionForecaster
 from rl.lookahead import N_LINEAR, lookahead_times
 from rl.networks import StudentLookaheadExtractor, variant_keys
@@ -391,6 +392,17 @@ def test_map_features_are_mirror_symmetric_and_the_map_cost_fits_on_top_of_the_i
     assert fit["ce_after"] < fit["ce_before"]
     assert fit["map_weights"][0] == pytest.approx(-40.0, abs=2.0)  # recovered, in nats per unit
     assert fit["map_weights"][2:] == [0.0, 0.0]  # a depth map has no people channels: their weights stay at zero
+    # a map *bonus* in the targets: the free fit follows it, map_signs="costs" holds that term at 0 (no weight > 0)
+    with torch.no_grad():
+        bonus = 10.0 * head.linear(feats[..., -N_LINEAR:]).squeeze(-1) + 40.0 * feats[..., -N_LINEAR - 4]
+    data["costs"], data["action"] = -bonus.numpy(), bonus.argmax(-1).numpy()
+    cache = lookahead_feature_cache(policy, data, mirror=True)
+    free = fit_lookahead_linear(policy, data, soft_tau=1.0, mirror=True, terms="map", cache=cache)
+    costs = fit_lookahead_linear(policy, data, soft_tau=1.0, mirror=True, terms="map", cache=cache, map_signs="costs")
+    assert free["map_weights"][0] > 20.0 and "map_pinned" not in free
+    assert 0 in costs["map_pinned"] and max(costs["map_weights"]) <= 0.0 and costs["ce_after"] >= free["ce_after"]
+    with pytest.raises(ConfigError, match="map_signs"):
+        fit_lookahead_linear(policy, data, soft_tau=1.0, terms="map", cache=cache, map_signs="bonus")
 
 
 def test_observer_makes_the_bev_occupancy_from_the_pretext_heads(lobby):

@@ -640,6 +640,8 @@ def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
     assert "shield_s" not in student_net(_train_cfg(tmp_path, "full", head="mlp"), grid)
     with pytest.raises(ConfigError, match=r"train.shield_s: expected 0 \(off\) .. 2.0 s, got 3.0"):
         _train_cfg(tmp_path, "full", shield_s=3.0)
+    with pytest.raises(ConfigError, match=r"train.map_signs: expected one of \['free', 'costs'\], got 'bonus'"):
+        _train_cfg(tmp_path, "full", map_signs="bonus")
 
 
 def test_sampled_actions_follow_the_logits_and_repeat_per_episode_seed(teacher_dir):
