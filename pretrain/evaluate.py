@@ -20,6 +20,13 @@ label (:func:`pretrain.data.seen_people`, one definition for training and scorin
 left out of the IoU (neither a miss nor a false alarm), which gives the IoU a camera-only model could reach on the
 people it can see. Reported beside the plain
 IoU at the same thresholds, with the share of label cells that belong to unseen people.
+
+``--region outside`` scores the grid's cells *outside* the cameras' field of view instead — where the training
+loss never reaches (:func:`pretrain.train.masked_bce` is restricted to the view), so what the heads say there is
+the encoder's extrapolation, which a student's map cost still reads. ``rates`` gives, per target and over the
+region's cells of valid frames, the mean predicted probability where the label is empty and where it is occupied,
+and the label's occupied share: a calibration gauge (a head that knew nothing there would say the occupied share
+everywhere).
 """
 
 from __future__ import annotations
@@ -44,6 +51,7 @@ from pretrain.train import forward_batch, iou_counts
 PEOPLE_NOW = TARGETS.index("ped_t")
 
 THRESHOLDS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+REGIONS = ("fov", "outside")  # the cells scored: in the cameras' field of view, or the rest of the grid
 
 
 def check_same_cameras(encoder_cams, dataset_cams, where: str) -> None:
@@ -226,10 +234,40 @@ class SeenPeopleCounts:
                 "label_cells": self.label_cells}
 
 
+class RegionRates:
+    """Per target, over the cells of ``mask`` in valid frames: the mean predicted probability where the label is
+    empty and where it is occupied, and the occupied share (module docstring). An ``on_batch`` for
+    :func:`episode_counts`; read :meth:`result`."""
+
+    def __init__(self, mask: np.ndarray):
+        self.mask = torch.from_numpy(mask)
+        self.sums = np.zeros((3, len(TARGETS)))  # probability on empty cells, on occupied cells, occupied cells
+        self.cells = np.zeros(len(TARGETS))
+
+    def __call__(self, batch, logits, labels, valid) -> None:
+        m = (valid[:, :, None, None] & self.mask.to(logits.device)[None, None]).float()
+        prob, occ = torch.sigmoid(logits) * m, (labels > 0.5).float() * m
+        self.sums[0] += (prob * (m - occ)).sum((0, 2, 3)).cpu().numpy()
+        self.sums[1] += (prob * occ).sum((0, 2, 3)).cpu().numpy()
+        self.sums[2] += occ.sum((0, 2, 3)).cpu().numpy()
+        self.cells += m.sum((0, 2, 3)).cpu().numpy()
+
+    def result(self) -> dict:
+        empty, occ, n = self.cells - self.sums[2], self.sums[2], self.cells
+        ratio = lambda a, b: float(a / b) if b > 0 else float("nan")  # noqa: E731
+        return {t: {"mean_prob_empty": ratio(self.sums[0, k], empty[k]),
+                    "mean_prob_occupied": ratio(self.sums[1, k], occ[k]),
+                    "occupied_share": ratio(occ[k], n[k]), "cells": int(n[k])} for k, t in enumerate(TARGETS)}
+
+
 def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str = "val",
-                        thresholds=THRESHOLDS, progress: bool = True, people_label: str | None = None) -> dict:
+                        thresholds=THRESHOLDS, progress: bool = True, people_label: str | None = None,
+                        region: str = "fov") -> dict:
     """Loads a checkpoint and a dataset and returns the IoU sweep with its provenance; the people targets are
-    scored against ``people_label`` (``all`` | ``seen``; None: the label the checkpoint was trained on)."""
+    scored against ``people_label`` (``all`` | ``seen``; None: the label the checkpoint was trained on), on the
+    cells of ``region`` (:data:`REGIONS`)."""
+    if region not in REGIONS:
+        raise ConfigError(f"--region: expected one of {list(REGIONS)}, got {region!r}")
     desc = read_encoder_json(ckpt)
     ds = desc.get("dataset", {})
     if dataset is None:
@@ -244,6 +282,10 @@ def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str =
     cams = meta.cameras
     check_same_cameras(encoder.cameras, cams, str(dataset))
     fov = check_grid_fits_cameras(encoder.grid, cams)
+    if region == "outside":
+        fov = ~fov
+        if not fov.any():
+            raise ConfigError(f"{ckpt}: --region outside: every cell of the grid is in the cameras' view")
     total = int(meta.info["total_episodes"])
     if episodes in ("val", "train"):
         eps = ds.get(f"{episodes}_episodes")
@@ -267,13 +309,19 @@ def evaluate_checkpoint(ckpt: Path, dataset: Path | None = None, episodes: str =
     mpath = Path(ckpt) / "metrics.json"
     if mpath.is_file():
         pos_weight = json.loads(mpath.read_text()).get("pos_weight")
-    seen = SeenPeopleCounts(store, fov, thresholds)  # fed by the sweep's forward passes
+    seen = SeenPeopleCounts(store, fov, thresholds)  # both fed by the sweep's forward passes
+    rates = RegionRates(fov)
+
+    def on_batch(*args) -> None:
+        seen(*args)
+        rates(*args)
+
     sweep = iou_sweep(encoder, heads, store, store.episode_slices, fov, thresholds, pos_weight=pos_weight,
-                      on_batch=seen)
-    visible = seen.result()
+                      on_batch=on_batch)
     return {"checkpoint": str(ckpt), "dataset": str(dataset), "episodes": eps, "frames": len(store),
-            "people_label": people_label,
-            "iou": sweep, "visible_people": visible, "note": "dataset-level IoU, field-of-view cells, valid frames"}
+            "people_label": people_label, "region": region, "iou": sweep, "visible_people": seen.result(),
+            "rates": rates.result(),
+            "note": f"dataset-level IoU, {'field-of-view' if region == 'fov' else 'out-of-view'} cells, valid frames"}
 
 
 @reports_errors
@@ -286,9 +334,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--people-label", choices=PEOPLE_LABELS, default=None,
                     help="score the people targets against all people or only the seen ones (default: the label "
                          "the checkpoint was trained on)")
+    ap.add_argument("--region", choices=REGIONS, default="fov",
+                    help="score the cells in the cameras' field of view (default) or the rest of the grid")
     a = ap.parse_args(argv)
-    res = evaluate_checkpoint(a.checkpoint, a.dataset, a.episodes, people_label=a.people_label)
-    print(f"{res['frames']} frames of {len(res['episodes'])} episodes of {res['dataset']}")
+    res = evaluate_checkpoint(a.checkpoint, a.dataset, a.episodes, people_label=a.people_label, region=a.region)
+    print(f"{res['frames']} frames of {len(res['episodes'])} episodes of {res['dataset']} ({res['note']})")
     ths = list(next(iter(res["iou"].values())))
     print(f"{'target':<12}" + "".join(f"  p>{t:<5}" for t in ths) + "   (bayes: p > w/(1+w), w = pos_weight)")
     for t, row in res["iou"].items():
@@ -296,6 +346,10 @@ def main(argv: list[str] | None = None) -> int:
     vis = res["visible_people"]
     print(f"{'ped_t seen':<12}" + "".join(f"  {vis['seen_only'][x]:<7.3f}" for x in ths if x in vis["seen_only"])
           + f"   (unseen people left out: {100 * vis['unseen_share_of_label_cells']:.1f} % of the label's cells)")
+    print(f"{'target':<12}  mean p | empty   mean p | occupied   occupied share   cells")
+    for t, r in res["rates"].items():
+        print(f"{t:<12}  {r['mean_prob_empty']:<14.3f}  {r['mean_prob_occupied']:<17.3f}  {r['occupied_share']:<15.4f}"
+              f"  {r['cells']}")
     if a.out:
         atomic_write_json(a.out, res)
     return 0

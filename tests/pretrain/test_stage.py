@@ -261,4 +261,15 @@ def test_evaluate_checkpoint_sweeps_thresholds(trained, tiny_dataset, tmp_path: 
     for t, v in vis["all"].items():
         assert v == pytest.approx(res["iou"]["ped_t"][t], nan_ok=True)
     assert 0.0 <= vis["unseen_share_of_label_cells"] <= 1.0 and vis["label_cells"] > 0
+    rates = res["rates"]["ped_t"]
+    assert res["region"] == "fov" and 0.0 < rates["occupied_share"] < 1.0 and rates["cells"] > 0
+    assert 0.0 <= rates["mean_prob_empty"] <= 1.0 and 0.0 <= rates["mean_prob_occupied"] <= 1.0
+    # the cells outside the cameras' view instead: with those in view, every cell of the grid in each valid frame
+    # (a target's valid frames differ: the futures end earlier), so (in + out) / in is the same for every target
+    outside = tmp_path / "outside.json"
+    assert main([str(out), "--episodes", "all", "--region", "outside", "--out", str(outside)]) == 0
+    res_out = json.loads(outside.read_text())
+    assert res_out["region"] == "outside" and set(res_out["iou"]) == set(res["iou"])
+    ratios = [(r["cells"] + res_out["rates"][t]["cells"]) / r["cells"] for t, r in res["rates"].items()]
+    assert ratios[0] > 1.0 and ratios == pytest.approx([ratios[0]] * len(ratios))
     assert main([str(out), "--episodes", "7"]) == 2
