@@ -44,7 +44,7 @@ from pretrain.evaluate import CAL_THRESHOLDS, calibrate, episode_counts, turning
 from pretrain.figures import plot_curves, plot_fov, plot_sample
 from pretrain.geometry import check_grid_fits_cameras
 from pretrain.model import TARGETS, BEVEncoder, EncoderConfig, PretextHeads
-from pretrain.train import FitConfig, evaluate, fit, forward_batch
+from pretrain.train import LOSS_REGIONS, FitConfig, evaluate, fit, forward_batch
 
 log = logging.getLogger("icrowdnav")
 
@@ -60,6 +60,10 @@ class PretrainConfig(BaseStageConfig):
     # whom the people targets mark: all (every person present in the grid) | seen (only the people the current
     # frame's depth reaches, now and in the future targets: a camera cannot know of the others; docs/results.md)
     people_label: str = "all"
+    # the cells the training loss reads: fov (the cameras' field of view) | grid (the whole grid: beyond the view the
+    # heads learn what the temporal model carries and the prior, instead of an unsupervised extrapolation, which
+    # `python -m pretrain.evaluate CKPT --region outside` measures); validation IoU stays on the field of view
+    loss_region: str = "fov"
     epochs: int = 3  # passes over the training episodes
     clip_frames: int = 8  # target frames per clip (each clip adds T-1 frames of context)
     clips_per_batch: int = 4  # clips per optimisation step
@@ -97,6 +101,8 @@ class PretrainConfig(BaseStageConfig):
                               f"got {self.lr}, {self.weight_decay}, {self.warmup_frac}, {self.max_ram_gb}")
         if not 0 < self.val_fraction < 1:
             raise ConfigError(f"pretrain.val_fraction: expected a fraction in (0, 1), got {self.val_fraction}")
+        if self.loss_region not in LOSS_REGIONS:
+            raise ConfigError(f"pretrain.loss_region: expected one of {list(LOSS_REGIONS)}, got {self.loss_region!r}")
         if self.people_label not in PEOPLE_LABELS:
             raise ConfigError(f"pretrain.people_label: expected one of {list(PEOPLE_LABELS)}, "
                               f"got {self.people_label!r}")
@@ -173,7 +179,8 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
     fc = FitConfig(epochs=cfg.epochs, clip_frames=cfg.clip_frames, clips_per_batch=cfg.clips_per_batch, lr=cfg.lr,
                    weight_decay=cfg.weight_decay, warmup_frac=cfg.warmup_frac,
                    checkpoint_every_steps=cfg.checkpoint_every_steps, log_every_steps=cfg.log_every_steps,
-                   seed=cfg.seed, config_hash=config_hash(cfg), pos_weight_cap=cfg.pos_weight_cap)
+                   seed=cfg.seed, config_hash=config_hash(cfg), pos_weight_cap=cfg.pos_weight_cap,
+                   loss_region=cfg.loss_region)
     result = fit(encoder, heads, store, train_slices, val_slices, fov, fc, out, resume=True, progress=cfg.progress)
     history = result["history"]
     final = history[-1] if history else evaluate(encoder, heads, store, val_slices, fov,
@@ -184,6 +191,7 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
     n_train = sum(b - a for a, b in train_slices)
     write_encoder_checkpoint(out, encoder, heads, {  # saved from CPU copies: loads on any machine
         "targets": list(TARGETS), "future_s": list(cfg.future_s), "people_label": cfg.people_label,
+        "loss_region": cfg.loss_region,
         "dataset": {"repo_id": cfg.repo_id, "train_episodes": train_eps, "val_episodes": val_eps},
         "trained_steps": result["step"], "fps": meta.fps})
     # the decision rule: per-target thresholds chosen on the validation episodes, scored cross-fitted (honest)

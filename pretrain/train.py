@@ -59,6 +59,20 @@ class FitConfig:
     seed: int
     config_hash: str
     pos_weight_cap: float = 10.0  # upper bound of the per-target BCE positive weight (positive_weights)
+    loss_region: str = "fov"  # the cells the loss reads: LOSS_REGIONS (validation IoU stays on the field of view)
+
+
+# where the training loss reaches: the cameras' field of view, or the whole grid (beyond the view the labels are still
+# known — the simulator's ground truth — so the temporal model can learn to carry what left the view and the prior
+# for what was never seen, instead of an unsupervised extrapolation; pretrain.evaluate --region outside)
+LOSS_REGIONS = ("fov", "grid")
+
+
+def loss_mask(fov: np.ndarray, region: str) -> np.ndarray:
+    """The ``X x Y`` bool mask of the cells the training loss reads (:data:`LOSS_REGIONS`)."""
+    if region not in LOSS_REGIONS:
+        raise ConfigError(f"pretrain.loss_region: expected one of {list(LOSS_REGIONS)}, got {region!r}")
+    return fov if region == "fov" else np.ones_like(fov)
 
 
 def positive_weights(store: FrameStore, slices: list[tuple[int, int]], fov: np.ndarray,
@@ -217,7 +231,8 @@ def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slice
     Args:
         encoder, heads: the modules (trained in place, on the device they are on; move both there first).
         store: all frames; ``train_slices`` / ``val_slices``: store ranges of the train / validation episodes.
-        fov: ``X x Y`` bool field-of-view mask (loss and IoU are restricted to it).
+        fov: ``X x Y`` bool field-of-view mask (IoU is restricted to it; so is the loss unless ``fc.loss_region`` is
+            ``grid``).
         fc: optimisation settings.
         out: the checkpoint directory (``state/``, ``train_log.csv``, ``tb/`` are written here).
         resume: continue from ``out/state/last.pt`` when it exists.
@@ -230,8 +245,9 @@ def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slice
 
     torch.manual_seed(fc.seed)
     device = device_of(encoder)
-    fov_t = torch.from_numpy(fov).to(device)
-    pos_weight = positive_weights(store, train_slices, fov, fc.pos_weight_cap)
+    mask = loss_mask(fov, fc.loss_region)
+    mask_t = torch.from_numpy(mask).to(device)
+    pos_weight = positive_weights(store, train_slices, mask, fc.pos_weight_cap)
     pos_weight_d = pos_weight.to(device)
     params = list(encoder.parameters()) + list(heads.parameters())
     optim = torch.optim.AdamW(params, lr=fc.lr, weight_decay=fc.weight_decay)
@@ -289,7 +305,7 @@ def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slice
             for bi in range(start, len(batches)):
                 t0 = time.perf_counter()
                 logits, labels, valid = forward_batch(encoder, heads, store, batches[bi])
-                losses = masked_bce(logits, labels, valid, fov_t, pos_weight_d)
+                losses = masked_bce(logits, labels, valid, mask_t, pos_weight_d)
                 loss = losses.mean()
                 optim.zero_grad(set_to_none=True)
                 loss.backward()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,15 @@ from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.data import FrameStore, load_frames
 from pretrain.geometry import cameras_from_dataset, check_grid_fits_cameras
 from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
-from pretrain.train import FitConfig, evaluate, fit, load_state, positive_weights
+from pretrain.train import (
+    LOSS_REGIONS,
+    FitConfig,
+    evaluate,
+    fit,
+    load_state,
+    loss_mask,
+    positive_weights,
+)
 
 # coarse grid and dense lift: the 64 x 48 tiny cameras give few points per person otherwise
 ENC = dict(bev_channels=16, x_bound=[0.0, 4.0, 0.2], y_bound=[-3.2, 3.2, 0.2], lift_stride_px=2)
@@ -92,6 +101,29 @@ def test_tiny_overfit_reaches_high_iou(tiny_store, tmp_path: Path) -> None:
     assert after["iou_ped_t"] >= 0.5, after
     assert after["iou_ped_t"] > 3 * before["iou_ped_t"], (before, after)
     assert after["val_loss"] < 0.5 * before["val_loss"]
+
+
+def test_grid_loss_reads_the_labels_outside_the_view(tiny_store, tmp_path: Path) -> None:
+    """``loss_region="grid"`` trains on the cells outside the cameras' view too: from the same start and batches,
+    changing only the labels outside the view changes what two steps of the grid loss learn and leaves the
+    field-of-view loss's weights bit-identical; an unknown region is one named error."""
+    torch.set_num_threads(2)
+    store, fov, cams = tiny_store
+    assert not fov.all()
+    sl = [store.episode_slices[1]]
+    flipped = replace(store, labels=np.where(fov[None, None], store.labels, 1 - store.labels).astype(store.labels.dtype))
+    for region in LOSS_REGIONS:
+        weights = []
+        for k, st in enumerate((store, flipped)):
+            enc, heads = _models(cams)
+            fit(enc, heads, st, sl, sl, fov, _fit_config(epochs=1, loss_region=region), tmp_path / f"{region}{k}",
+                resume=False, progress=False, stop_at_step=2)
+            weights.append(_weights(heads))
+        same = all(torch.equal(weights[0][n], weights[1][n]) for n in weights[0])
+        assert same == (region == "fov"), region
+    assert loss_mask(fov, "grid").all() and (loss_mask(fov, "fov") == fov).all()
+    with pytest.raises(ConfigError, match="pretrain.loss_region"):
+        loss_mask(fov, "world")
 
 
 def _weights(m: torch.nn.Module) -> dict[str, torch.Tensor]:
