@@ -77,7 +77,7 @@ from rl.callbacks import checkpoint_callback, progress_callback, save_ppo
 from rl.dagger import bev_stats, export_iteration, load_features, run_iteration, write_done
 from rl.evaluate import evaluate, success_table
 from rl.figures import plot_learning_curve, plot_training
-from rl.lookahead import check_shield_s
+from rl.lookahead import LINEAR_TERMS, PED_TERMS, check_shield_s
 from rl.networks import STUDENT_HEADS, VARIANTS
 from rl.observe import (
     StudentEnv,
@@ -126,6 +126,9 @@ from sim.scene import load_scene
 log = logging.getLogger("icrowdnav")
 TRAIN_VARIANTS = ("teacher", *VARIANTS, *BASELINES)
 
+LINEAR_COSTS = ("teacher", "fit", "peds")  # train.dagger.linear_cost
+PED_NAMES = tuple(LINEAR_TERMS[i] for i in PED_TERMS)
+
 
 @dataclass
 class TeacherConfig:
@@ -168,7 +171,9 @@ class DaggerConfig:
     mirror: bool = True  # left-right mirror augmentation while cloning (bev variants record the mirrored s_bev)
     # the lookahead head's linear cost: "teacher" = the lookahead teacher's own (the same layer on the student's
     # perceived tracks and scan; frozen, the MLP scorer learns the rest), "fit" = convex regression to the teacher's
-    # distribution on the DAgger frames (measured weaker: docs/notes/2026-11-lookahead-student-variants.md)
+    # distribution on the DAgger frames (measured weaker: docs/notes/2026-11-lookahead-student-variants.md), "peds" =
+    # the teacher's, with its pedestrian terms refitted by the same regression together with the map cost (the
+    # student's tracks and intention forecasts are not the teacher's ground truth)
     linear_cost: str = "teacher"
     scenes: list[str] = field(default_factory=lambda: ["hallway", "corner", "doorway", "cluttered_room", "open_crowd"])
     densities: list[float] = field(default_factory=lambda: [0.1, 0.2])
@@ -304,8 +309,8 @@ class TrainConfig(BaseStageConfig):
         check_shield_s(self.shield_s, "train.shield_s")
         if self.map_signs not in MAP_SIGNS:
             raise ConfigError(f"train.map_signs: expected one of {list(MAP_SIGNS)}, got {self.map_signs!r}")
-        if d.linear_cost not in ("teacher", "fit"):
-            raise ConfigError(f"train.dagger.linear_cost: expected 'teacher' or 'fit', got {d.linear_cost!r}")
+        if d.linear_cost not in LINEAR_COSTS:
+            raise ConfigError(f"train.dagger.linear_cost: expected one of {list(LINEAR_COSTS)}, got {d.linear_cost!r}")
         if not (0 <= d.beta0 <= 1 and 0 <= d.beta_decay <= 1):
             raise ConfigError(f"train.dagger: beta0 and beta_decay must be in [0, 1], got {d.beta0}, {d.beta_decay}")
         if not d.scenes or not d.densities or not self.acceptance.scenes or not self.acceptance.densities:
@@ -350,9 +355,9 @@ def inputs(cfg: TrainConfig) -> list[Path]:
         raise InputMissingError(f"teacher checkpoint {teacher} is unfinished (no manifest.json); run "
                                 "`icrowdnav train --variant teacher` first")
     paths = [teacher / "policy.json", teacher / "policy.safetensors"]
-    if cfg.head == "lookahead" and cfg.dagger.linear_cost == "teacher" and \
+    if cfg.head == "lookahead" and cfg.dagger.linear_cost != "fit" and \
             read_policy_json(teacher)["net"].get("encoder") != "lookahead":
-        raise ConfigError(f"train.dagger.linear_cost 'teacher': the teacher {teacher} is not a lookahead teacher "
+        raise ConfigError(f"train.dagger.linear_cost {cfg.dagger.linear_cost!r}: the teacher {teacher} is not a lookahead teacher "
                           "(teacher.net.encoder lookahead), so it has no linear cost to inherit; re-train it or use "
                           "--dagger.linear_cost fit")
     if cfg.variant != "no_bev":
@@ -545,7 +550,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     # PPO — but is not part of the distribution cloned from the teacher: a teacher action the student's perceived
     # scan rules out would be a loss term of up to 1,000 nats per metre that the bounded scorer can only fight
     policy = build_policy("student", cfg.variant, space, cloned_net(net)).to(device)
-    inherited = has_lookahead(policy) and d.linear_cost == "teacher"
+    inherited = has_lookahead(policy) and d.linear_cost != "fit"
     if inherited:
         inherit_linear_cost(policy, teacher_dir)
     iters: list[dict[str, Any]] = []
@@ -594,13 +599,16 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                                             (*space.spaces, *(("bev_mirror",) if d.mirror and "bev" in space.spaces
                                                               else ())))
             map_head = policy.features_extractor.lookahead.n_map > 0
-            if soft and (not inherited or map_head):  # the map cost is fitted on top of an inherited linear cost
+            terms = {"teacher": "map", "peds": "peds", "fit": "all"}[d.linear_cost]
+            if soft and (terms != "map" or map_head):  # the map cost is fitted on top of an inherited linear cost
                 linear_fit = fit_lookahead_linear(policy, data, d.soft_tau, seed=cfg.seed + k, mirror=d.mirror,
-                                                  n_rot=n_rot, cache=cache, terms="map" if inherited else "all",
-                                                  map_signs=cfg.map_signs)
-                log.info("student %s iteration %d: %s cost fit on %d frames, cross-entropy %.3f -> %.3f%s%s",
-                         cfg.variant, k, "map" if inherited else "linear", linear_fit["frames"],
+                                                  n_rot=n_rot, cache=cache, terms=terms, map_signs=cfg.map_signs)
+                log.info("student %s iteration %d: %s cost fit on %d frames, cross-entropy %.3f -> %.3f%s%s%s",
+                         cfg.variant, k, {"map": "map", "peds": "pedestrian + map", "all": "linear"}[terms],
+                         linear_fit["frames"],
                          linear_fit["ce_before"], linear_fit["ce_after"],
+                         f", pedestrian weights {[linear_fit['linear_weights'][n] for n in PED_NAMES]}"
+                         if terms == "peds" else "",
                          f", map weights {linear_fit['map_weights']}" if map_head else "",
                          f", pinned at 0: {linear_fit['map_pinned']}" if "map_pinned" in linear_fit else "")
         hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, cfg.seed + k, progress=cfg.progress,

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from pipeline.core.errors import ConfigError, InputMissingError
-from rl.lookahead import SCORE_SCALE
+from rl.lookahead import LINEAR_TERMS, PED_TERMS, SCORE_SCALE
 from rl.policy import LOOKAHEAD_KEY, act, build_policy
 from rl.vec_env import BatchedSubprocVecEnv
 from sim.env import CrowdNavEnv, SimConfig
@@ -344,13 +344,15 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
     sees every frame reflected. ``cache``: :func:`lookahead_feature_cache` of all of ``data`` (with the same
     ``mirror``) when the caller has it; otherwise only the subsample's features are computed. ``terms``: ``"all"``
     fits the linear cost and, when the head reads an occupancy map, its map cost; ``"map"`` only the map cost, on
-    top of the linear cost a student inherited from its teacher. ``map_signs``: ``"free"`` fits the map weights
+    top of the linear cost a student inherited from its teacher; ``"peds"`` the inherited cost's pedestrian terms
+    (:data:`rl.lookahead.PED_TERMS`) together with the map cost, every other term held at the teacher's weight. ``map_signs``: ``"free"`` fits the map weights
     unconstrained; ``"costs"`` constrains every one to be a cost (occupancy along an arc never raises its score:
     weight <= 0), solved exactly by an active-set loop (:func:`_fit_nonpositive`). Returns the cross-entropy to the
     targets before and after (and the fitted map weights). Runs on the policy's device."""
     head = policy.features_extractor.lookahead  # rl.lookahead.LookaheadHead
-    if terms not in ("all", "map") or (terms == "map" and not head.n_map):
-        raise ConfigError(f"fit_lookahead_linear terms: expected 'all', or 'map' for a head with a map, got {terms!r}")
+    if terms not in FIT_TERMS or (terms == "map" and not head.n_map):
+        raise ConfigError(f"fit_lookahead_linear terms: expected 'all', 'peds', or 'map' for a head with a map, "
+                          f"got {terms!r}")
     if map_signs not in MAP_SIGNS:
         raise ConfigError(f"fit_lookahead_linear map_signs: expected one of {list(MAP_SIGNS)}, got {map_signs!r}")
     dev = policy.device
@@ -380,12 +382,24 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
         head.scorer[-1].weight.zero_()
         head.scorer[-1].bias.zero_()
         before = float(ce())
-    params = [*(head.linear.parameters() if terms == "all" else ()),
+    params = [*(head.linear.parameters() if terms == "all" else (head.linear.weight,) if terms == "peds" else ()),
               *(head.map_cost.parameters() if head.n_map else ())]
-    pinned = _fit_nonpositive(params, head.map_cost.weight, ce) if head.n_map and map_signs == "costs" else None
-    if pinned is None:
-        _lbfgs(params, ce)
-    out: dict[str, Any] = {"frames": int(len(cost)), "ce_before": before, "ce_after": float(ce().detach())}
+    held = None
+    if terms == "peds":  # every other term keeps its weight: its gradient is masked, so L-BFGS never moves it
+        keep = torch.ones_like(head.linear.weight, dtype=torch.bool)
+        keep[0, list(PED_TERMS)] = False
+        held = head.linear.weight.register_hook(lambda g: g.masked_fill(keep, 0.0))
+    try:
+        pinned = _fit_nonpositive(params, head.map_cost.weight, ce) if head.n_map and map_signs == "costs" else None
+        if pinned is None:
+            _lbfgs(params, ce)
+    finally:
+        if held is not None:
+            held.remove()
+    out: dict[str, Any] = {"frames": int(len(cost)), "ce_before": before, "ce_after": float(ce().detach()),
+                           # nats per unit of each term, like the map weights below
+                           "linear_weights": {name: round(float(w) * SCORE_SCALE, 3) for name, w in
+                                              zip(LINEAR_TERMS, head.linear.weight.detach().view(-1), strict=True)}}
     if pinned is not None:  # the map terms the sign constraint holds at 0
         out["map_pinned"] = pinned
     if head.n_map:  # nats per unit of each map feature (static max, static mean, people max, people mean)
@@ -394,6 +408,7 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
 
 
 MAP_SIGNS = ("free", "costs")  # fit_lookahead_linear(map_signs=...)
+FIT_TERMS = ("all", "map", "peds")  # fit_lookahead_linear(terms=...)
 
 
 def _lbfgs(params: list[torch.Tensor], loss_fn) -> None:

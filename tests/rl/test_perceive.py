@@ -10,7 +10,7 @@ from safetensors.torch import save_file
 
 from pipeline.core.errors import ConfigError
 from pretrain.intention import STANDING_MPS, ForecasterConfig, IntentionForecaster
-from rl.lookahead import N_LINEAR, lookahead_times
+from rl.lookahead import LINEAR_TERMS, N_LINEAR, PED_TERMS, lookahead_times
 from rl.networks import StudentLookaheadExtractor, variant_keys
 from rl.observe import observer_for_env, uses_forecaster
 from rl.perceive import CameraView, DepthScan, interpolation_matrix, scan_from_points
@@ -403,6 +403,51 @@ def test_map_features_are_mirror_symmetric_and_the_map_cost_fits_on_top_of_the_i
     assert 0 in costs["map_pinned"] and max(costs["map_weights"]) <= 0.0 and costs["ce_after"] >= free["ce_after"]
     with pytest.raises(ConfigError, match="map_signs"):
         fit_lookahead_linear(policy, data, soft_tau=1.0, terms="map", cache=cache, map_signs="bonus")
+
+
+def test_pedestrian_refit_moves_only_the_pedestrian_terms_and_the_map(lobby):
+    """``terms="peds"`` (``train.dagger.linear_cost: peds``): targets made with a softer pedestrian-contact weight than
+    the inherited one, another goal-gain weight and a static-map cost — the fit recovers the pedestrian and map
+    weights and leaves every other linear term, the goal gain included, where it was; the map-only fit, whose
+    pedestrian weight is held, explains less."""
+    space = _student_space(lobby)
+    net = {**_net(lobby), "map_cost": True, "map_bounds": BOUNDS}
+    torch.manual_seed(0)
+    policy = build_policy("student", "no_bev", space, net)
+    head = policy.features_extractor.lookahead
+    obs = _batch(space, 256, seed=5)
+    rng = np.random.default_rng(2)
+    obs["occ"] = torch.zeros_like(obs["occ"])
+    for i in range(256):
+        x, y = rng.uniform(0.5, 3.0), rng.uniform(-1.5, 1.5)
+        _block(obs["occ"][i:i + 1], 0, x, x + 0.6, y, y + 0.6)
+    inherited = torch.tensor([[-3.0, -1.0, -2.0, -0.5, 1.0, 0.5, -0.3, 0.2, 0.1, -0.1]]) / 10.0
+    truth = inherited.clone()
+    truth[0, 0] = -0.8 / 10.0  # the targets' pedestrian contact: -0.8 nats per unit where the inherited cost says -3
+    truth[0, 5] = 2.0 / 10.0  # and a goal gain the fit must not take up (it is not a pedestrian term)
+    feats = head.action_features(obs)
+    assert float(feats[..., -N_LINEAR].std()) > 0.1  # the batch has predicted contacts for the weight to explain
+    with torch.no_grad():
+        logits = (10.0 * (feats[..., -N_LINEAR:] @ truth.T).squeeze(-1) - 40.0 * feats[..., -N_LINEAR - 4])
+    data = {k: v.numpy() for k, v in obs.items()}
+    data["costs"], data["action"] = -logits.numpy(), logits.argmax(-1).numpy()
+    cache = lookahead_feature_cache(policy, data, mirror=True)
+    fits = {}
+    for terms in ("map", "peds"):
+        with torch.no_grad():
+            head.linear.weight.copy_(inherited)
+            head.map_cost.weight.zero_()
+        fits[terms] = fit_lookahead_linear(policy, data, soft_tau=1.0, mirror=True, terms=terms, cache=cache)
+    peds = fits["peds"]
+    assert peds["linear_weights"]["ped_contact"] == pytest.approx(-0.8, abs=0.15)
+    assert -50.0 < peds["map_weights"][0] < -20.0  # the -40 of the targets, less what the held goal gain confounds
+    held = [n for i, n in enumerate(LINEAR_TERMS) if i not in PED_TERMS]
+    assert all(peds["linear_weights"][n] == pytest.approx(float(inherited[0, LINEAR_TERMS.index(n)]) * 10.0, abs=1e-5)
+               for n in held)
+    assert fits["map"]["linear_weights"]["ped_contact"] == pytest.approx(-3.0, abs=1e-5)
+    assert peds["ce_after"] < fits["map"]["ce_after"]
+    with pytest.raises(ConfigError, match="terms"):
+        fit_lookahead_linear(policy, data, soft_tau=1.0, terms="goal", cache=cache)
 
 
 def test_observer_makes_the_bev_occupancy_from_the_pretext_heads(lobby):

@@ -642,6 +642,9 @@ def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
         _train_cfg(tmp_path, "full", shield_s=3.0)
     with pytest.raises(ConfigError, match=r"train.map_signs: expected one of \['free', 'costs'\], got 'bonus'"):
         _train_cfg(tmp_path, "full", map_signs="bonus")
+    with pytest.raises(ConfigError, match=r"train.dagger.linear_cost: expected one of \['teacher', 'fit', 'peds'\], "
+                                          r"got 'goal'"):
+        _train_cfg(tmp_path, "full", **{"dagger.linear_cost": "goal"})
 
 
 def test_sampled_actions_follow_the_logits_and_repeat_per_episode_seed(teacher_dir):
