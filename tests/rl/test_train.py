@@ -16,6 +16,7 @@ from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissing
 from pretrain.intention import load_forecaster
 from rl.dagger import load_features
 from rl.driver import PolicyDriver
+from rl.lookahead import LINEAR_TERMS, SCORE_SCALE
 from rl.policy import act, build_policy, check_checkpoint_weights, describe, load_policy, save_policy
 from rl.teacher import (
     SceneMixEnv,
@@ -379,6 +380,17 @@ def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
     assert desc["intention"] is None and "peds_future" not in desc["observation_space"]
     assert desc["net"]["map_cost"] and policy.features_extractor.lookahead.map_key == "occ"
     assert json.loads((out / "metrics.json").read_text())["acceptance"]["table"]["hallway@0.1"]["n"] == 1
+    # python -m rl.cost_refit on it: every refit starts from the teacher's cost, the map-only one keeps it, and
+    # freeing more terms explains at least as much of the teacher's distribution on the student's frames
+    from rl.cost_refit import main as refit_main
+    from rl.cost_refit import refit
+
+    fits = {f["terms"]: f for f in refit(out, ["map", "peds", "all"])}
+    w = teacher.features_extractor.lookahead.linear.weight.detach().view(-1) * SCORE_SCALE
+    assert fits["map"]["linear_weights"] == {n: round(float(x), 3) for n, x in zip(LINEAR_TERMS, w, strict=True)}
+    assert fits["map"]["ce_after"] <= fits["map"]["ce_before"]
+    assert fits["all"]["ce_after"] <= fits["peds"]["ce_after"] + 1e-3 <= fits["map"]["ce_after"] + 2e-3
+    assert refit_main([str(out), "--terms", "goal"]) == 2
 
 
 @pytest.mark.slow
