@@ -20,11 +20,12 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from pipeline.core.errors import ConfigError, InputMissingError, reports_errors
 from rl.dagger import load_features
-from rl.lookahead import LINEAR_TERMS
+from rl.lookahead import LINEAR_TERMS, N_LINEAR
 from rl.policy import load_policy, read_policy_json
 from rl.stage import inherit_linear_cost
 from rl.teacher import FIT_TERMS, fit_lookahead_linear, has_lookahead, lookahead_feature_cache
@@ -33,7 +34,8 @@ from rl.teacher import FIT_TERMS, fit_lookahead_linear, has_lookahead, lookahead
 def refit(policy_dir: Path, terms: list[str], soft_tau: float = 1.0, mirror: bool = True, seed: int = 0,
           max_frames: int = 20_000) -> list[dict[str, Any]]:
     """One :func:`fit_lookahead_linear` per entry of ``terms`` on every DAgger frame of the student at
-    ``policy_dir``, each from the teacher's linear cost and a zero map cost. Returns the fits' records."""
+    ``policy_dir``, each from the teacher's linear cost and a zero map cost. Returns :func:`teacher_contacts` on
+    those frames (``terms: "perception"``), then the fits' records."""
     policy_dir = Path(policy_dir)
     desc = read_policy_json(policy_dir)
     produced = desc.get("produced_by") or {}
@@ -61,7 +63,7 @@ def refit(policy_dir: Path, terms: list[str], soft_tau: float = 1.0, mirror: boo
     cache = lookahead_feature_cache(policy, data, mirror, n_rot, keys)
     head = policy.features_extractor.lookahead
     teacher = (policy_dir / produced["teacher"]).resolve()
-    out = []
+    out = [{"terms": "perception", **teacher_contacts(cache[0], data["action"])}]
     for t in terms:
         inherit_linear_cost(policy, teacher)
         if head.n_map:
@@ -73,9 +75,25 @@ def refit(policy_dir: Path, terms: list[str], soft_tau: float = 1.0, mirror: boo
     return out
 
 
+def teacher_contacts(feats: np.ndarray, actions: np.ndarray) -> dict[str, Any]:
+    """How the student's perceived pedestrian-contact feature (the first :data:`rl.lookahead.PED_TERMS`) reads the
+    teacher's own choices: the share of frames where some arc is predicted to touch a person, where the teacher's
+    action is, and where the teacher's action is not the least-contact arc. ``feats``: ``N x A x F`` (unmirrored)."""
+    contact = feats[..., LINEAR_TERMS.index("ped_contact") - N_LINEAR].astype(np.float32)
+    chosen = contact[np.arange(len(actions)), actions]
+    return {"frames": int(len(actions)), "any_arc_contact": float((contact > 0).any(1).mean()),
+            "teacher_action_contact": float((chosen > 0).mean()),
+            "teacher_action_not_least_contact": float((chosen > contact.min(1) + 1e-6).mean())}
+
+
 def markdown(policy_dir: Path, fits: list[dict[str, Any]]) -> str:
     names = list(LINEAR_TERMS)
-    lines = [f"{policy_dir}: {fits[0]['frames']} frames (with mirrored copies); weights in nats per unit", "",
+    seen, fits = fits[0], fits[1:]
+    lines = [f"{policy_dir}: the student's perception of the teacher's choices on {seen['frames']} frames: some arc "
+             f"predicted to touch a person {seen['any_arc_contact']:.1%}, the teacher's action "
+             f"{seen['teacher_action_contact']:.1%}, the teacher's action not the least-contact arc "
+             f"{seen['teacher_action_not_least_contact']:.1%}", "",
+             f"Refits on {fits[0]['frames']} frames (with mirrored copies); weights in nats per unit", "",
              "| terms free | CE before | CE after | " + " | ".join(names) + " | map weights |",
              "|---|---|---|" + "---|" * len(names) + "---|"]
     for f in fits:

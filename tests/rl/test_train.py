@@ -385,7 +385,9 @@ def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
     from rl.cost_refit import main as refit_main
     from rl.cost_refit import refit
 
-    fits = {f["terms"]: f for f in refit(out, ["map", "peds", "all"])}
+    seen, *fits = refit(out, ["map", "peds", "all"])
+    assert seen["terms"] == "perception" and 0.0 <= seen["teacher_action_contact"] <= seen["any_arc_contact"] <= 1.0
+    fits = {f["terms"]: f for f in fits}
     w = teacher.features_extractor.lookahead.linear.weight.detach().view(-1) * SCORE_SCALE
     assert fits["map"]["linear_weights"] == {n: round(float(x), 3) for n, x in zip(LINEAR_TERMS, w, strict=True)}
     assert fits["map"]["ce_after"] <= fits["map"]["ce_before"]
