@@ -2,6 +2,11 @@
 the simulator's truth on episodes driven by the privileged expert (numbers in docs/results.md)::
 
     python -m rl.perception_check --scene office_lobby --density 0.2 --seeds 0,1,2 --figure docs/img/perception_lobby.png
+
+Besides the tracks' and the scan's errors, it compares what decides the lookahead head: per action arc of the grid,
+whether the perceived people (tracks, and with ``--intention CKPT`` the intention model's forecasts) put someone in
+the robot's contact zone along it — against the same feature on the true positions and velocities, which is what
+the privileged teacher's cost reads.
 """
 
 from __future__ import annotations
@@ -15,8 +20,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
+from rl.lookahead import LINEAR_TERMS, N_LINEAR  # noqa: E402
 from rl.observe import observer_for_env  # noqa: E402
+from rl.policy import build_policy, obs_to_tensor  # noqa: E402
 from sim.env import CrowdNavEnv, SimConfig  # noqa: E402
 from sim.episode import episode_steps  # noqa: E402
 from sim.expert import ExpertDriver  # noqa: E402
@@ -27,20 +35,25 @@ from sim.wrappers import PrivilegedWorld  # noqa: E402
 
 def evaluate_perception(scene: str = "office_lobby", density: float = 0.2, seed: int = 0, steps: int = 150,
                         width_px: int = 160, height_px: int = 120, figure: str | None = None,
-                        figure_step: int = 60) -> dict[str, float]:
+                        figure_step: int = 60, forecaster=None) -> dict[str, float]:
     """Drives the privileged expert through one rendered episode and compares what the lookahead head perceives with
     the simulator's truth: the error of each track against the nearest true pedestrian within 0.6 m (position, and
     velocity once the track is 1 s old), the share of true pedestrians within 4 m in the cameras' view that have a
     track within 0.6 m, and the share of in-view scan bins (±35°) that match the static map within 0.3 m or end on a
-    pedestrian. With ``figure`` also a top-down figure of the robot frame at ``figure_step``."""
+    pedestrian; and, over every action arc of every step, the perceived pedestrian-contact feature against the one on
+    the true pedestrians (:func:`contact_agreement`; ``forecaster``: the intention model whose forecasts the
+    perceived people are rolled out with, else constant velocity). With ``figure`` also a top-down figure of the robot
+    frame at ``figure_step``."""
     cfg = SimConfig()
     cfg = replace(cfg, scene=scene, density=density, obs_mode="visual", info_level="basic",
                   camera=replace(cfg.camera, width_px=width_px, height_px=height_px))
     env = PrivilegedWorld(CrowdNavEnv(config=cfg))
     u = env.unwrapped
-    observer = observer_for_env(u, "no_bev", None, head="lookahead")
+    rollout = "intention model" if forecaster is not None else "constant velocity"  # how the tracks are rolled out
+    observer = observer_for_env(u, "no_bev", None, head="lookahead", forecaster=forecaster)
     observer.reset()
-    pos_err, vel_err, recall, scan_ok = [], [], [], []
+    head = contact_head(u, observer)
+    pos_err, vel_err, recall, scan_ok, contact = [], [], [], [], []
     ahead = np.r_[0:8, 65:72]
     snap = None
     step = 0
@@ -71,16 +84,52 @@ def evaluate_perception(scene: str = "office_lobby", density: float = 0.2, seed:
         hit = np.stack([rng * np.cos(ang), rng * np.sin(ang)], -1)
         on_person = (np.linalg.norm(hit[:, None] - people[None], axis=-1).min(1) < 0.6) if len(people) else False
         scan_ok.append((np.abs(rng - static) < 0.3) | (on_person & (rng < 4.0)))
+        contact.append(contact_agreement(head, o, u.privileged_peds()))
         if step == figure_step:
             snap = (o, people, pvel, static_scan)
     env.close()
     out = {"frames": step, "track_pos_err_median_m": float(np.median(pos_err)),
            "track_pos_err_p90_m": float(np.percentile(pos_err, 90)),
            "track_vel_err_median_mps": float(np.median(vel_err)), "track_vel_err_p90_mps": float(np.percentile(vel_err, 90)),
-           "track_recall_in_view_4m": float(np.mean(recall)), "scan_bins_explained_in_view": float(np.mean(np.concatenate(scan_ok)))}
+           "track_recall_in_view_4m": float(np.mean(recall)), "scan_bins_explained_in_view": float(np.mean(np.concatenate(scan_ok))),
+           **contact_shares(np.concatenate(contact)), "people": rollout}
     if figure and snap is not None:
         _plot_snapshot(snap, figure, f"{scene} @ {density:g} ped/m², seed {seed}, step {figure_step}")
     return out
+
+
+CONTACT = N_LINEAR - LINEAR_TERMS.index("ped_contact")  # its position from the end of the head's features
+
+
+def contact_head(env, observer):
+    """The lookahead head a student of ``env``'s robot builds over ``observer``'s observations (its arcs and
+    features need no trained weights)."""
+    from dataclasses import asdict
+
+    c = env.cfg
+    net = {"head": "lookahead", "robot": asdict(c.robot), "dt_s": c.dt_s, "scan_range_m": c.scan_range_m}
+    return build_policy("student", "no_bev", observer.observation_space, net).features_extractor.lookahead
+
+
+@torch.no_grad()
+def contact_agreement(head, obs: dict[str, np.ndarray], true_peds: np.ndarray) -> np.ndarray:
+    """``A x 2``: per action arc the head's pedestrian-contact feature (discounted intrusion into the contact zone)
+    on the perceived people of ``obs`` (their forecasts when it has ``peds_future``) and on ``true_peds``
+    (``K x 6`` [x, y, vx, vy, r, present], rolled out at constant velocity as the teacher's cost does)."""
+    perceived = head.action_features(obs_to_tensor(obs))[0, :, -CONTACT]
+    truth = {k: v for k, v in obs.items() if k != "peds_future"} | {"peds": true_peds}
+    true = head.action_features(obs_to_tensor(truth))[0, :, -CONTACT]
+    return torch.stack([perceived, true], -1).numpy()
+
+
+def contact_shares(c: np.ndarray) -> dict[str, float]:
+    """From :func:`contact_agreement` rows: the share of arcs predicted to touch someone on the perceived and on the
+    true people, of the perceived contacts the share with none in truth (false), of the true contacts the share the
+    perception misses."""
+    p, t = c[:, 0] > 0, c[:, 1] > 0
+    return {"contact_arcs_perceived": float(p.mean()), "contact_arcs_true": float(t.mean()),
+            "contact_false_share": float((p & ~t).sum() / max(p.sum(), 1)),
+            "contact_missed_share": float((t & ~p).sum() / max(t.sum(), 1))}
 
 
 def _plot_snapshot(snap, path: str, title: str) -> None:
@@ -120,10 +169,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--density", type=float, default=0.2)
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--figure", default=None)
+    ap.add_argument("--intention", default=None, help="an intention checkpoint: roll the tracks out with its forecasts")
     a = ap.parse_args(argv)
-    rows = [evaluate_perception(a.scene, a.density, int(s), figure=a.figure if i == 0 else None)
-            for i, s in enumerate(a.seeds.split(","))]
-    print(json.dumps({k: round(float(np.mean([r[k] for r in rows])), 3) for k in rows[0]} | {"episodes": len(rows)}))
+    forecaster = None
+    if a.intention:
+        from pretrain.intention import load_forecaster
+
+        forecaster = load_forecaster(a.intention)[0]
+    rows = [evaluate_perception(a.scene, a.density, int(s), figure=a.figure if i == 0 else None,
+                                forecaster=forecaster) for i, s in enumerate(a.seeds.split(","))]
+    print(json.dumps({k: round(float(np.mean([r[k] for r in rows])), 3) for k in rows[0] if k != "people"}
+                     | {"people": rows[0]["people"], "episodes": len(rows)}))
     return 0
 
 
