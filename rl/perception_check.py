@@ -53,6 +53,7 @@ def evaluate_perception(scene: str = "office_lobby", density: float = 0.2, seed:
     observer = observer_for_env(u, "no_bev", None, head="lookahead", forecaster=forecaster)
     observer.reset()
     head = contact_head(u, observer)
+    view_deg = abs(float(cfg.camera.yaw_deg)) + float(cfg.camera.hfov_deg) / 2.0  # the cameras' joint half-view
     pos_err, vel_err, recall, scan_ok, contact = [], [], [], [], []
     ahead = np.r_[0:8, 65:72]
     snap = None
@@ -84,7 +85,7 @@ def evaluate_perception(scene: str = "office_lobby", density: float = 0.2, seed:
         hit = np.stack([rng * np.cos(ang), rng * np.sin(ang)], -1)
         on_person = (np.linalg.norm(hit[:, None] - people[None], axis=-1).min(1) < 0.6) if len(people) else False
         scan_ok.append((np.abs(rng - static) < 0.3) | (on_person & (rng < 4.0)))
-        contact.append(contact_agreement(head, o, u.privileged_peds()))
+        contact.append(contact_agreement(head, o, u.privileged_peds(), view_deg))
         if step == figure_step:
             snap = (o, people, pvel, static_scan)
     env.close()
@@ -112,24 +113,29 @@ def contact_head(env, observer):
 
 
 @torch.no_grad()
-def contact_agreement(head, obs: dict[str, np.ndarray], true_peds: np.ndarray) -> np.ndarray:
-    """``A x 2``: per action arc the head's pedestrian-contact feature (discounted intrusion into the contact zone)
-    on the perceived people of ``obs`` (their forecasts when it has ``peds_future``) and on ``true_peds``
-    (``K x 6`` [x, y, vx, vy, r, present], rolled out at constant velocity as the teacher's cost does)."""
-    perceived = head.action_features(obs_to_tensor(obs))[0, :, -CONTACT]
-    truth = {k: v for k, v in obs.items() if k != "peds_future"} | {"peds": true_peds}
-    true = head.action_features(obs_to_tensor(truth))[0, :, -CONTACT]
-    return torch.stack([perceived, true], -1).numpy()
+def contact_agreement(head, obs: dict[str, np.ndarray], true_peds: np.ndarray, view_deg: float = 180.0
+                      ) -> np.ndarray:
+    """``A x 3``: per action arc the head's pedestrian-contact feature (discounted intrusion into the contact zone)
+    on the perceived people of ``obs`` (their forecasts when it has ``peds_future``), on ``true_peds`` (``K x 6``
+    [x, y, vx, vy, r, present], robot frame, rolled out at constant velocity as the teacher's cost does), and on
+    those of them now within ``view_deg`` of the heading (the cameras' joint half-view: people a student could see)."""
+    truth = {k: v for k, v in obs.items() if k != "peds_future"}
+    seen = true_peds.copy()
+    seen[np.abs(np.degrees(np.arctan2(seen[:, 1], seen[:, 0]))) > view_deg, 5] = 0.0
+    out = [head.action_features(obs_to_tensor(o))[0, :, -CONTACT]
+           for o in (obs, truth | {"peds": true_peds}, truth | {"peds": seen})]
+    return torch.stack(out, -1).numpy()
 
 
 def contact_shares(c: np.ndarray) -> dict[str, float]:
     """From :func:`contact_agreement` rows: the share of arcs predicted to touch someone on the perceived and on the
     true people, of the perceived contacts the share with none in truth (false), of the true contacts the share the
-    perception misses."""
-    p, t = c[:, 0] > 0, c[:, 1] > 0
+    perception misses, and of the true contacts with people in view the share it misses."""
+    p, t, v = c[:, 0] > 0, c[:, 1] > 0, c[:, 2] > 0
     return {"contact_arcs_perceived": float(p.mean()), "contact_arcs_true": float(t.mean()),
             "contact_false_share": float((p & ~t).sum() / max(p.sum(), 1)),
-            "contact_missed_share": float((t & ~p).sum() / max(t.sum(), 1))}
+            "contact_missed_share": float((t & ~p).sum() / max(t.sum(), 1)),
+            "contact_missed_share_in_view": float((v & ~p).sum() / max(v.sum(), 1))}
 
 
 def _plot_snapshot(snap, path: str, title: str) -> None:

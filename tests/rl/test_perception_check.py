@@ -18,14 +18,20 @@ def test_contact_agreement_compares_the_same_feature_on_perceived_and_true_peopl
     person = np.array([[1.0, 0.0, 0.0, 0.0, 0.25, 1.0]], np.float32)  # standing 1 m ahead
     obs["peds"][:1] = person
     same = contact_agreement(head, obs, person)
-    assert same.shape == (head.n_actions, 2)
+    assert same.shape == (head.n_actions, 3)
     np.testing.assert_allclose(same[:, 0], same[:, 1], atol=1e-6)
+    np.testing.assert_allclose(same[:, 2], same[:, 1], atol=1e-6)  # the person is in view (180° by default)
     assert (same[:, 1] > 0).any() and (same[:, 1] == 0).any()  # straight arcs run into them, sharp turns do not
     assert contact_shares(same) == pytest.approx({"contact_arcs_perceived": float((same[:, 1] > 0).mean()),
                                                   "contact_arcs_true": float((same[:, 1] > 0).mean()),
-                                                  "contact_false_share": 0.0, "contact_missed_share": 0.0})
+                                                  "contact_false_share": 0.0, "contact_missed_share": 0.0,
+                                                  "contact_missed_share_in_view": 0.0})
     unseen = {**obs, "peds": np.zeros_like(obs["peds"])}  # the person is there, the tracks do not have them
     missed = contact_shares(contact_agreement(head, unseen, person))
     assert missed["contact_arcs_perceived"] == 0.0 and missed["contact_missed_share"] == 1.0
     ghost = contact_shares(contact_agreement(head, obs, np.zeros((1, 6), np.float32)))  # a track where nobody is
     assert ghost["contact_arcs_true"] == 0.0 and ghost["contact_false_share"] == 1.0
+    beside = np.array([[0.0, 0.6, 0.0, 0.0, 0.25, 1.0]], np.float32)  # at 90°, outside a 60° view: missed, not "in view"
+    c = contact_agreement(head, unseen, beside, view_deg=60.0)
+    assert (c[:, 1] > 0).any() and not (c[:, 2] > 0).any()
+    assert contact_shares(c)["contact_missed_share"] == 1.0 and contact_shares(c)["contact_missed_share_in_view"] == 0.0
