@@ -17,6 +17,14 @@ pedestrian and obstacle collision, timeout: the exact McNemar test on who alone 
 of each. A run of several methods (an eval run of ``--methods '[a, b]'``) is compared on one of them:
 ``--methods <first run's>,<second run's>`` (the same run may then be given twice). Prints Markdown; ``--json``
 writes the numbers.
+
+A comparison replicated over independent trainings (e.g. ``full`` against ``w/o BEV`` in two chains trained with
+different seeds, each evaluated on the same benchmark seeds) adds each further pair of runs with ``--also A B``
+(``--methods`` applies to every pair): every pair of runs is matched on its own, its cells are reported tagged
+with the replicate (``office_lobby [2]@0.1``), and the pooled test counts every replicate's pairs — independent
+pairs, so the exact McNemar test on the summed discordant counts::
+
+    python -m evaluation.compare run_s0 run_s0 --methods full,no_bev --also run_s1_full run_s1_no_bev
 """
 
 from __future__ import annotations
@@ -134,6 +142,12 @@ def pair_key(r: dict[str, Any]) -> tuple[str, float, int]:
     return r["scene"], float(r["density"]), int(r["seed"])
 
 
+def replicate(rows: list[dict[str, Any]], k: int) -> list[dict[str, Any]]:
+    """``rows`` with their scene tagged as replicate ``k`` (``--also``): pairs are then matched within a replicate,
+    and every replicate's cells count as cells of their own."""
+    return [{**r, "scene": f"{r['scene']} [{k}]"} for r in rows]
+
+
 def compare(a: list[dict[str, Any]], b: list[dict[str, Any]], labels: tuple[str, str]) -> dict[str, Any]:
     """``a`` (labelled ``labels[0]``, the reference) against ``b`` on their common (scene, density, seed)."""
     if labels[0] == labels[1]:
@@ -209,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--labels", default="a,b", help="names of the two runs, comma-separated")
     ap.add_argument("--methods", default=None,
                     help="the method of each run to compare, comma-separated (needed where a run holds several)")
+    ap.add_argument("--also", nargs=2, type=Path, action="append", default=[], metavar=("A", "B"),
+                    help="a further replicate: its reference run and its other run (repeatable)")
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = ap.parse_args(argv)
     labels = tuple(x.strip() for x in args.labels.split(","))
@@ -220,6 +236,13 @@ def main(argv: list[str] | None = None) -> int:
         if len(methods) != 2 or not all(methods):
             raise ConfigError(f"--methods: expected two comma-separated method names, got {args.methods!r}")
     a, b = (one_method(read_rows(p), m, p) for p, m in zip((args.a, args.b), methods, strict=True))
+    for k, pair in enumerate(args.also, 2):
+        ra, rb = (one_method(read_rows(p), m, p) for p, m in zip(pair, methods, strict=True))
+        if not {pair_key(r) for r in ra} & {pair_key(r) for r in rb}:
+            raise InputMissingError(f"--also {pair[0]} {pair[1]}: the two runs share no (scene, density, seed)")
+        if k == 2:  # the first pair is replicate 1
+            a, b = replicate(a, 1), replicate(b, 1)
+        a, b = a + replicate(ra, k), b + replicate(rb, k)
     res = compare(a, b, labels)
     if args.json:
         atomic_write_json(args.json, json_safe(res))

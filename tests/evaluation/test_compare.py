@@ -108,3 +108,23 @@ def test_an_unfinished_eval_run_compares_on_its_finished_benchmark_episodes(tmp_
     (empty / "rows").mkdir(parents=True)
     with pytest.raises(InputMissingError, match="no finished benchmark episode yet"):
         compare.read_rows(empty)
+
+
+def test_replicates_are_matched_each_on_their_own_and_pooled(tmp_path, capsys):
+    """``--also A B``: a second training's pair of runs on the same seeds is matched within itself (never with the
+    first pair's episodes of the same seed), its cells are tagged, and the pooled test sums both replicates'
+    discordant pairs."""
+    r1a, r1b = _write(tmp_path / "1a.jsonl", _rows([1] * 6 + [0] * 14)), _write(tmp_path / "1b.jsonl", _rows([0] * 20))
+    r2a, r2b = _write(tmp_path / "2a.jsonl", _rows([0] * 20)), _write(tmp_path / "2b.jsonl", _rows([0] * 16 + [1] * 4))
+    assert compare.main([str(r1a), str(r1b), "--also", str(r2a), str(r2b), "--json", str(tmp_path / "c.json")]) == 0
+    res = json.loads((tmp_path / "c.json").read_text())
+    assert set(res["cells"]) == {"office_lobby [1]@0.1", "office_lobby [2]@0.1"}
+    one, two = (res["cells"][f"office_lobby [{k}]@0.1"]["b"]["sr"] for k in (1, 2))
+    assert (one["a_only"], one["b_only"], two["a_only"], two["b_only"]) == (6, 0, 0, 4)
+    pooled = res["pooled"]["sr"]
+    assert (pooled["n"], pooled["a_only"], pooled["b_only"]) == (40, 6, 4)
+    assert pooled["sr_diff"] == pytest.approx(2 / 40)
+    assert "| office_lobby [2]@0.1 | 20 | 0.00 | 0.20 | 0 / 4 |" in capsys.readouterr().out
+    _write(tmp_path / "other.jsonl", _rows([1] * 20, scene="warehouse"))
+    assert compare.main([str(r1a), str(r1b), "--also", str(r2a), str(tmp_path / "other.jsonl")]) == 2
+    assert "--also" in capsys.readouterr().err
