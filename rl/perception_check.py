@@ -22,6 +22,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from pretrain.intention import load_forecaster  # noqa: E402
 from rl.lookahead import LINEAR_TERMS, N_LINEAR  # noqa: E402
 from rl.observe import observer_for_env  # noqa: E402
 from rl.policy import build_policy, obs_to_tensor  # noqa: E402
@@ -179,8 +180,6 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     forecaster = None
     if a.intention:
-        from pretrain.intention import load_forecaster
-
         forecaster = load_forecaster(a.intention)[0]
     rows = [evaluate_perception(a.scene, a.density, int(s), figure=a.figure if i == 0 else None,
                                 forecaster=forecaster) for i, s in enumerate(a.seeds.split(","))]
