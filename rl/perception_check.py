@@ -88,7 +88,7 @@ def evaluate_perception(scene: str = "office_lobby", density: float = 0.2, seed:
         scan_ok.append((np.abs(rng - static) < 0.3) | (on_person & (rng < 4.0)))
         contact.append(contact_agreement(head, o, u.privileged_peds(), view_deg))
         if step == figure_step:
-            snap = (o, people, pvel, static_scan)
+            snap = (o, people, pvel, static_scan, contact[-1], head.arcs.numpy())
     env.close()
     out = {"frames": step, "track_pos_err_median_m": float(np.median(pos_err)),
            "track_pos_err_p90_m": float(np.percentile(pos_err, 90)),
@@ -140,10 +140,18 @@ def contact_shares(c: np.ndarray) -> dict[str, float]:
 
 
 def _plot_snapshot(snap, path: str, title: str) -> None:
-    o, people, pvel, static = snap
+    o, people, pvel, static, contact, arcs = snap
     rays = len(o["scan"])
     ang = np.arange(rays) * (2 * np.pi / rays)
     fig, ax = plt.subplots(figsize=(6.4, 5.6))
+    # the action arcs (robot frame, over the lookahead horizon), by whether perception and truth predict a contact
+    perceived, true = contact[:, 0] > 0, contact[:, 1] > 0
+    for mask, colour, label in ((~perceived & ~true, "0.8", "arc: no contact (both)"),
+                                (perceived & true, "tab:purple", "arc: contact (both)"),
+                                (perceived & ~true, "tab:orange", "arc: false contact (perceived only)"),
+                                (~perceived & true, "tab:cyan", "arc: missed contact (truth only)")):
+        for k, i in enumerate(np.flatnonzero(mask)):
+            ax.plot(arcs[i, :, 0], arcs[i, :, 1], c=colour, lw=0.8, zorder=0, label=label if k == 0 else None)
     for r, style, label in ((static, dict(c="0.6", s=14, marker="s"), "static map (truth)"),
                             (o["scan"], dict(c="k", s=22, marker="x"), "depth scan (perceived)")):
         m = r < 9.99
