@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from rl.observe import observer_for_env
-from rl.perception_check import contact_agreement, contact_head, contact_shares
+from rl.perception_check import contact_agreement, contact_head, contact_shares, evaluate_perception
 from tests.rl.test_perceive import lobby  # noqa: F401 (fixture)
 
 
@@ -35,3 +35,14 @@ def test_contact_agreement_compares_the_same_feature_on_perceived_and_true_peopl
     c = contact_agreement(head, unseen, beside, view_deg=60.0)
     assert (c[:, 1] > 0).any() and not (c[:, 2] > 0).any()
     assert contact_shares(c)["contact_missed_share"] == 1.0 and contact_shares(c)["contact_missed_share_in_view"] == 0.0
+
+
+@pytest.mark.slow
+def test_a_short_episode_reports_the_contact_shares_and_draws_the_arcs(tmp_path):
+    out = evaluate_perception("office_lobby", 0.2, seed=0, steps=30, width_px=64, height_px=48,
+                              figure=str(tmp_path / "p.png"), figure_step=20)
+    assert out["people"] == "constant velocity" and out["frames"] >= 20
+    for k in ("contact_arcs_perceived", "contact_arcs_true", "contact_false_share", "contact_missed_share",
+              "contact_missed_share_in_view"):
+        assert 0.0 <= out[k] <= 1.0
+    assert (tmp_path / "p.png").stat().st_size > 0
