@@ -37,7 +37,6 @@ def test_contact_agreement_compares_the_same_feature_on_perceived_and_true_peopl
     assert contact_shares(c)["contact_missed_share"] == 1.0 and contact_shares(c)["contact_missed_share_in_view"] == 0.0
 
 
-@pytest.mark.slow
 def test_a_short_episode_reports_the_contact_shares_and_draws_the_arcs(tmp_path):
     out = evaluate_perception("office_lobby", 0.2, seed=0, steps=30, width_px=64, height_px=48,
                               figure=str(tmp_path / "p.png"), figure_step=20)
