@@ -235,14 +235,14 @@ def main(argv: list[str] | None = None) -> int:
         methods = tuple(x.strip() for x in args.methods.split(","))
         if len(methods) != 2 or not all(methods):
             raise ConfigError(f"--methods: expected two comma-separated method names, got {args.methods!r}")
-    a, b = (one_method(read_rows(p), m, p) for p, m in zip((args.a, args.b), methods, strict=True))
-    for k, pair in enumerate(args.also, 2):
-        ra, rb = (one_method(read_rows(p), m, p) for p, m in zip(pair, methods, strict=True))
+    pairs = [[one_method(read_rows(p), m, p) for p, m in zip(pair, methods, strict=True)]
+             for pair in ((args.a, args.b), *args.also)]
+    for (ra, rb), pair in zip(pairs[1:], args.also, strict=True):
         if not {pair_key(r) for r in ra} & {pair_key(r) for r in rb}:
             raise InputMissingError(f"--also {pair[0]} {pair[1]}: the two runs share no (scene, density, seed)")
-        if k == 2:  # the first pair is replicate 1
-            a, b = replicate(a, 1), replicate(b, 1)
-        a, b = a + replicate(ra, k), b + replicate(rb, k)
+    if len(pairs) > 1:  # replicates: each pair's cells tagged with its number, so pairs match within it
+        pairs = [[replicate(rows, k) for rows in pair] for k, pair in enumerate(pairs, 1)]
+    a, b = ([r for pair in pairs for r in pair[i]] for i in (0, 1))
     res = compare(a, b, labels)
     if args.json:
         atomic_write_json(args.json, json_safe(res))

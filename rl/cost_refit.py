@@ -25,7 +25,7 @@ import torch
 
 from pipeline.core.errors import ConfigError, InputMissingError, reports_errors
 from rl.dagger import load_features
-from rl.lookahead import LINEAR_TERMS, N_LINEAR
+from rl.lookahead import LINEAR_TERMS, PED_CONTACT
 from rl.policy import load_policy, read_policy_json
 from rl.stage import inherit_linear_cost
 from rl.teacher import FIT_TERMS, fit_lookahead_linear, has_lookahead, lookahead_feature_cache
@@ -57,10 +57,8 @@ def refit(policy_dir: Path, terms: list[str], soft_tau: float = 1.0, mirror: boo
     if "teacher_logits" not in data:
         raise InputMissingError(f"{policy_dir}/dagger: the frames hold no teacher_logits (recorded with soft_tau 0)")
     data["costs"] = -data.pop("teacher_logits")
-    space = policy.observation_space.spaces
-    keys = (*space, *(("bev_mirror",) if mirror and "bev" in space else ()))
     n_rot = int(desc["net"]["robot"]["n_rotations"])  # the action grid's yaw rates (mirroring reverses them)
-    cache = lookahead_feature_cache(policy, data, mirror, n_rot, keys)
+    cache = lookahead_feature_cache(policy, data, mirror, n_rot)
     head = policy.features_extractor.lookahead
     teacher = (policy_dir / produced["teacher"]).resolve()
     out = [{"terms": "perception", **teacher_contacts(cache[0], data["action"])}]
@@ -79,7 +77,7 @@ def teacher_contacts(feats: np.ndarray, actions: np.ndarray) -> dict[str, Any]:
     """How the student's perceived pedestrian-contact feature (the first :data:`rl.lookahead.PED_TERMS`) reads the
     teacher's own choices: the share of frames where some arc is predicted to touch a person, where the teacher's
     action is, and where the teacher's action is not the least-contact arc. ``feats``: ``N x A x F`` (unmirrored)."""
-    contact = feats[..., LINEAR_TERMS.index("ped_contact") - N_LINEAR].astype(np.float32)
+    contact = feats[..., PED_CONTACT].astype(np.float32)
     chosen = contact[np.arange(len(actions)), actions]
     return {"frames": int(len(actions)), "any_arc_contact": float((contact > 0).any(1).mean()),
             "teacher_action_contact": float((chosen > 0).mean()),

@@ -49,6 +49,7 @@ N_LINEAR = 10  # rollout features of the linear cost (the last ones of action_fe
 LINEAR_TERMS = ("ped_contact", "ped_comfort", "obs_contact", "obs_near", "subgoal_gain", "goal_gain", "heading_error",
                 "goal_approach", "speed", "turn")  # their names, in order (LookaheadHead.action_features)
 PED_TERMS = (0, 1)  # the pedestrian terms among them: predicted intrusions into people's contact and comfort zones
+PED_CONTACT = LINEAR_TERMS.index("ped_contact") - N_LINEAR  # its index into action_features' last axis (negative)
 NEAR_GOAL_M = 0.5  # closer than this to the goal, the cost rewards reaching it instead of the route's heading
 N_MAP = 4  # occupancy-map features per action (LookaheadHead.map_features)
 MAP_KEYS = ("bev_occ", "occ")  # the maps the head can read: the BEV's predicted occupancy, the depth occupancy

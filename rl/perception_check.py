@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from pretrain.intention import load_forecaster  # noqa: E402
-from rl.lookahead import LINEAR_TERMS, N_LINEAR  # noqa: E402
+from rl.lookahead import PED_CONTACT  # noqa: E402
 from rl.observe import observer_for_env  # noqa: E402
 from rl.policy import build_policy, obs_to_tensor  # noqa: E402
 from sim.env import CrowdNavEnv, SimConfig  # noqa: E402
@@ -100,9 +100,6 @@ def evaluate_perception(scene: str = "office_lobby", density: float = 0.2, seed:
     return out
 
 
-CONTACT = N_LINEAR - LINEAR_TERMS.index("ped_contact")  # its position from the end of the head's features
-
-
 def contact_head(env, observer):
     """The lookahead head a student of ``env``'s robot builds over ``observer``'s observations (its arcs and
     features need no trained weights)."""
@@ -123,7 +120,7 @@ def contact_agreement(head, obs: dict[str, np.ndarray], true_peds: np.ndarray, v
     truth = {k: v for k, v in obs.items() if k != "peds_future"}
     seen = true_peds.copy()
     seen[np.abs(np.degrees(np.arctan2(seen[:, 1], seen[:, 0]))) > view_deg, 5] = 0.0
-    out = [head.action_features(obs_to_tensor(o))[0, :, -CONTACT]
+    out = [head.action_features(obs_to_tensor(o))[0, :, PED_CONTACT]
            for o in (obs, truth | {"peds": true_peds}, truth | {"peds": seen})]
     return torch.stack(out, -1).numpy()
 

@@ -126,7 +126,8 @@ from sim.scene import load_scene
 log = logging.getLogger("icrowdnav")
 TRAIN_VARIANTS = ("teacher", *VARIANTS, *BASELINES)
 
-LINEAR_COSTS = ("teacher", "fit", "peds")  # train.dagger.linear_cost
+# train.dagger.linear_cost -> the terms fit_lookahead_linear fits each iteration, and how the log names that fit
+LINEAR_COSTS = {"teacher": ("map", "map"), "fit": ("all", "linear"), "peds": ("peds", "pedestrian + map")}
 PED_NAMES = tuple(LINEAR_TERMS[i] for i in PED_TERMS)
 
 
@@ -595,18 +596,14 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             soft_before = bc_loss(policy, new, soft_tau=d.soft_tau)
         linear_fit, cache = None, None
         if has_lookahead(policy):  # rollout features once; the linear cost by convex regression, then the rest
-            cache = lookahead_feature_cache(policy, data, d.mirror, n_rot,
-                                            (*space.spaces, *(("bev_mirror",) if d.mirror and "bev" in space.spaces
-                                                              else ())))
+            cache = lookahead_feature_cache(policy, data, d.mirror, n_rot)
             map_head = policy.features_extractor.lookahead.n_map > 0
-            terms = {"teacher": "map", "peds": "peds", "fit": "all"}[d.linear_cost]
+            terms, fitted = LINEAR_COSTS[d.linear_cost]
             if soft and (terms != "map" or map_head):  # the map cost is fitted on top of an inherited linear cost
                 linear_fit = fit_lookahead_linear(policy, data, d.soft_tau, seed=cfg.seed + k, mirror=d.mirror,
                                                   n_rot=n_rot, cache=cache, terms=terms, map_signs=cfg.map_signs)
                 log.info("student %s iteration %d: %s cost fit on %d frames, cross-entropy %.3f -> %.3f%s%s%s",
-                         cfg.variant, k, {"map": "map", "peds": "pedestrian + map", "all": "linear"}[terms],
-                         linear_fit["frames"],
-                         linear_fit["ce_before"], linear_fit["ce_after"],
+                         cfg.variant, k, fitted, linear_fit["frames"], linear_fit["ce_before"], linear_fit["ce_after"],
                          f", pedestrian weights {[linear_fit['linear_weights'][n] for n in PED_NAMES]}"
                          if terms == "peds" else "",
                          f", map weights {linear_fit['map_weights']}" if map_head else "",

@@ -360,7 +360,7 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
     n = len(data["action"])
     idx = np.sort(rng.choice(n, min(n, max_frames), replace=False))
     if cache is None:
-        sub = {k: data[k][idx] for k in (*policy.observation_space.spaces, "action")}
+        sub = {k: data[k][idx] for k in (*policy.observation_space.spaces, "action", "bev_mirror") if k in data}
         cache = lookahead_feature_cache(policy, sub, mirror, n_rot)
     else:
         cache = (cache[0][idx], None if cache[1] is None else cache[1][idx])
@@ -474,6 +474,8 @@ def lookahead_feature_cache(policy, data: dict[str, np.ndarray], mirror: bool, n
     ext = policy.features_extractor
     dev = policy.device
     keys = keys or tuple(policy.observation_space.spaces)
+    if mirror and "bev" in keys and "bev_mirror" not in keys:  # mirror_batch swaps in the mirrored world's s_bev
+        keys = (*keys, "bev_mirror")
     n = len(data["action"])
     out = [np.empty((n, ext.lookahead.n_actions, ext.lookahead.n_feat), np.float16) for _ in range(1 + mirror)]
     for s in range(0, n, chunk):
