@@ -594,24 +594,8 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             data["costs"] = -data.pop("teacher_logits")
             new["costs"] = -new.pop("teacher_logits")
             soft_before = bc_loss(policy, new, soft_tau=d.soft_tau)
-        linear_fit, cache = None, None
-        if has_lookahead(policy):  # rollout features once; the linear cost by convex regression, then the rest
-            cache = lookahead_feature_cache(policy, data, d.mirror, n_rot)
-            map_head = policy.features_extractor.lookahead.n_map > 0
-            terms, fitted = LINEAR_COSTS[d.linear_cost]
-            if soft and (terms != "map" or map_head):  # the map cost is fitted on top of an inherited linear cost
-                linear_fit = fit_lookahead_linear(policy, data, d.soft_tau, seed=cfg.seed + k, mirror=d.mirror,
-                                                  n_rot=n_rot, cache=cache, terms=terms, map_signs=cfg.map_signs)
-                log.info("student %s iteration %d: %s cost fit on %d frames, cross-entropy %.3f -> %.3f%s%s%s",
-                         cfg.variant, k, fitted, linear_fit["frames"], linear_fit["ce_before"], linear_fit["ce_after"],
-                         f", pedestrian weights {[linear_fit['linear_weights'][n] for n in PED_NAMES]}"
-                         if terms == "peds" else "",
-                         f", map weights {linear_fit['map_weights']}" if map_head else "",
-                         f", pinned at 0: {linear_fit['map_pinned']}" if "map_pinned" in linear_fit else "")
-        hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, cfg.seed + k, progress=cfg.progress,
-                               soft_tau=d.soft_tau if soft else 0.0, mirror=d.mirror, n_rot=n_rot,
-                               frozen=FITTED_PREFIXES if (linear_fit or inherited) else (), cache=cache)
-        del cache
+        hist, linear_fit = distill(policy, data, d, cfg.map_signs, cfg.seed + k, n_rot, inherited, soft,
+                                   cfg.progress, f"student {cfg.variant} iteration {k}")
         after = bc_loss(policy, new)
         soft_ce = ({"soft_ce_new_before": soft_before, "soft_ce_new_after": bc_loss(policy, new, soft_tau=d.soft_tau)}
                    if soft else {})
@@ -647,6 +631,34 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     save_policy(out, policy, describe("student", cfg.variant, space, net, **extra,
                                       intention=str(int_dir) if int_dir else None, produced_by=produced))
     return summary
+
+
+def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str, seed: int, n_rot: int,
+            inherited: bool, soft: bool, progress: bool = True, label: str = "student"
+            ) -> tuple[list[dict[str, float]], dict[str, Any] | None]:
+    """One cloning of a student on ``data`` (the aggregate of DAgger frames, ``costs`` = the teacher's negated logits
+    when ``soft``): for the lookahead head its rollout features once, the convex fit of the linear cost terms
+    ``d.linear_cost`` names (the map cost on top of an ``inherited`` teacher cost by default), then
+    :func:`behaviour_clone` of every other weight. Returns the cloning's per-epoch rows and the linear fit's record
+    (None without one). Used by every DAgger iteration and by ``rl.data_scale``."""
+    linear_fit, cache = None, None
+    if has_lookahead(policy):  # rollout features once; the linear cost by convex regression, then the rest
+        cache = lookahead_feature_cache(policy, data, d.mirror, n_rot)
+        map_head = policy.features_extractor.lookahead.n_map > 0
+        terms, fitted = LINEAR_COSTS[d.linear_cost]
+        if soft and (terms != "map" or map_head):  # the map cost is fitted on top of an inherited linear cost
+            linear_fit = fit_lookahead_linear(policy, data, d.soft_tau, seed=seed, mirror=d.mirror,
+                                              n_rot=n_rot, cache=cache, terms=terms, map_signs=map_signs)
+            log.info("%s: %s cost fit on %d frames, cross-entropy %.3f -> %.3f%s%s%s",
+                     label, fitted, linear_fit["frames"], linear_fit["ce_before"], linear_fit["ce_after"],
+                     f", pedestrian weights {[linear_fit['linear_weights'][n] for n in PED_NAMES]}"
+                     if terms == "peds" else "",
+                     f", map weights {linear_fit['map_weights']}" if map_head else "",
+                     f", pinned at 0: {linear_fit['map_pinned']}" if "map_pinned" in linear_fit else "")
+    hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, seed, progress=progress,
+                           soft_tau=d.soft_tau if soft else 0.0, mirror=d.mirror, n_rot=n_rot,
+                           frozen=FITTED_PREFIXES if (linear_fit or inherited) else (), cache=cache)
+    return hist, linear_fit
 
 
 def _tune_intention(cfg: TrainConfig, out: Path, k: int, device: torch.device) -> dict[str, Any]:

@@ -1,0 +1,308 @@
+"""``python -m rl.data_scale``: how a student's imitation of its teacher grows with the DAgger data it is cloned on.
+
+A DAgger iteration caches every frame's student inputs (frozen BEV features and their mirrored twin, poses, tracks,
+scan, state) with the teacher's logits (``dagger/iter_k/features/*.npz``), so a student can be cloned again offline on
+any set of such frames — several trainings' frames pooled, as long as they share the encoder, the intention model and
+the teacher (checked: their ``policy.json`` references must agree). This clones a fresh student of the asked head on
+nested subsets of the pooled frames (whole episodes, one seeded order, each subset a prefix of the next) with the
+training's own cloning (:func:`rl.stage.distill`, the profile's ``train.dagger`` settings) and scores each on held-out
+frames of other episodes (other rollouts: give a different training's iterations): the cross-entropy to the teacher's
+distribution, the teacher's own entropy there (its floor) and how often the student's most likely action is the
+teacher's. That is the learning curve behind "how many frames does the paper's MLP head need"::
+
+    python -m rl.data_scale --data-dir data --head mlp --train data/checkpoints/policy/full \\
+        --holdout data/other/checkpoints/policy/full/dagger/iter_3 --sizes 3000,12000,48000 --json curve.json
+
+``--train`` / ``--holdout`` take policy checkpoints (every DAgger iteration of each) or iteration directories;
+duplicate episodes (the same frames reached through copies, or iteration 0 of two trainings with the same seed) count
+once, and held-out episodes never enter training. ``--save DIR`` writes the student of the largest size as a
+checkpoint that ``icrowdnav eval`` and :mod:`rl.evaluate` run (its ``produced_by`` names the frames it was cloned on).
+Numbers in docs/results.md ("The paper's MLP head and the amount of data").
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import logging
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.core import layout
+from pipeline.core.artifacts import atomic_write_json
+from pipeline.core.config import load_config
+from pipeline.core.errors import ConfigError, InputMissingError, reports_errors
+from rl.dagger import bev_stats
+from rl.networks import STUDENT_HEADS
+from rl.observe import load_student_encoder, load_student_heads, observer_for_env
+from rl.policy import build_policy, describe, read_policy_json, relative_to, resolved_from, save_policy
+from rl.stage import (
+    TrainConfig,
+    cloned_net,
+    distill,
+    encoder_dir,
+    inherit_linear_cost,
+    policy_root,
+    student_net,
+)
+from rl.teacher import bc_loss, has_lookahead, policy_logits_values
+from sim.env import CrowdNavEnv
+
+log = logging.getLogger(__name__)
+SAME_SOURCES = ("encoder", "teacher", "intention")  # policy.json references every pooled training must share
+
+
+def iteration_dirs(paths: list[Path]) -> list[Path]:
+    """The DAgger iteration directories named by ``paths`` (a policy checkpoint: all of its iterations)."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if (p / "features").is_dir():
+            out.append(p)
+        elif (p / "dagger").is_dir():
+            its = sorted((q for q in (p / "dagger").glob("iter_*") if (q / "features").is_dir()),
+                         key=lambda q: int(q.name.split("_")[1]))
+            if not its:
+                raise InputMissingError(f"{p / 'dagger'}: no iteration with cached features (iter_k/features)")
+            out.extend(its)
+        else:
+            raise InputMissingError(f"{p}: expected a student checkpoint with dagger/ or a dagger/iter_k directory "
+                                    "with features/, found neither")
+    return out
+
+
+def _sources(it: Path) -> dict[str, str | None]:
+    """The encoder / teacher / intention a DAgger iteration's policy was trained with (resolved paths' contents
+    are compared by the caller through the files' digests)."""
+    desc = read_policy_json(it / "policy")
+    out: dict[str, str | None] = {}
+    for k in SAME_SOURCES:
+        ref = desc.get(k)
+        out[k] = None if not ref else _digest_dir(Path(resolved_from(ref, it / "policy")))
+    return out
+
+
+def _digest_dir(d: Path) -> str:
+    h = hashlib.sha256()
+    for f in sorted(d.glob("*.safetensors")):
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def episode_files(iters: list[Path]) -> list[tuple[Path, str, int]]:
+    """``(file, content key, frames)`` of every cached episode in ``iters``; the key (a digest of the teacher's
+    logits and the robot's states) identifies the same episode reached through two paths."""
+    out = []
+    for it in iters:
+        for f in sorted((it / "features").glob("*.npz")):
+            if f.name.endswith(".tmp.npz"):
+                continue
+            try:
+                with np.load(f) as z:
+                    if "teacher_logits" not in z.files:
+                        raise InputMissingError(f"{f}: no teacher_logits (the iteration was recorded with soft_tau 0)")
+                    key = hashlib.sha256(z["teacher_logits"].tobytes() + z["state"].tobytes()).hexdigest()[:20]
+                    out.append((f, key, int(len(z["action"]))))
+            except (OSError, ValueError, KeyError) as e:
+                raise InputMissingError(f"{f}: unreadable cached features ({type(e).__name__}: {e})") from None
+    return out
+
+
+def load_frames(files: list[Path], keys: tuple[str, ...], total: int) -> dict[str, np.ndarray]:
+    """The ``keys`` of ``files`` concatenated in order into preallocated arrays (no second copy of the set)."""
+    out: dict[str, np.ndarray] = {}
+    at = 0
+    for f in files:
+        with np.load(f) as z:
+            n = len(z["action"])
+            for k in keys:
+                a = z[k]
+                if k not in out:
+                    out[k] = np.empty((total, *a.shape[1:]), a.dtype)
+                out[k][at:at + n] = a
+            at += n
+    return out
+
+
+@torch.no_grad()
+def holdout_scores(policy, data: dict[str, np.ndarray], soft_tau: float, batch: int = 512) -> dict[str, float]:
+    """Cross-entropy to the teacher's distribution ``softmax(logits / soft_tau)`` (the cloning objective), the
+    teacher's entropy there, and the share of frames whose most likely student action is the teacher's."""
+    keys = tuple(policy.observation_space.spaces)
+    dev = policy.device
+    ce = ent = agree = 0.0
+    n = len(data["action"])
+    for s in range(0, n, batch):
+        obs = {k: torch.as_tensor(data[k][s:s + batch], dtype=torch.float32).to(dev) for k in keys}
+        logits, _ = policy_logits_values(policy, obs)
+        t = torch.as_tensor(data["teacher_logits"][s:s + batch], dtype=torch.float32).to(dev) / soft_tau
+        target = torch.softmax(t, -1)
+        ce += float(-(target * torch.log_softmax(logits, -1)).sum())
+        ent += float(-(target * torch.log_softmax(t, -1)).sum())
+        agree += float((logits.argmax(-1) == t.argmax(-1)).sum())
+    return {"ce": ce / n, "teacher_entropy": ent / n, "top1_agreement": agree / n, "frames": n}
+
+
+def learning_curve(cfg: TrainConfig, train: list[Path], holdout: list[Path], sizes: list[int], seed: int = 0,
+                   save: Path | None = None) -> dict[str, Any]:
+    """Clones a fresh student (``cfg.head``, ``cfg.variant``) on the first ``size`` frames (whole episodes) of the
+    pooled ``train`` iterations for every size, and scores it on the ``holdout`` iterations (module docstring)."""
+    d = cfg.dagger
+    if d.soft_tau <= 0:
+        raise ConfigError(f"train.dagger.soft_tau: expected > 0 (the curve scores the teacher's distribution), got "
+                          f"{d.soft_tau}")
+    if not sizes or any(s <= 0 for s in sizes) or sorted(sizes) != sizes:
+        raise ConfigError(f"--sizes: expected increasing positive frame counts, got {sizes}")
+    tr_its, ho_its = iteration_dirs(train), iteration_dirs(holdout)
+    sources = {str(it): _sources(it) for it in tr_its + ho_its}
+    first = next(iter(sources.values()))
+    for it, src in sources.items():
+        for k in ("encoder", "teacher"):
+            if src[k] != first[k]:
+                raise ConfigError(f"{it}/policy/policy.json: {k}: expected the same weights as {tr_its[0]}'s "
+                                  f"(digest {first[k]}), got {src[k]}: pool only trainings on one {k}")
+    ho_files = episode_files(ho_its)
+    ho_keys = {k for _, k, _ in ho_files}
+    seen: set[str] = set()
+    tr_files = []
+    for f, k, n in episode_files(tr_its):
+        if k in seen or k in ho_keys:
+            continue
+        seen.add(k)
+        tr_files.append((f, n))
+    order = np.random.default_rng(seed).permutation(len(tr_files))
+    tr_files = [tr_files[i] for i in order]
+    pool = int(sum(n for _, n in tr_files))
+    if sizes[-1] > pool:
+        raise ConfigError(f"--sizes: expected at most the {pool} distinct training frames of {len(tr_files)} "
+                          f"episodes, got {sizes[-1]}")
+
+    encoder = load_student_encoder(cfg.variant, encoder_dir(cfg) if cfg.variant != "no_bev" else None)
+    env = CrowdNavEnv(config=replace(cfg.sim, scene=d.scenes[0], obs_mode="state"))
+    env.reset(seed=0)
+    enc_dir = encoder_dir(cfg) if cfg.variant != "no_bev" else None
+    observer = observer_for_env(env, cfg.variant, encoder, cfg.head, map_cost=cfg.map_cost,
+                                map_heads=load_student_heads(cfg.variant, cfg.head, cfg.map_cost, enc_dir, encoder))
+    env.close()
+    space = observer.observation_space
+    net = student_net(cfg, observer.grid)
+    keys = (*space.spaces, "action", "teacher_logits", *(("bev_mirror",) if d.mirror and "bev" in space.spaces else ()))
+    ends = np.cumsum([n for _, n in tr_files])
+    n_files = [int(np.searchsorted(ends, s) + 1) for s in sizes]  # whole episodes up to at least `size` frames
+    log.info("data scale: %d distinct training episodes (%d frames), %d held-out episodes", len(tr_files), pool,
+             len(ho_files))
+    data = load_frames([f for f, _ in tr_files[:n_files[-1]]], keys, int(ends[n_files[-1] - 1]))
+    data["costs"] = -data.pop("teacher_logits")  # the cloning objective's form (rl.stage: softmin of the costs)
+    ho = load_frames([f for f, _, _ in ho_files], keys, int(sum(n for _, _, n in ho_files)))
+    teacher_dir = policy_root(cfg) / "teacher"
+    n_rot = cfg.sim.robot.n_rotations
+    torch.set_num_threads(cfg.threads or torch.get_num_threads())
+    rows = []
+    policy = None
+    for size, nf in zip(sizes, n_files, strict=True):
+        n = int(ends[nf - 1])
+        sub = {k: v[:n] for k, v in data.items()}  # views: each subset is a prefix of the next
+        torch.manual_seed(seed)
+        policy = build_policy("student", cfg.variant, space, cloned_net(net))
+        inherited = has_lookahead(policy) and d.linear_cost != "fit"
+        if inherited:
+            inherit_linear_cost(policy, teacher_dir)
+        if "bev" in space.spaces:
+            policy.features_extractor.set_bev_stats(*bev_stats(sub))
+        hist, linear_fit = distill(policy, sub, d, cfg.map_signs, seed, n_rot, inherited, True, cfg.progress,
+                                   f"data scale {n} frames")
+        row = {"size": size, "frames": n, "episodes": nf, "train_ce_last_epoch": hist[-1]["bc_loss"],
+               "train_ce": bc_loss(policy, {k: v[:min(n, 4096)] for k, v in sub.items()}, soft_tau=d.soft_tau),
+               "holdout": holdout_scores(policy, ho, d.soft_tau),
+               **({"linear_fit": {k: linear_fit[k] for k in ("ce_before", "ce_after")}} if linear_fit else {})}
+        log.info("data scale %d frames: held-out CE %.3f (teacher entropy %.3f), top-1 agreement %.3f", n,
+                 row["holdout"]["ce"], row["holdout"]["teacher_entropy"], row["holdout"]["top1_agreement"])
+        rows.append(row)
+    result = {"head": cfg.head, "variant": cfg.variant, "seed": seed, "train": [str(p) for p in tr_its],
+              "holdout": [str(p) for p in ho_its], "distinct_train_episodes": len(tr_files), "pool_frames": pool,
+              "dagger": {"bc_epochs": d.bc_epochs, "bc_batch": d.bc_batch, "bc_lr": d.bc_lr, "soft_tau": d.soft_tau,
+                         "mirror": d.mirror}, "rows": rows}
+    if save is not None and policy is not None:
+        save = Path(save)
+        produced = {"teacher": relative_to(teacher_dir, save), "dagger_iterations": 0, "dagger_frames": rows[-1]["frames"],
+                    "ppo_finetune_steps": 0, "intention": None,
+                    "offline_distillation": {"episodes": rows[-1]["episodes"], "seed": seed,
+                                             "from": [str(p) for p in tr_its], "by": "rl.data_scale"}}
+        save_policy(save, policy, describe("student", cfg.variant, space, net,
+                                           encoder=str(enc_dir) if enc_dir else None, teacher=str(teacher_dir),
+                                           intention=None, produced_by=produced))
+        result["saved"] = str(save)
+    return result
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # lazy: matplotlib only when a figure is asked for
+
+    rows = result["rows"]
+    x = [r["frames"] for r in rows]
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
+    ax[0].plot(x, [r["holdout"]["ce"] for r in rows], "o-", label="held-out")
+    ax[0].plot(x, [r["train_ce"] for r in rows], "s--", label="training frames")
+    ax[0].axhline(rows[0]["holdout"]["teacher_entropy"], color="grey", ls=":", label="teacher's entropy (floor)")
+    ax[0].set(xscale="log", xlabel="DAgger frames cloned on", ylabel="cross-entropy to the teacher [nats]")
+    ax[0].legend(fontsize=8)
+    ax[1].plot(x, [r["holdout"]["top1_agreement"] for r in rows], "o-")
+    ax[1].set(xscale="log", xlabel="DAgger frames cloned on", ylabel="held-out top-1 agreement", ylim=(0, 1))
+    fig.suptitle(f"{result['variant']}, {result['head']} head: imitation vs data (held-out "
+                 f"{rows[0]['holdout']['frames']} frames)", fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+@reports_errors
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m rl.data_scale", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data-dir", type=Path, default=Path("data"), help="the encoder and teacher the frames came from")
+    ap.add_argument("--profile", default="default")
+    ap.add_argument("--variant", default="full")
+    ap.add_argument("--head", default="mlp", help=f"one of {list(STUDENT_HEADS)}")
+    ap.add_argument("--train", type=Path, nargs="+", required=True)
+    ap.add_argument("--holdout", type=Path, nargs="+", required=True)
+    ap.add_argument("--sizes", required=True, help="comma-separated frame counts, increasing")
+    ap.add_argument("--epochs", type=int, default=None, help="cloning epochs (default: the profile's dagger.bc_epochs)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--figure", type=Path, default=None)
+    ap.add_argument("--save", type=Path, default=None, help="write the largest size's student as a checkpoint")
+    a = ap.parse_args(argv)
+    if a.head not in STUDENT_HEADS:
+        raise ConfigError(f"--head: expected one of {list(STUDENT_HEADS)}, got {a.head!r}")
+    try:
+        sizes = [int(s) for s in a.sizes.split(",")]
+    except ValueError:
+        raise ConfigError(f"--sizes: expected comma-separated integers, got {a.sizes!r}") from None
+    over = {"data_dir": str(a.data_dir), "variant": a.variant, "head": a.head}
+    if a.epochs is not None:
+        over["dagger.bc_epochs"] = str(a.epochs)
+    cfg = load_config(TrainConfig, "train", a.profile, over)
+    if not layout.checkpoint_dir(cfg.data_dir, cfg.encoder).exists() and cfg.variant != "no_bev":
+        raise InputMissingError(f"{layout.checkpoint_dir(cfg.data_dir, cfg.encoder)}: the encoder checkpoint the "
+                                "frames were cached with is missing")
+    result = learning_curve(cfg, a.train, a.holdout, sizes, a.seed, a.save)
+    if a.json:
+        atomic_write_json(a.json, result)
+    if a.figure:
+        plot(result, a.figure)
+    for r in result["rows"]:
+        h = r["holdout"]
+        print(f"{r['frames']:>7} frames ({r['episodes']} episodes): held-out CE {h['ce']:.3f} (teacher entropy "
+              f"{h['teacher_entropy']:.3f}), top-1 agreement {h['top1_agreement']:.3f}; training CE {r['train_ce']:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    raise SystemExit(main())
