@@ -16,7 +16,9 @@ teacher's. That is the learning curve behind "how many frames does the paper's M
 ``--train`` / ``--holdout`` take policy checkpoints (every DAgger iteration of each) or iteration directories;
 duplicate episodes (the same frames reached through copies, or iteration 0 of two trainings with the same seed) count
 once, and held-out episodes never enter training. ``--save DIR`` writes the student of the largest size as a
-checkpoint that ``icrowdnav eval`` and :mod:`rl.evaluate` run (its ``produced_by`` names the frames it was cloned on).
+checkpoint that :mod:`rl.evaluate` runs (its ``produced_by`` names the frames it was cloned on); ``--acceptance``
+then runs the profile's acceptance episodes on it, which ``python -m evaluation.compare`` pairs with a trained
+student's.
 Numbers in docs/results.md ("The paper's MLP head and the amount of data").
 """
 
@@ -39,9 +41,18 @@ from pipeline.core.errors import ConfigError, InputMissingError, reports_errors
 from rl.dagger import bev_stats
 from rl.networks import STUDENT_HEADS
 from rl.observe import load_student_encoder, load_student_heads, observer_for_env
-from rl.policy import build_policy, describe, read_policy_json, relative_to, resolved_from, save_policy
+from rl.policy import (
+    build_policy,
+    describe,
+    load_policy,
+    read_policy_json,
+    relative_to,
+    resolved_from,
+    save_policy,
+)
 from rl.stage import (
     TrainConfig,
+    acceptance,
     cloned_net,
     distill,
     encoder_dir,
@@ -74,14 +85,13 @@ def iteration_dirs(paths: list[Path]) -> list[Path]:
     return out
 
 
-def _sources(it: Path) -> dict[str, str | None]:
-    """The encoder / teacher / intention a DAgger iteration's policy was trained with (resolved paths' contents
-    are compared by the caller through the files' digests)."""
-    desc = read_policy_json(it / "policy")
+def _sources(policy_dir: Path) -> dict[str, str | None]:
+    """Digests of the encoder / teacher / intention weights a student checkpoint names in its policy.json."""
+    desc = read_policy_json(policy_dir)
     out: dict[str, str | None] = {}
     for k in SAME_SOURCES:
         ref = desc.get(k)
-        out[k] = None if not ref else _digest_dir(Path(resolved_from(ref, it / "policy")))
+        out[k] = None if not ref else _digest_dir(Path(resolved_from(ref, policy_dir)))
     return out
 
 
@@ -90,6 +100,34 @@ def _digest_dir(d: Path) -> str:
     for f in sorted(d.glob("*.safetensors")):
         h.update(f.read_bytes())
     return h.hexdigest()[:16]
+
+
+def check_same_sources(policy_dirs: list[Path], keys: tuple[str, ...] = ("encoder", "teacher")) -> None:
+    """One named error unless every checkpoint in ``policy_dirs`` names the same ``keys`` weights (by digest)."""
+    first = _sources(policy_dirs[0])
+    for p in policy_dirs[1:]:
+        src = _sources(p)
+        for k in keys:
+            if src[k] != first[k]:
+                raise ConfigError(f"{p}/policy.json: {k}: expected the same weights as {policy_dirs[0]}'s "
+                                  f"(digest {first[k]}), got {src[k]}: pool only trainings on one {k}")
+
+
+def reference_scores(ckpts: list[Path], holdout: list[Path], soft_tau: float) -> dict[str, dict[str, float]]:
+    """:func:`holdout_scores` of trained students (``load_policy``, unshielded: the distribution as cloned) on the
+    held-out iterations' frames; each must have been trained on the held-out frames' teacher."""
+    ho_its = iteration_dirs(holdout)
+    files = episode_files(ho_its)
+    out = {}
+    for ckpt in map(Path, ckpts):
+        check_same_sources([ho_its[0] / "policy", ckpt], ("teacher",))
+        policy, _ = load_policy(ckpt, shield_s=0.0)
+        keys = (*policy.observation_space.spaces, "action", "teacher_logits")
+        ho = load_frames([f for f, _, _ in files], keys, int(sum(n for _, _, n in files)))
+        out[str(ckpt)] = holdout_scores(policy, ho, soft_tau)
+        log.info("reference %s: held-out CE %.3f, top-1 agreement %.3f", ckpt, out[str(ckpt)]["ce"],
+                 out[str(ckpt)]["top1_agreement"])
+    return out
 
 
 def episode_files(iters: list[Path]) -> list[tuple[Path, str, int]]:
@@ -157,13 +195,7 @@ def learning_curve(cfg: TrainConfig, train: list[Path], holdout: list[Path], siz
     if not sizes or any(s <= 0 for s in sizes) or sorted(sizes) != sizes:
         raise ConfigError(f"--sizes: expected increasing positive frame counts, got {sizes}")
     tr_its, ho_its = iteration_dirs(train), iteration_dirs(holdout)
-    sources = {str(it): _sources(it) for it in tr_its + ho_its}
-    first = next(iter(sources.values()))
-    for it, src in sources.items():
-        for k in ("encoder", "teacher"):
-            if src[k] != first[k]:
-                raise ConfigError(f"{it}/policy/policy.json: {k}: expected the same weights as {tr_its[0]}'s "
-                                  f"(digest {first[k]}), got {src[k]}: pool only trainings on one {k}")
+    check_same_sources([it / "policy" for it in tr_its + ho_its])
     ho_files = episode_files(ho_its)
     ho_keys = {k for _, k, _ in ho_files}
     seen: set[str] = set()
@@ -269,19 +301,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profile", default="default")
     ap.add_argument("--variant", default="full")
     ap.add_argument("--head", default="mlp", help=f"one of {list(STUDENT_HEADS)}")
-    ap.add_argument("--train", type=Path, nargs="+", required=True)
+    ap.add_argument("--train", type=Path, nargs="+", default=[])
     ap.add_argument("--holdout", type=Path, nargs="+", required=True)
-    ap.add_argument("--sizes", required=True, help="comma-separated frame counts, increasing")
+    ap.add_argument("--sizes", default="", help="comma-separated frame counts, increasing (none: only --reference)")
+    ap.add_argument("--reference", type=Path, nargs="*", default=[],
+                    help="trained students (same teacher) scored on the same held-out frames")
     ap.add_argument("--epochs", type=int, default=None, help="cloning epochs (default: the profile's dagger.bc_epochs)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--figure", type=Path, default=None)
     ap.add_argument("--save", type=Path, default=None, help="write the largest size's student as a checkpoint")
+    ap.add_argument("--acceptance", action="store_true",
+                    help="then run the profile's acceptance episodes on it (needs --save; acceptance_episodes.jsonl)")
     a = ap.parse_args(argv)
     if a.head not in STUDENT_HEADS:
         raise ConfigError(f"--head: expected one of {list(STUDENT_HEADS)}, got {a.head!r}")
     try:
-        sizes = [int(s) for s in a.sizes.split(",")]
+        sizes = [int(s) for s in a.sizes.split(",") if s.strip()]
     except ValueError:
         raise ConfigError(f"--sizes: expected comma-separated integers, got {a.sizes!r}") from None
     over = {"data_dir": str(a.data_dir), "variant": a.variant, "head": a.head}
@@ -291,15 +327,28 @@ def main(argv: list[str] | None = None) -> int:
     if not layout.checkpoint_dir(cfg.data_dir, cfg.encoder).exists() and cfg.variant != "no_bev":
         raise InputMissingError(f"{layout.checkpoint_dir(cfg.data_dir, cfg.encoder)}: the encoder checkpoint the "
                                 "frames were cached with is missing")
-    result = learning_curve(cfg, a.train, a.holdout, sizes, a.seed, a.save)
+    if a.acceptance and a.save is None:
+        raise ConfigError("--acceptance: expected --save DIR (the checkpoint the episodes run), got none")
+    if not sizes and not a.reference:
+        raise ConfigError("--sizes / --reference: expected frame counts to clone on or checkpoints to score, got neither")
+    if sizes and not a.train:
+        raise ConfigError("--train: expected the DAgger frames to clone on (checkpoints or iterations), got none")
+    result = learning_curve(cfg, a.train, a.holdout, sizes, a.seed, a.save) if sizes else {"rows": []}
+    if a.reference:
+        result["reference"] = reference_scores(a.reference, a.holdout, cfg.dagger.soft_tau)
+    if a.acceptance:
+        result["acceptance"] = acceptance(cfg, a.save, f"{cfg.variant}_{cfg.head}_{result['rows'][-1]['frames']}")
     if a.json:
         atomic_write_json(a.json, result)
-    if a.figure:
+    if a.figure and result["rows"]:
         plot(result, a.figure)
     for r in result["rows"]:
         h = r["holdout"]
         print(f"{r['frames']:>7} frames ({r['episodes']} episodes): held-out CE {h['ce']:.3f} (teacher entropy "
               f"{h['teacher_entropy']:.3f}), top-1 agreement {h['top1_agreement']:.3f}; training CE {r['train_ce']:.3f}")
+    for ckpt, h in result.get("reference", {}).items():
+        print(f"{ckpt}: held-out CE {h['ce']:.3f} (teacher entropy {h['teacher_entropy']:.3f}), top-1 agreement "
+              f"{h['top1_agreement']:.3f}")
     return 0
 
 

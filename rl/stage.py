@@ -54,7 +54,7 @@ import numpy as np
 import torch
 
 from pipeline.core import layout
-from pipeline.core.artifacts import atomic_save_npz, atomic_write_json
+from pipeline.core.artifacts import atomic_save_npz, atomic_write_json, atomic_write_text
 from pipeline.core.config import BaseStageConfig, dump_yaml
 from pipeline.core.device import device_counts, resolve_device, start_method
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
@@ -402,6 +402,20 @@ def _acceptance(cfg: TrainConfig, policy_dir: Path, method: str) -> dict[str, An
     rows = evaluate(policy_dir, cfg.sim, [(s, d) for s in a.scenes for d in a.densities], seeds,
                     cfg.workers, method, cfg.progress, Executor.of(cfg))
     return {"seeds": [seeds[0], seeds[-1]], "table": success_table(rows), "episodes": rows}
+
+
+def acceptance(cfg: TrainConfig, policy_dir: Path, method: str) -> dict[str, Any]:
+    """The acceptance episodes of ``cfg.acceptance`` (seeds 10000 on) for the checkpoint in ``policy_dir``, written
+    to its ``acceptance_episodes.jsonl`` (what ``python -m evaluation.compare`` pairs by seed); returns the table."""
+    acc = _acceptance(cfg, Path(policy_dir), method)
+    write_acceptance(Path(policy_dir), acc)
+    return {k: v for k, v in acc.items() if k != "episodes"}
+
+
+def write_acceptance(out: Path, acc: dict[str, Any]) -> None:
+    lines = "".join(json.dumps({k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                                for k, v in r.items()}) + "\n" for r in acc["episodes"])
+    atomic_write_text(out / "acceptance_episodes.jsonl", lines)
 
 
 # --------------------------------------------------------------------------------------------------------- teacher
@@ -811,10 +825,7 @@ def body(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         metrics["learning_curve"] = learning_curve(cfg, points, summary.get("budget", {}), acc)
         plot_learning_curve(metrics["learning_curve"], out / "learning_curve.png", cfg.variant)
     atomic_write_json(out / "metrics.json", metrics)
-    with open(out / "acceptance_episodes.jsonl", "w") as fh:
-        for r in acc["episodes"]:
-            fh.write(json.dumps({k: (None if isinstance(v, float) and not np.isfinite(v) else v)
-                                 for k, v in r.items()}) + "\n")
+    write_acceptance(out, acc)
     plot_training(out / "train_log.csv", out / "curves.png", cfg.variant)
     counts: dict[str, Any] = {"train_seconds": round(train_s, 1), **used}
     for cell, row in acc["table"].items():

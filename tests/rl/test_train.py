@@ -679,3 +679,44 @@ def test_sampled_actions_follow_the_logits_and_repeat_per_episode_seed(teacher_d
     assert set(actions(0.01, 1)) == {best} == {PolicyDriver(teacher_dir).act(obs, info)}
     wide = actions(100.0, 1)
     assert wide == actions(100.0, 1) and wide != actions(100.0, 2) and len(set(wide)) > 10
+
+
+def test_data_scale_clones_nested_subsets_of_pooled_dagger_frames(tmp_path, teacher_dir):
+    """``python -m rl.data_scale``: duplicate episodes count once, held-out episodes never train, each size is whole
+    episodes and a prefix of the next, the scores are the teacher-distribution cross-entropy (never below the
+    teacher's entropy) and agreement, the largest student saves as a loadable checkpoint, and pooling trainings on
+    another teacher or asking for more frames than there are is one named error."""
+    from pipeline.verbs.train import run
+    from rl.data_scale import learning_curve, reference_scores
+    from rl.data_scale import main as scale_main
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    cfg = _train_cfg(tmp_path, "no_bev", head="mlp", **{"dagger.episodes_per_iter": 2})
+    run(cfg)
+    out = tmp_path / "checkpoints" / "policy" / "no_bev"
+    it0, it1 = out / "dagger" / "iter_0", out / "dagger" / "iter_1"
+    n0, n1 = (len(load_features([d])["action"]) for d in (it0, it1))
+    res = learning_curve(cfg, [out, it0], [it1], [1, n0], save=tmp_path / "scaled")
+    assert res["distinct_train_episodes"] == 2 and res["pool_frames"] == n0  # iter_0 twice, iter_1 held out
+    small, big = res["rows"]
+    assert small["episodes"] == 1 and 1 <= small["frames"] < n0 and big["frames"] == n0
+    for r in res["rows"]:
+        h = r["holdout"]
+        assert h["frames"] == n1 and h["ce"] >= h["teacher_entropy"] - 1e-4 and 0.0 <= h["top1_agreement"] <= 1.0
+    policy, desc = load_policy(tmp_path / "scaled")
+    assert desc["produced_by"]["offline_distillation"]["episodes"] == 2 and desc["net"]["head"] == "mlp"
+    # a trained student scored on the same held-out frames: the saved one reproduces its row
+    ref = reference_scores([tmp_path / "scaled"], [it1], cfg.dagger.soft_tau)[str(tmp_path / "scaled")]
+    assert ref["frames"] == n1 and ref["ce"] == pytest.approx(big["holdout"]["ce"], rel=1e-5)
+    with pytest.raises(ConfigError, match="sizes"):
+        learning_curve(cfg, [it0], [it1], [n0 + 1])
+    other = tmp_path / "other"
+    shutil.copytree(it1, other / "iter_1")
+    (other / "teacher").mkdir()
+    (other / "teacher" / "policy.safetensors").write_bytes(b"another teacher")
+    pj = other / "iter_1" / "policy" / "policy.json"
+    pj.write_text(json.dumps({**json.loads(pj.read_text()), "teacher": str(other / "teacher")}))
+    with pytest.raises(ConfigError, match="teacher"):
+        learning_curve(cfg, [it0], [other / "iter_1"], [1])
+    assert scale_main(["--train", str(it0), "--holdout", str(it1), "--sizes", "2,1", "--head", "mlp",
+                       "--variant", "no_bev", "--data-dir", str(tmp_path)]) == 2
