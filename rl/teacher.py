@@ -23,7 +23,9 @@ steps for crowds — the paper's GPU budget, kept in the ``paper`` profile.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -384,18 +386,14 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
         before = float(ce())
     params = [*(head.linear.parameters() if terms == "all" else (head.linear.weight,) if terms == "peds" else ()),
               *(head.map_cost.parameters() if head.n_map else ())]
-    held = None
+    keep = torch.zeros_like(head.linear.weight, dtype=torch.bool)
     if terms == "peds":  # every other term keeps its weight: its gradient is masked, so L-BFGS never moves it
-        keep = torch.ones_like(head.linear.weight, dtype=torch.bool)
+        keep[:] = True
         keep[0, list(PED_TERMS)] = False
-        held = head.linear.weight.register_hook(lambda g: g.masked_fill(keep, 0.0))
-    try:
+    with masked_gradient(head.linear.weight, keep):
         pinned = _fit_nonpositive(params, head.map_cost.weight, ce) if head.n_map and map_signs == "costs" else None
         if pinned is None:
             _lbfgs(params, ce)
-    finally:
-        if held is not None:
-            held.remove()
     out: dict[str, Any] = {"frames": int(len(cost)), "ce_before": before, "ce_after": float(ce().detach()),
                            # nats per unit of each term, like the map weights below
                            "linear_weights": {name: round(float(w) * SCORE_SCALE, 3) for name, w in
@@ -431,20 +429,17 @@ def _fit_nonpositive(params: list[torch.Tensor], w: torch.Tensor, loss_fn, round
     (lowering them would lower the loss) are freed. Stops when neither happens — the KKT conditions of the
     constrained problem — or after ``rounds`` fits. Returns the pinned indices (of ``w.view(-1)``)."""
     pinned = torch.zeros(w.numel(), dtype=torch.bool, device=w.device)
-    masking = [True]
-    hook = w.register_hook(lambda g: g.masked_fill(pinned.view_as(g), 0.0) if masking[0] else g)
     try:
         for _ in range(rounds):
             with torch.no_grad():
                 w.view(-1)[pinned] = 0.0
-            _lbfgs(params, loss_fn)
+            with masked_gradient(w, pinned):
+                _lbfgs(params, loss_fn)
             violating = ~pinned & (w.detach().view(-1) > 0)
             if violating.any():
                 pinned |= violating
                 continue
-            masking[0] = False
-            (grad,) = torch.autograd.grad(loss_fn(), w)
-            masking[0] = True
+            (grad,) = torch.autograd.grad(loss_fn(), w)  # the unmasked gradient: would a pinned entry move down?
             release = pinned & (grad.view(-1) > 0)
             if not release.any():
                 break
@@ -452,10 +447,20 @@ def _fit_nonpositive(params: list[torch.Tensor], w: torch.Tensor, loss_fn, round
         with torch.no_grad():
             w.view(-1)[pinned] = 0.0
     finally:
-        hook.remove()
         for p in params:
             p.grad = None
     return [int(i) for i in torch.nonzero(pinned).view(-1)]
+
+
+@contextmanager
+def masked_gradient(t: torch.Tensor, mask: torch.Tensor) -> Iterator[None]:
+    """Inside the block the entries of ``t`` where ``mask`` (same number of entries, read at every backward pass) is
+    True get a zero gradient, so L-BFGS's steps leave them where they are: how a fit holds some weights fixed."""
+    hook = t.register_hook(lambda g: g.masked_fill(mask.view_as(g), 0.0))
+    try:
+        yield
+    finally:
+        hook.remove()
 
 
 FITTED_PREFIXES = ("features_extractor.lookahead.linear.", "features_extractor.lookahead.map_cost.")
