@@ -271,23 +271,34 @@ def learning_curve(cfg: TrainConfig, train: list[Path], holdout: list[Path], siz
 
 
 def plot(result: dict[str, Any], path: Path) -> None:
+    """Held-out and training cross-entropy, and held-out top-1 agreement, against the frames cloned on (log axis);
+    ``--reference`` students as horizontal lines."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # lazy: matplotlib only when a figure is asked for
+    from matplotlib.ticker import NullFormatter
 
     rows = result["rows"]
     x = [r["frames"] for r in rows]
-    fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
+    fig, ax = plt.subplots(1, 2, figsize=(9.5, 3.6))
     ax[0].plot(x, [r["holdout"]["ce"] for r in rows], "o-", label="held-out")
     ax[0].plot(x, [r["train_ce"] for r in rows], "s--", label="training frames")
     ax[0].axhline(rows[0]["holdout"]["teacher_entropy"], color="grey", ls=":", label="teacher's entropy (floor)")
-    ax[0].set(xscale="log", xlabel="DAgger frames cloned on", ylabel="cross-entropy to the teacher [nats]")
-    ax[0].legend(fontsize=8)
-    ax[1].plot(x, [r["holdout"]["top1_agreement"] for r in rows], "o-")
-    ax[1].set(xscale="log", xlabel="DAgger frames cloned on", ylabel="held-out top-1 agreement", ylim=(0, 1))
-    fig.suptitle(f"{result['variant']}, {result['head']} head: imitation vs data (held-out "
-                 f"{rows[0]['holdout']['frames']} frames)", fontsize=9)
+    ax[0].set(ylabel="cross-entropy to the teacher [nats]")
+    ax[1].plot(x, [r["holdout"]["top1_agreement"] for r in rows], "o-", label=f"{result['head']} head")
+    for i, (ckpt, h) in enumerate(result.get("reference", {}).items()):
+        ax[1].axhline(h["top1_agreement"], color=f"C{i + 2}", ls="--", lw=1,
+                      label=f"{Path(ckpt).parent.parent.parent.name}/{Path(ckpt).name} (trained)")
+    ax[1].set(ylabel="held-out top-1 agreement", ylim=(0, 1))
+    for a in ax:
+        a.set_xscale("log")
+        a.set_xticks(x, [f"{v / 1000:.0f}k" if v >= 1000 else str(v) for v in x])
+        a.xaxis.set_minor_formatter(NullFormatter())
+        a.set_xlabel("DAgger frames cloned on")
+        a.legend(fontsize=7)
+    fig.suptitle(f"{result['variant']}, {result['head']} head: imitation of the teacher vs data (held-out "
+                 f"{rows[0]['holdout']['frames']} frames of other rollouts)", fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
