@@ -708,6 +708,12 @@ def test_data_scale_clones_nested_subsets_of_pooled_dagger_frames(tmp_path, teac
     # a trained student scored on the same held-out frames: the saved one reproduces its row
     ref = reference_scores([tmp_path / "scaled"], [it1], cfg.dagger.soft_tau)[str(tmp_path / "scaled")]
     assert ref["frames"] == n1 and ref["ce"] == pytest.approx(big["holdout"]["ce"], rel=1e-5)
+    # its acceptance episodes, written where evaluation.compare pairs them
+    from rl.stage import acceptance
+
+    table = acceptance(cfg, tmp_path / "scaled", "no_bev_mlp")["table"]
+    rows = (tmp_path / "scaled" / "acceptance_episodes.jsonl").read_text().splitlines()
+    assert table["hallway@0.1"]["n"] == len(rows) == 1 and json.loads(rows[0])["method"] == "no_bev_mlp"
     with pytest.raises(ConfigError, match="sizes"):
         learning_curve(cfg, [it0], [it1], [n0 + 1])
     other = tmp_path / "other"
