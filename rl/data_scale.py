@@ -335,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.epochs is not None:
         over["dagger.bc_epochs"] = str(a.epochs)
     cfg = load_config(TrainConfig, "train", a.profile, over)
-    if not layout.checkpoint_dir(cfg.data_dir, cfg.encoder).exists() and cfg.variant != "no_bev":
+    if sizes and not layout.checkpoint_dir(cfg.data_dir, cfg.encoder).exists() and cfg.variant != "no_bev":
         raise InputMissingError(f"{layout.checkpoint_dir(cfg.data_dir, cfg.encoder)}: the encoder checkpoint the "
                                 "frames were cached with is missing")
     if a.acceptance and a.save is None:
