@@ -25,6 +25,7 @@ Numbers in docs/results.md ("The paper's MLP head and the amount of data").
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import logging
 from dataclasses import replace
@@ -64,7 +65,6 @@ from rl.teacher import bc_loss, has_lookahead, policy_logits_values
 from sim.env import CrowdNavEnv
 
 log = logging.getLogger(__name__)
-SAME_SOURCES = ("encoder", "teacher", "intention")  # policy.json references every pooled training must share
 
 
 def iteration_dirs(paths: list[Path]) -> list[Path]:
@@ -85,28 +85,27 @@ def iteration_dirs(paths: list[Path]) -> list[Path]:
     return out
 
 
-def _sources(policy_dir: Path) -> dict[str, str | None]:
-    """Digests of the encoder / teacher / intention weights a student checkpoint names in its policy.json."""
+def _sources(policy_dir: Path, keys: tuple[str, ...]) -> dict[str, str | None]:
+    """Digests of the ``keys`` weights (encoder / teacher / intention) a student checkpoint names in its policy.json."""
     desc = read_policy_json(policy_dir)
-    out: dict[str, str | None] = {}
-    for k in SAME_SOURCES:
-        ref = desc.get(k)
-        out[k] = None if not ref else _digest_dir(Path(resolved_from(ref, policy_dir)))
-    return out
+    return {k: _digest_dir(resolved_from(desc[k], policy_dir)) if desc.get(k) else None for k in keys}
 
 
-def _digest_dir(d: Path) -> str:
+@functools.cache
+def _digest_dir(d: str) -> str:
+    """The weights' digest of a checkpoint directory, read once per process (every pooled iteration names the same
+    encoder and teacher)."""
     h = hashlib.sha256()
-    for f in sorted(d.glob("*.safetensors")):
+    for f in sorted(Path(d).glob("*.safetensors")):
         h.update(f.read_bytes())
     return h.hexdigest()[:16]
 
 
 def check_same_sources(policy_dirs: list[Path], keys: tuple[str, ...] = ("encoder", "teacher")) -> None:
     """One named error unless every checkpoint in ``policy_dirs`` names the same ``keys`` weights (by digest)."""
-    first = _sources(policy_dirs[0])
+    first = _sources(policy_dirs[0], keys)
     for p in policy_dirs[1:]:
-        src = _sources(p)
+        src = _sources(p, keys)
         for k in keys:
             if src[k] != first[k]:
                 raise ConfigError(f"{p}/policy.json: {k}: expected the same weights as {policy_dirs[0]}'s "
@@ -118,15 +117,17 @@ def reference_scores(ckpts: list[Path], holdout: list[Path], soft_tau: float) ->
     held-out iterations' frames; each must have been trained on the held-out frames' teacher."""
     ho_its = iteration_dirs(holdout)
     files = episode_files(ho_its)
-    out = {}
+    policies = {}
     for ckpt in map(Path, ckpts):
         check_same_sources([ho_its[0] / "policy", ckpt], ("teacher",))
-        policy, _ = load_policy(ckpt, shield_s=0.0)
-        keys = (*policy.observation_space.spaces, "action", "teacher_logits")
-        ho = load_frames([f for f, _, _ in files], keys, int(sum(n for _, _, n in files)))
-        out[str(ckpt)] = holdout_scores(policy, ho, soft_tau)
-        log.info("reference %s: held-out CE %.3f, top-1 agreement %.3f", ckpt, out[str(ckpt)]["ce"],
-                 out[str(ckpt)]["top1_agreement"])
+        policies[str(ckpt)] = load_policy(ckpt, shield_s=0.0)[0]
+    keys = {k for pol in policies.values() for k in pol.observation_space.spaces} | {"action", "teacher_logits"}
+    ho = load_frames([f for f, _, _ in files], tuple(sorted(keys)), int(sum(n for _, _, n in files)))  # read once
+    out = {}
+    for ckpt, policy in policies.items():
+        out[ckpt] = holdout_scores(policy, ho, soft_tau)
+        log.info("reference %s: held-out CE %.3f, top-1 agreement %.3f", ckpt, out[ckpt]["ce"],
+                 out[ckpt]["top1_agreement"])
     return out
 
 
@@ -212,10 +213,10 @@ def learning_curve(cfg: TrainConfig, train: list[Path], holdout: list[Path], siz
         raise ConfigError(f"--sizes: expected at most the {pool} distinct training frames of {len(tr_files)} "
                           f"episodes, got {sizes[-1]}")
 
-    encoder = load_student_encoder(cfg.variant, encoder_dir(cfg) if cfg.variant != "no_bev" else None)
+    enc_dir = encoder_dir(cfg) if cfg.variant != "no_bev" else None
+    encoder = load_student_encoder(cfg.variant, enc_dir)
     env = CrowdNavEnv(config=replace(cfg.sim, scene=d.scenes[0], obs_mode="state"))
     env.reset(seed=0)
-    enc_dir = encoder_dir(cfg) if cfg.variant != "no_bev" else None
     observer = observer_for_env(env, cfg.variant, encoder, cfg.head, map_cost=cfg.map_cost,
                                 map_heads=load_student_heads(cfg.variant, cfg.head, cfg.map_cost, enc_dir, encoder))
     env.close()
