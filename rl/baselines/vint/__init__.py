@@ -75,7 +75,9 @@ real file (unavailable here); tested with a constructed state dict in that layou
 Layout: :mod:`~rl.baselines.vint.configuration` (options), :mod:`~rl.baselines.vint.model` (the network),
 :mod:`~rl.baselines.vint.weights` (the released-weights loader), :mod:`~rl.baselines.vint.data` (labels and the
 recorded dataset), :mod:`~rl.baselines.vint.training` (minibatches, losses, the train entry point),
-:mod:`~rl.baselines.vint.driver` (the controller, the context buffer and the benchmark driver).
+:mod:`~rl.baselines.vint.driver` (the controller, the context buffer and the benchmark driver),
+:mod:`~rl.baselines.vint.diagnose` (what a checkpoint predicts, offline on its dataset: ``python -m
+rl.baselines.vint.diagnose CKPT``).
 """
 
 from rl.baselines.vint.configuration import CAMERAS, ENCODERS, IMAGENET_MEAN, IMAGENET_STD, NAME, Config

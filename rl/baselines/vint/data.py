@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from pipeline.core import layout
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
-from pipeline.core.keys import OBS_GOAL, OBS_ODOM, image_key
+from pipeline.core.keys import ACTION, OBS_GOAL, OBS_ODOM, image_key
 from pretrain.data import decode_video_file
 from recorder.dataset_info import read_dataset_info
 from recorder.doctor_dataset import require_sound_dataset
@@ -82,12 +82,15 @@ class Frames:
         pose: ``F x 3`` float64 world [x, y, yaw] (``observation.odom``).
         goal: ``F x 2`` float64 world goal (``observation.goal``).
         slices: ``[start, end)`` of each episode.
+        action: ``F x 2`` float64 the expert's command [v, ω] (``action``; None where the frames are not from a
+            dataset). Not a training label (ViNT learns waypoints): :mod:`rl.baselines.vint.diagnose` reads it.
     """
 
     images: np.ndarray
     pose: np.ndarray
     goal: np.ndarray
     slices: list[tuple[int, int]]
+    action: np.ndarray | None = None
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``F`` start and end of each frame's episode."""
@@ -134,7 +137,7 @@ def check_dataset(root: Path) -> dict:
     """The dataset's features, after checking its format (:func:`recorder.dataset_info.read_dataset_info`), the
     features the baseline reads, and the doctor's cheap checks."""
     features = read_dataset_info(root).features
-    need = [image_key(c) for c in CAMERAS] + [OBS_ODOM, OBS_GOAL]
+    need = [image_key(c) for c in CAMERAS] + [OBS_ODOM, OBS_GOAL, ACTION]
     missing = [k for k in need if k not in features]
     if missing:
         raise InputMissingError(f"vint: dataset {root} lacks {', '.join(missing)}; record it with `make record`")
@@ -163,12 +166,13 @@ def load_dataset(root: Path, hw: list[int], episodes: int = 0, progress: bool = 
     rows = [(int(meta[e]["dataset_from_index"]), int(meta[e]["dataset_to_index"])) for e in range(n_eps)]
     n = sum(b - a for a, b in rows)
     idx = np.concatenate([np.arange(a, b) for a, b in rows])
-    cols = ds.hf_dataset.select_columns([OBS_ODOM, OBS_GOAL]).with_format("numpy")
+    cols = ds.hf_dataset.select_columns([OBS_ODOM, OBS_GOAL, ACTION]).with_format("numpy")
     pose = np.asarray(cols[OBS_ODOM], np.float64)[idx]
     goal = np.asarray(cols[OBS_GOAL], np.float64)[idx]
+    action = np.asarray(cols[ACTION], np.float64)[idx]
     starts = np.cumsum([0] + [b - a for a, b in rows])
     frames = Frames(np.zeros((n, 3, hw[0], 2 * hw[1]), np.uint8), pose, goal,
-                    [(int(s), int(e)) for s, e in zip(starts[:-1], starts[1:], strict=True)])
+                    [(int(s), int(e)) for s, e in zip(starts[:-1], starts[1:], strict=True)], action)
     sink = _ResizeSink(frames.images, hw)
     for ci, cam in enumerate(CAMERAS):
         key = f"observation.images.{cam}"

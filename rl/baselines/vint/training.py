@@ -90,7 +90,7 @@ class Trainer:
         model.eval()
         sums, n = np.zeros(3), 0
         with torch.no_grad():
-            for clip_group in _groups(self.clips(episodes, None), self.cfg.clips_per_batch):
+            for clip_group in groups(self.clips(episodes, None), self.cfg.clips_per_batch):
                 targets = np.concatenate(clip_group)
                 sums += len(targets) * np.array([v.item() for v in self.loss(model, self.batch(targets, False))])
                 n += len(targets)
@@ -116,7 +116,7 @@ class Trainer:
                    dynamic_ncols=True)
         for epoch in range(c.epochs):
             total, count = 0.0, 0
-            for clip_group in _groups(self.clips(train_eps, rng), c.clips_per_batch):
+            for clip_group in groups(self.clips(train_eps, rng), c.clips_per_batch):
                 targets = np.concatenate(clip_group)
                 loss, a_loss, d_loss = self.loss(model, self.batch(targets, c.mirror and rng.random() < 0.5))
                 opt.zero_grad(set_to_none=True)
@@ -143,7 +143,8 @@ class Trainer:
         return {**hist, "steps": step, "frames_per_s": round(seen / max(wall, 1e-9), 1), "wall_s": round(wall, 1)}
 
 
-def _groups(items: list, size: int) -> list[list]:
+def groups(items: list, size: int) -> list[list]:
+    """``items`` in consecutive groups of ``size`` (the last may be shorter): clips into minibatches."""
     return [items[i:i + size] for i in range(0, len(items), size)]
 
 
