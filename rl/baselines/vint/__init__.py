@@ -55,7 +55,11 @@ Deviations from ViNT, and why:
   pooling (EfficientNet-B0 is selectable): EfficientNet trains too slowly on two CPU cores, and the grid keeps
   where things are in the wide left | right image;
 * E = 128 instead of 512 (CPU budget); the two cameras as one side-by-side image (ViNT has one camera);
-* mirror augmentation (ViNT's data is not mirrored): it doubles our small dataset and keeps left/right balanced.
+* mirror augmentation (ViNT's data is not mirrored): it doubles our small dataset and keeps left/right balanced;
+* He initialisation (zero biases) of the ReLU MLP after the transformer instead of PyTorch's default: with the
+  default, most of its units started (and stayed) on or off for every input, and the trained network ignored the goal
+  and drove straight (acceptance 0.00 / 0.00 / 0.06 → 0.24 / 0.46 / 0.28 on the same data and budget;
+  docs/notes/2026-11-vint-does-not-learn-steering.md). Released weights overwrite it.
 
 Released weights (:func:`load_released_weights`, ``Config.init_weights``): training starts from a state dict in
 the released ``vint.pth`` layout when the model is the faithful-size variant (``encoder="efficientnet_b0"``,

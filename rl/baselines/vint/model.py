@@ -42,6 +42,13 @@ class Decoder(nn.Module):
         self.sa_decoder = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
         widths = [seq_len * dim, dim, *output_layers]
         self.output_layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:], strict=True))
+        # He initialisation (zero biases) of the ReLU MLP: with PyTorch's default Linear initialisation the signal
+        # shrinks layer by layer and the biases decide each unit, so most units start on or off for every input
+        # and the trained network ignored the goal and never fitted the steering
+        # (docs/notes/2026-11-vint-does-not-learn-steering.md)
+        for lin in self.output_layers:
+            nn.init.kaiming_normal_(lin.weight, nonlinearity="relu")
+            nn.init.zeros_(lin.bias)
 
     def forward(self, tokens: torch.Tensor) -> torch.Tensor:
         x = self.sa_decoder(self.positional_encoding(tokens)).flatten(1)

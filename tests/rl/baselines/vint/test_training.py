@@ -58,3 +58,13 @@ def test_missing_dataset(tmp_path: Path) -> None:
     with pytest.raises(InputMissingError, match=r"make record") as e:
         inputs(train_cfg(tmp_path))
     assert str(tmp_path / "datasets" / "icrowdnav" / "tiny") in str(e.value)
+
+
+def test_the_mlp_after_the_transformer_starts_with_he_initialisation() -> None:
+    """Zero biases and weights of std sqrt(2 / fan_in): with PyTorch's default the ReLU units were decided by their
+    biases and the trained network ignored the goal (docs/notes/2026-11-vint-does-not-learn-steering.md)."""
+    torch.manual_seed(0)
+    model = build_model(Config().net())
+    for lin in model.decoder.output_layers:
+        assert torch.count_nonzero(lin.bias) == 0
+        assert lin.weight.std().item() == pytest.approx((2.0 / lin.in_features) ** 0.5, rel=0.1)
