@@ -18,6 +18,7 @@ from rl.dagger import load_features
 from rl.driver import PolicyDriver
 from rl.lookahead import LINEAR_TERMS, SCORE_SCALE
 from rl.policy import act, build_policy, check_checkpoint_weights, describe, load_policy, save_policy
+from rl.stage import acceptance
 from rl.teacher import (
     SceneMixEnv,
     bc_loss,
@@ -709,8 +710,6 @@ def test_data_scale_clones_nested_subsets_of_pooled_dagger_frames(tmp_path, teac
     ref = reference_scores([tmp_path / "scaled"], [it1], cfg.dagger.soft_tau)[str(tmp_path / "scaled")]
     assert ref["frames"] == n1 and ref["ce"] == pytest.approx(big["holdout"]["ce"], rel=1e-5)
     # its acceptance episodes, written where evaluation.compare pairs them
-    from rl.stage import acceptance
-
     table = acceptance(cfg, tmp_path / "scaled", "no_bev_mlp")["table"]
     rows = (tmp_path / "scaled" / "acceptance_episodes.jsonl").read_text().splitlines()
     assert table["hallway@0.1"]["n"] == len(rows) == 1 and json.loads(rows[0])["method"] == "no_bev_mlp"

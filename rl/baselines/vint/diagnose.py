@@ -49,22 +49,24 @@ from rl.baselines.vint.training import Trainer, groups
 COMPONENTS = ("dx", "dy", "cos", "sin")
 
 
-def predict(model: ViNTStyle, trainer: Trainer, episodes: list[int], mirror_goal: bool = False
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(predicted waypoints, label waypoints, target frame indices) over every frame of ``episodes``, in order;
-    ``mirror_goal`` negates the goal's bearing (its sin feature) and nothing else."""
-    preds, labels, targets = [], [], []
+def predict(model: ViNTStyle, trainer: Trainer, episodes: list[int]
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(predicted waypoints, the same with the goal's bearing mirrored — its sin feature negated, nothing else —,
+    label waypoints, target frame indices) over every frame of ``episodes``, in order; the images are encoded once
+    for both predictions."""
+    preds, mirrored, labels, targets = [], [], [], []
+    flip = torch.tensor([1.0, -1.0, 1.0])
     model.eval()
     with torch.no_grad():
         for group in groups(trainer.clips(episodes, None), trainer.cfg.clips_per_batch):
             t = np.concatenate(group)
             b = trainer.batch(t, mirror=False)
-            goal = b.goal * torch.tensor([1.0, -1.0, 1.0]) if mirror_goal else b.goal
-            _, wp = model.head(model.encode(b.frames)[b.window], goal)
-            preds.append(wp.numpy())
+            tokens = model.encode(b.frames)[b.window]
+            preds.append(model.head(tokens, b.goal)[1].numpy())
+            mirrored.append(model.head(tokens, b.goal * flip)[1].numpy())
             labels.append(b.waypoints.numpy())
             targets.append(t)
-    return np.concatenate(preds), np.concatenate(labels), np.concatenate(targets)
+    return tuple(np.concatenate(x) for x in (preds, mirrored, labels, targets))
 
 
 def _omega(wp: np.ndarray, index: int, metres_per_step: float, dt_s: float) -> np.ndarray:
@@ -110,8 +112,7 @@ def diagnose(model: ViNTStyle, deploy: dict[str, Any], frames: Frames, episodes:
     mps, k = float(deploy["metres_per_step"]), int(deploy["waypoint_index"])
     dt_s = cfg.spacing / float(deploy["fps"])
     trainer = Trainer(frames, cfg, mps)
-    pred, label, targets = predict(model, trainer, episodes)
-    mirrored, _, _ = predict(model, trainer, episodes, mirror_goal=True)
+    pred, mirrored, label, targets = predict(model, trainer, episodes)
     out: dict[str, Any] = {"frames": int(len(targets)), "episodes": len(episodes), "components": {}}
     for i, name in enumerate(COMPONENTS):
         mse = float(((pred[..., i] - label[..., i]) ** 2).mean())
