@@ -17,6 +17,7 @@ import logging
 import sys
 from pathlib import Path
 
+from pipeline.core.artifacts import stale_atomic_temps
 from pipeline.core.errors import ICrowdNavError, InputMissingError, reports_errors
 from recorder.mcap.layout import (
     METADATA_ABORTED,
@@ -100,7 +101,7 @@ def check_mcap_dir(directory: Path) -> list[str]:
             problems.append(f"{p}: unfinished episode (the recording was killed or interrupted); salvage its "
                             f"complete frames with `python -m recorder.doctor_mcap {d} --recover` "
                             f"(writes {rec.name}) or delete it")
-    for p in sorted(d.glob(".*.tmp-*")):
+    for p in sorted({*d.glob(".*.tmp-*"), *(q for q in stale_atomic_temps(d) if q.parent == d)}):
         problems.append(f"{p}: leftover temporary file of an interrupted write; delete it")
     for p in sorted(d.glob("*.mcap")):
         try:

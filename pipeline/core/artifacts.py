@@ -30,6 +30,7 @@ OutputMode = Literal["new", "overwrite", "resume"]
 OUTPUT_MODES: tuple[str, ...] = ("new", "overwrite", "resume")
 
 FILE_MODE = 0o644  # published files are world-readable (mkstemp would leave 0600)
+ATOMIC_SUFFIX = ".tmp"  # the temporary files of atomic_write_with: .<target>.<pid>.<random>.tmp
 
 
 def fsync_dir(directory: Path) -> None:
@@ -85,7 +86,9 @@ def atomic_write_with(path: Path, write: Callable[[IO[bytes]], object]) -> Path:
     ``path``; then the directory is fsynced. Returns ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    # the writer's pid is in the name, so that a resumed run can tell a dead writer's leftover (a SIGKILL between
+    # the create and the rename) from a live one's file: see stale_atomic_temps
+    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=ATOMIC_SUFFIX)
     tmp = Path(tmp_name)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -100,6 +103,21 @@ def atomic_write_with(path: Path, write: Callable[[IO[bytes]], object]) -> Path:
         raise
     fsync_dir(path.parent)
     return path
+
+
+def stale_atomic_temps(directory: Path) -> list[Path]:
+    """The temporary files of :func:`atomic_write_with` under ``directory`` (recursively) whose writing process is
+    gone: what a writer killed between creating its temporary file and renaming it over the target left behind.
+
+    Their names are ``.<target>.<pid>.<random>.tmp``; one whose pid is still alive (or that does not parse) is
+    kept. Returns them sorted; nothing is deleted here.
+    """
+    out = []
+    for p in sorted(Path(directory).rglob(f".*{ATOMIC_SUFFIX}")):
+        parts = p.name[: -len(ATOMIC_SUFFIX)].rsplit(".", 2)  # [".<target>", "<pid>", "<random>"]
+        if len(parts) == 3 and parts[1].isdigit() and p.is_file() and not pid_alive(int(parts[1])):
+            out.append(p)
+    return out
 
 
 def atomic_write_text(path: Path, text: str, encoding: str = "utf-8") -> Path:
@@ -306,6 +324,9 @@ class OutputDir:
                     f"output path {self.final} exists but is not a directory; cannot resume it"
                 )
             self.final.mkdir(parents=True, exist_ok=True)
+            for p in stale_atomic_temps(self.final):  # a killed run's half-written file: never part of the output
+                log.info("removing stale %s", p)
+                p.unlink(missing_ok=True)
         else:
             self.final.parent.mkdir(parents=True, exist_ok=True)
             _remove(self.staging)

@@ -50,6 +50,11 @@ def test_damaged_directory_one_line_per_problem(good_dir: Path, tmp_path: Path, 
     # an unfinished recording, and a crash between link and unlink while publishing
     shutil.copy(src, d / "open.mcap.partial")
     os.link(d / "ep1.mcap", d / "ep1.mcap.partial")
+    # what a recorder killed inside an atomic rewrite of its episode list leaves (its process is gone)
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    stale = d / f".episodes.jsonl.{gone.pid}.k2j4h1x9.tmp"
+    stale.write_text("")
 
     problems = check_mcap_dir(d)
     by_file: dict[str, list[str]] = {}
@@ -57,7 +62,8 @@ def test_damaged_directory_one_line_per_problem(good_dir: Path, tmp_path: Path, 
         name = Path(line.split(": ", 1)[0]).name
         by_file.setdefault(name, []).append(line)
     assert set(by_file) == {"gap.mcap", "hole.mcap", "nometa.mcap", "trunc.mcap", "short.mcap", "open.mcap.partial",
-                            "ep1.mcap.partial"}
+                            "ep1.mcap.partial", stale.name}
+    assert by_file[stale.name] == [f"{stale}: leftover temporary file of an interrupted write; delete it"]
     assert len(by_file["ep1.mcap.partial"]) == 1 and "second name of the finished ep1.mcap" in by_file["ep1.mcap.partial"][0]
     assert any("off the dt=100 ms grid" in x for x in by_file["gap.mcap"])
     assert any("steps" in x for x in by_file["gap.mcap"])

@@ -141,6 +141,30 @@ def test_resume_writes_in_place(tmp_path: Path) -> None:
     assert names(final) == ["part1.txt", "part2.txt"]  # resume keeps partial work
 
 
+def test_resume_removes_what_a_writer_killed_mid_atomic_write_left_and_keeps_a_live_writers(tmp_path: Path) -> None:
+    """A SIGKILL between an atomic write's create and rename leaves ``.<target>.<pid>.<random>.tmp``; resuming the
+    directory deletes it (it is never part of the output) but not the temporary file of a writer still running."""
+    final = tmp_path / "out"
+    atomic_write_text(final / "rows.jsonl", "old\n")
+    code = ("import sys, time; from pathlib import Path; from pipeline.core.artifacts import atomic_write_with; "
+            "atomic_write_with(Path(sys.argv[1]), lambda f: (f.write(b'half'), f.flush(), print('in', flush=True), "
+            "time.sleep(60)))")
+    killed = subprocess.Popen([sys.executable, "-c", code, str(final / "sub" / "rows.jsonl")],
+                              stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[3])
+    assert killed.stdout.readline() == "in\n"
+    killed.kill()
+    killed.wait()
+    left = [p.name for p in (final / "sub").iterdir()]
+    assert len(left) == 1 and left[0].startswith(f".rows.jsonl.{killed.pid}.") and left[0].endswith(".tmp")
+    live = final / f".rows.jsonl.{os.getpid()}.abcdefgh.tmp"  # this process is alive: its write may still finish
+    live.write_text("")
+    assert artifacts.stale_atomic_temps(final) == [final / "sub" / left[0]]
+    with OutputDir(final, "resume"):
+        pass
+    assert sorted(p.relative_to(final).as_posix() for p in final.rglob("*")) == [live.name, "rows.jsonl", "sub"]
+    assert (final / "rows.jsonl").read_text() == "old\n"
+
+
 def test_stale_staging_of_dead_pid_is_cleaned(tmp_path: Path) -> None:
     final = tmp_path / "out"
     stale = tmp_path / f".out.staging-{dead_pid()}"
