@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -21,7 +20,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from pipeline.core.artifacts import FILE_MODE
+from pipeline.core.artifacts import atomic_write_with
 
 OUTCOMES: tuple[str, ...] = ("success", "collision_pedestrian", "collision_obstacle", "timeout")
 """Every value :attr:`EpisodeTrace.outcome` may take."""
@@ -204,15 +203,7 @@ class EpisodeTrace:
             payload[name] = np.asarray(int(getattr(self, name)), dtype=np.int64)
         for name in self._STRS:
             payload[name] = np.asarray(str(getattr(self, name)))
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, **payload)
-            os.chmod(tmp, FILE_MODE)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        atomic_write_with(path, lambda fh: np.savez_compressed(fh, **payload))
         return path
 
     @classmethod
