@@ -24,9 +24,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
+from safetensors.torch import save as save_safetensors_bytes
 
-from pipeline.core.artifacts import atomic_write_text
+from pipeline.core.artifacts import atomic_write_bytes, atomic_write_text
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
 from pipeline.core.manifest import MANIFEST_NAME, release_output, verify_output
 from pretrain.geometry import Camera
@@ -50,12 +51,11 @@ def save_safetensors(module: torch.nn.Module, path: Path, metadata: dict[str, st
     (:func:`pipeline.core.manifest.release_output`): the directory is unfinished until its stage writes a new one.
     """
     path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
     state = {k: v.detach().cpu().contiguous().clone() for k, v in module.state_dict().items()}  # from any device
     meta = {"icrowdnav": json.dumps(metadata, sort_keys=True)} if metadata else None
-    save_file(state, str(tmp), metadata=meta)
+    blob = save_safetensors_bytes(state, metadata=meta)
     release_output(path)
-    tmp.replace(path)
+    atomic_write_bytes(path, blob)
 
 
 def check_finite(tensors: Mapping[str, Any], path: Path, prefix: str = "") -> None:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import csv
 import logging
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -33,7 +32,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pipeline.core.artifacts import fsync_dir
+from pipeline.core.artifacts import atomic_write_with
 from pipeline.core.device import cpu_state
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.data import FrameStore, make_batches, make_clips
@@ -188,14 +187,7 @@ def evaluate(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, slices
 def save_state(path: Path, state: dict[str, Any]) -> None:
     """Atomic ``torch.save`` (temporary file, fsync, rename) of the state with every tensor on the CPU (a state saved
     during a GPU run loads anywhere)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        torch.save(cpu_state(state), f)
-        f.flush()
-        os.fsync(f.fileno())
-    tmp.replace(path)
-    fsync_dir(path.parent)
+    atomic_write_with(path, lambda f: torch.save(cpu_state(state), f))
 
 
 def load_state(path: Path) -> dict[str, Any]:

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from pipeline.core.artifacts import atomic_save_npz, atomic_write_with
 from pipeline.core.errors import CorruptArtifactError
 from rl.baselines.common import collect_expert_episodes, save_baseline, save_curve_point, training_pairs
 from rl.baselines.sarl_om.configuration import KEYS, NAME, RUNTIME_FIELDS, Config
@@ -247,13 +248,9 @@ def td_update(model: SarlOMValue, target: SarlOMValue, opt: torch.optim.Optimize
 def _save_state(path: Path, model: SarlOMValue, target: SarlOMValue, opt: torch.optim.Optimizer, replay: Replay,
                 counters: dict[str, Any]) -> None:
     """``out/rl/state.pt`` (weights, optimiser, counters) and ``replay.npz``, each written atomically."""
-    path.mkdir(parents=True, exist_ok=True)
-    tmp = path / "replay.tmp.npz"
-    np.savez(tmp, size=replay.size, head=replay.head, **replay.data)
-    os.replace(tmp, path / "replay.npz")
-    torch.save({"model": model.state_dict(), "target": target.state_dict(), "opt": opt.state_dict(),
-                "counters": counters}, path / "state.tmp.pt")
-    os.replace(path / "state.tmp.pt", path / "state.pt")
+    atomic_save_npz(path / "replay.npz", {"size": replay.size, "head": replay.head, **replay.data})
+    state = {"model": model.state_dict(), "target": target.state_dict(), "opt": opt.state_dict(), "counters": counters}
+    atomic_write_with(path / "state.pt", lambda f: torch.save(state, f))
 
 
 def _load_state(path: Path, model: SarlOMValue, target: SarlOMValue, opt: torch.optim.Optimizer,
