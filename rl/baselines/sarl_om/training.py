@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipeline.core.artifacts import atomic_save_npz, atomic_write_with
+from pipeline.core.artifacts import atomic_write_with
 from pipeline.core.errors import CorruptArtifactError
 from rl.baselines.common import collect_expert_episodes, save_baseline, save_curve_point, training_pairs
 from rl.baselines.sarl_om.configuration import KEYS, NAME, RUNTIME_FIELDS, Config
@@ -247,10 +247,13 @@ def td_update(model: SarlOMValue, target: SarlOMValue, opt: torch.optim.Optimize
 
 def _save_state(path: Path, model: SarlOMValue, target: SarlOMValue, opt: torch.optim.Optimizer, replay: Replay,
                 counters: dict[str, Any]) -> None:
-    """``out/rl/state.pt`` (weights, optimiser, counters) and ``replay.npz``, each written atomically."""
-    atomic_save_npz(path / "replay.npz", {"size": replay.size, "head": replay.head, **replay.data})
-    state = {"model": model.state_dict(), "target": target.state_dict(), "opt": opt.state_dict(), "counters": counters}
+    """``out/rl/state.pt``: weights, optimiser, counters and the replay memory in one file written atomically, so a
+    resumed run never pairs counters with a replay of another iteration (a kill between two files could)."""
+    state = {"model": model.state_dict(), "target": target.state_dict(), "opt": opt.state_dict(), "counters": counters,
+             "replay": {"size": replay.size, "head": replay.head,
+                        "data": {k: torch.from_numpy(v) for k, v in replay.data.items()}}}
     atomic_write_with(path / "state.pt", lambda f: torch.save(state, f))
+    (path / "replay.npz").unlink(missing_ok=True)  # a state of before the single file: superseded
 
 
 def _load_state(path: Path, model: SarlOMValue, target: SarlOMValue, opt: torch.optim.Optimizer,
@@ -260,9 +263,13 @@ def _load_state(path: Path, model: SarlOMValue, target: SarlOMValue, opt: torch.
         model.load_state_dict(st["model"])
         target.load_state_dict(st["target"])
         opt.load_state_dict(st["opt"])
-        with np.load(path / "replay.npz") as z:
-            replay.data = {k: z[k] for k in TRANSITION_KEYS}
-            replay.size, replay.head = int(z["size"]), int(z["head"])
+        if "replay" in st:
+            replay.data = {k: st["replay"]["data"][k].numpy() for k in TRANSITION_KEYS}
+            replay.size, replay.head = int(st["replay"]["size"]), int(st["replay"]["head"])
+        else:  # written before the replay moved into state.pt
+            with np.load(path / "replay.npz") as z:
+                replay.data = {k: z[k] for k in TRANSITION_KEYS}
+                replay.size, replay.head = int(z["size"]), int(z["head"])
     except (OSError, KeyError, RuntimeError, ValueError) as e:
         raise CorruptArtifactError(f"{path}: cannot resume SARL*-OM ({type(e).__name__}: {e}); rerun with "
                                    "--overwrite") from None

@@ -40,7 +40,7 @@ def test_learns_a_trivial_scene(trained):
     b = summary["budget"]
     assert b["expert_episodes"] == 40 and b["rl_episodes"] == 0
     assert {p for p, _, _ in log.rows} == {"imitation"}
-    assert (ckpt / "rl" / "state.pt").is_file() and (ckpt / "rl" / "replay.npz").is_file()
+    assert (ckpt / "rl" / "state.pt").is_file() and not (ckpt / "rl" / "replay.npz").exists()  # one file
 
 
 def test_learning_curve_points_after_imitation_and_at_the_rl_episode_counts(trained, tmp_path):
@@ -73,3 +73,37 @@ def trained_curriculum(sim_cfg):
     from rl.teacher import CurriculumStage
 
     return [CurriculumStage(until=1.0, scenes=[sim_cfg.scene], densities=[0.0])]
+
+
+def test_a_resumed_run_continues_from_the_single_state_file(trained, tmp_path):
+    """``rl/state.pt`` holds weights, optimiser, counters and the replay memory together (a kill cannot pair counters
+    with a replay of another iteration); ``--resume`` with a larger budget continues from it: no second imitation,
+    the RL episodes and the replay grow from where they were."""
+    from rl.stage import TrainConfig
+
+    _, sim_cfg, _, _ = trained
+    cfg = TrainConfig(variant="sarl_om", sim=sim_cfg, workers=1, threads=1, progress=False, seed=0)
+    cfg.teacher.curriculum = trained_curriculum(sim_cfg)
+    cfg.teacher.bc_episodes = 4
+    cfg.sarl_om = replace(S.Config(), il_epochs=2, rl_iterations=1, episodes_per_iter=2, train_batches=2,
+                          target_update_episodes=2, checkpoint_every=1)
+
+    class Log:
+        rows: list = []
+
+        def add(self, phase, step, **values):
+            self.rows.append(phase)
+
+    out = tmp_path / "sarl_om"
+    first = S.train(cfg, out, Log())
+    st = torch.load(out / "rl" / "state.pt", weights_only=False)
+    size = st["replay"]["size"]
+    assert st["counters"]["episodes"] == first["budget"]["rl_episodes"] == 2 and size > 0
+    cfg.resume = True
+    cfg.sarl_om = replace(cfg.sarl_om, rl_iterations=2)
+    log = Log()
+    log.rows = []
+    again = S.train(cfg, out, log)
+    assert again["budget"]["rl_episodes"] == 4 and "imitation" not in log.rows and log.rows.count("rl") == 1
+    st = torch.load(out / "rl" / "state.pt", weights_only=False)
+    assert st["replay"]["size"] > size and st["counters"]["iteration"] == 2
