@@ -246,10 +246,12 @@ def td_update(model: SarlOMValue, target: SarlOMValue, opt: torch.optim.Optimize
 
 
 def _save_state(path: Path, model: SarlOMValue, target: SarlOMValue, opt: torch.optim.Optimizer, replay: Replay,
-                counters: dict[str, Any]) -> None:
-    """``out/rl/state.pt``: weights, optimiser, counters and the replay memory in one file written atomically, so a
-    resumed run never pairs counters with a replay of another iteration (a kill between two files could)."""
+                counters: dict[str, Any], rng: np.random.Generator) -> None:
+    """``out/rl/state.pt``: weights, optimiser, counters, the minibatch generator's state and the replay memory in
+    one file written atomically, so a resumed run never pairs counters with a replay of another iteration (a kill
+    between two files could) and draws the minibatches the uninterrupted run would have drawn."""
     state = {"model": model.state_dict(), "target": target.state_dict(), "opt": opt.state_dict(), "counters": counters,
+             "rng": rng.bit_generator.state,
              "replay": {"size": replay.size, "head": replay.head,
                         "data": {k: torch.from_numpy(v) for k, v in replay.data.items()}}}
     atomic_write_with(path / "state.pt", lambda f: torch.save(state, f))
@@ -257,12 +259,14 @@ def _save_state(path: Path, model: SarlOMValue, target: SarlOMValue, opt: torch.
 
 
 def _load_state(path: Path, model: SarlOMValue, target: SarlOMValue, opt: torch.optim.Optimizer,
-                replay: Replay) -> dict[str, Any]:
+                replay: Replay, rng: np.random.Generator) -> dict[str, Any]:
     try:
         st = torch.load(path / "state.pt", weights_only=False)
         model.load_state_dict(st["model"])
         target.load_state_dict(st["target"])
         opt.load_state_dict(st["opt"])
+        if "rng" in st:  # absent in a state written before it was saved: the generator then starts afresh
+            rng.bit_generator.state = st["rng"]
         if "replay" in st:
             replay.data = {k: st["replay"]["data"][k].numpy() for k in TRANSITION_KEYS}
             replay.size, replay.head = int(st["replay"]["size"]), int(st["replay"]["head"])
@@ -291,8 +295,9 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
     replay = Replay(oc.capacity)
     step_gamma = oc.gamma ** (cfg.sim.dt_s * cfg.sim.robot.v_max_mps)
     pairs = training_pairs(cfg)
+    rng = np.random.default_rng(cfg.seed + 7)  # the replay's minibatches; its state travels in state.pt
     if getattr(cfg, "resume", False) and (rl_dir / "state.pt").is_file():
-        c = _load_state(rl_dir, model, target, opt, replay)
+        c = _load_state(rl_dir, model, target, opt, replay, rng)
     else:
         n_il = oc.il_episodes or cfg.teacher.bc_episodes
         il, trans, stats = _imitation_data(cfg, oc, n_il)
@@ -301,7 +306,7 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
         replay.push(trans)
         c = {"iteration": 0, "episodes": 0, "env_steps": 0, "updates": 0, "since_target": 0,
              "wall_s": time.time() - t0, "il_loss": il_loss, **stats}
-        _save_state(rl_dir, model, target, opt, replay, c)
+        _save_state(rl_dir, model, target, opt, replay, c, rng)
     def curve_point(episodes: int) -> None:
         save_curve_point(out, NAME, model, model.spec, observation_description(oc),
                          {"expert_episodes": c["expert_episodes"], "expert_frames": c["expert_frames"],
@@ -310,7 +315,6 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
 
     if oc.curve_episodes and c["episodes"] == 0:
         curve_point(0)  # after imitation: the curve's first point
-    rng = np.random.default_rng(cfg.seed + 7)
     t_start = time.time() - c["wall_s"]  # wall time accumulates over resumed runs
     pool = None
     if cfg.workers > 1 and c["iteration"] < oc.rl_iterations:
@@ -360,7 +364,7 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
                     episode_steps=steps / len(outcomes), env_steps_per_s=steps_per_s)
             if c["iteration"] % oc.checkpoint_every == 0 or c["iteration"] == oc.rl_iterations:
                 c["wall_s"] = time.time() - t_start
-                _save_state(rl_dir, model, target, opt, replay, c)
+                _save_state(rl_dir, model, target, opt, replay, c, rng)
     finally:
         if pool is not None:
             pool.shutdown()

@@ -76,9 +76,10 @@ def trained_curriculum(sim_cfg):
 
 
 def test_a_resumed_run_continues_from_the_single_state_file(trained, tmp_path):
-    """``rl/state.pt`` holds weights, optimiser, counters and the replay memory together (a kill cannot pair counters
-    with a replay of another iteration); ``--resume`` with a larger budget continues from it: no second imitation,
-    the RL episodes and the replay grow from where they were."""
+    """``rl/state.pt`` holds weights, optimiser, counters, the minibatch generator and the replay memory together (a
+    kill cannot pair counters with a replay of another iteration); ``--resume`` with a larger budget continues from
+    it — no second imitation, the RL episodes and the replay grow from where they were — to the weights of a run
+    that was never interrupted."""
     from rl.stage import TrainConfig
 
     _, sim_cfg, _, _ = trained
@@ -107,3 +108,8 @@ def test_a_resumed_run_continues_from_the_single_state_file(trained, tmp_path):
     assert again["budget"]["rl_episodes"] == 4 and "imitation" not in log.rows and log.rows.count("rl") == 1
     st = torch.load(out / "rl" / "state.pt", weights_only=False)
     assert st["replay"]["size"] > size and st["counters"]["iteration"] == 2
+    cfg.resume = False
+    S.train(cfg, tmp_path / "whole", Log())
+    whole = torch.load(tmp_path / "whole" / "rl" / "state.pt", weights_only=False)
+    for key in ("model", "target"):
+        assert all(torch.equal(whole[key][k], st[key][k]) for k in whole[key]), key
