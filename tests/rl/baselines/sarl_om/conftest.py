@@ -9,7 +9,7 @@ from rl.baselines import sarl_om as S
 from rl.stage import TrainConfig
 from rl.teacher import CurriculumStage
 from sim.env import SimConfig
-from tests.rl.baselines.sarl_om.helpers import EMPTY_ROOM
+from tests.rl.baselines.sarl_om.helpers import EMPTY_ROOM, RecordingLog
 
 
 @pytest.fixture(scope="package")
@@ -26,12 +26,6 @@ def trained(tmp_path_factory):
     cfg.sarl_om = replace(S.Config(), il_epochs=60, rl_iterations=0, episodes_per_iter=2, train_batches=10,
                           target_update_episodes=2, checkpoint_every=1)
 
-    class Log:
-        rows: list = []
-
-        def add(self, phase, step, **values):
-            self.rows.append((phase, step, values))
-
-    log = Log()
+    log = RecordingLog()
     summary = S.train(cfg, tmp / "sarl_om", log)
     return tmp / "sarl_om", sim_cfg, summary, log

@@ -15,6 +15,16 @@ EMPTY_ROOM = {"name": "empty_room", "split": "train", "description": "test: an e
 OC = S.Config()
 
 
+class RecordingLog:
+    """The training log ``S.train`` writes to, keeping every row ``(phase, step, values)`` of this instance."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple] = []
+
+    def add(self, phase, step, **values) -> None:
+        self.rows.append((phase, step, values))
+
+
 def make_scene(goal=(3.0, 0.0), humans=(), hits=(), speed=0.0) -> S.Scene:
     return S.Scene(goal=np.asarray(goal, float), humans=np.asarray(humans, float).reshape(-1, 5),
                    hits=np.asarray(hits, float).reshape(-1, 2),

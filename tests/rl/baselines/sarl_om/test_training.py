@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from rl.baselines import sarl_om as S
-from tests.rl.baselines.sarl_om.helpers import make_scene, success_rate
+from tests.rl.baselines.sarl_om.helpers import RecordingLog, make_scene, success_rate
 
 # every test here needs the package's `trained` fixture (a training run, 20-35 s on 2 cores)
 pytestmark = pytest.mark.slow
@@ -56,11 +56,7 @@ def test_learning_curve_points_after_imitation_and_at_the_rl_episode_counts(trai
     cfg.sarl_om = replace(S.Config(), il_epochs=2, rl_iterations=2, episodes_per_iter=2, train_batches=2,
                           target_update_episodes=2, checkpoint_every=1, curve_episodes=[2])
 
-    class Log:
-        def add(self, *_, **__):
-            pass
-
-    S.train(cfg, tmp_path / "sarl_om", Log())
+    S.train(cfg, tmp_path / "sarl_om", RecordingLog())
     points = curve_points(tmp_path / "sarl_om")
     assert [(b, unit) for b, unit, _ in points] == [(0, "rl_episodes"), (2, "rl_episodes")]
     for b, _, d in points:
@@ -89,27 +85,21 @@ def test_a_resumed_run_continues_from_the_single_state_file(trained, tmp_path):
     cfg.sarl_om = replace(S.Config(), il_epochs=2, rl_iterations=1, episodes_per_iter=2, train_batches=2,
                           target_update_episodes=2, checkpoint_every=1)
 
-    class Log:
-        rows: list = []
-
-        def add(self, phase, step, **values):
-            self.rows.append(phase)
-
     out = tmp_path / "sarl_om"
-    first = S.train(cfg, out, Log())
+    first = S.train(cfg, out, RecordingLog())
     st = torch.load(out / "rl" / "state.pt", weights_only=False)
     size = st["replay"]["size"]
     assert st["counters"]["episodes"] == first["budget"]["rl_episodes"] == 2 and size > 0
     cfg.resume = True
     cfg.sarl_om = replace(cfg.sarl_om, rl_iterations=2)
-    log = Log()
-    log.rows = []
+    log = RecordingLog()
     again = S.train(cfg, out, log)
-    assert again["budget"]["rl_episodes"] == 4 and "imitation" not in log.rows and log.rows.count("rl") == 1
+    phases = [phase for phase, _, _ in log.rows]
+    assert again["budget"]["rl_episodes"] == 4 and "imitation" not in phases and phases.count("rl") == 1
     st = torch.load(out / "rl" / "state.pt", weights_only=False)
     assert st["replay"]["size"] > size and st["counters"]["iteration"] == 2
     cfg.resume = False
-    S.train(cfg, tmp_path / "whole", Log())
+    S.train(cfg, tmp_path / "whole", RecordingLog())
     whole = torch.load(tmp_path / "whole" / "rl" / "state.pt", weights_only=False)
     for key in ("model", "target"):
         assert all(torch.equal(whole[key][k], st[key][k]) for k in whole[key]), key
