@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from evaluation.compare import pair_key, read_rows
-from evaluation.stats import pooled_mcnemar
+from evaluation.stats import mcnemar_exact
 from pipeline.core.artifacts import atomic_write_json, json_safe
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError, reports_errors
 from rl.figures import plot_learning_curve
@@ -65,29 +65,24 @@ def curve(points: list[tuple[float, list[dict[str, Any]], str]], unit: str) -> l
             raise ConfigError(f"{name}: acceptance episodes: expected the same (scene, density, seed) as "
                               f"{points[0][2]} ({len(keys[0])} episodes), got {len(k)} of which "
                               f"{len(k - keys[0])} are not in it — not a paired curve")
-    order = sorted(range(len(points)), key=lambda i: points[i][0])
-    by_key = [{pair_key(r): float(r["success"]) for r in points[i][1]} for i in order]
     ks = sorted(keys[0])
-    out = []
-    for j, i in enumerate(order):
-        budget, rows, name = points[i]
+    cells = [f"{scene}@{density:g}" for scene, density, _ in ks]
+    out, earlier = [], []  # earlier: the success vectors of the points before, aligned on ks
+    for budget, rows, name in sorted(points, key=lambda p: p[0]):
+        by_key = {pair_key(r): float(r["success"]) for r in rows}
+        wins = [by_key[k] for k in ks]  # aligned on ks in every point: the pairs of the tests below
         table: dict[str, dict[str, Any]] = {}
-        for scene, density, _ in ks:
-            table.setdefault(f"{scene}@{density:g}", {"n": 0, "sr": 0.0})
-        for key in ks:
-            cell = table[f"{key[0]}@{key[1]:g}"]
-            cell["n"] += 1
-            cell["sr"] += by_key[j][key]
-        for cell in table.values():
-            cell["sr"] /= cell["n"]
-        wins = sum(by_key[j].values())
-        lo, hi = wilson_interval(wins, len(ks))
-        row = {"budget": budget, "unit": unit, "checkpoint": name, "pooled_sr": wins / len(ks),
-               "pooled_wilson95": [lo, hi], "table": table}
-        for tag, ref in (("vs_previous", j - 1), ("vs_first", 0)):
-            if 0 <= ref < j:
-                row[tag] = pooled_mcnemar([([by_key[j][k] for k in ks], [by_key[ref][k] for k in ks])])
+        for cell, w in zip(cells, wins, strict=True):
+            t = table.setdefault(cell, {"n": 0, "wins": 0.0})
+            t["n"], t["wins"] = t["n"] + 1, t["wins"] + w
+        lo, hi = wilson_interval(sum(wins), len(ks))
+        row = {"budget": budget, "unit": unit, "checkpoint": name, "pooled_sr": sum(wins) / len(ks),
+               "pooled_wilson95": [lo, hi], "table": {c: {"n": t["n"], "sr": t["wins"] / t["n"]} for c, t in table.items()}}
+        if earlier:
+            row["vs_previous"] = mcnemar_exact(wins, earlier[-1])
+            row["vs_first"] = mcnemar_exact(wins, earlier[0])
         out.append(row)
+        earlier.append(wins)
     return out
 
 

@@ -101,7 +101,7 @@ def check_mcap_dir(directory: Path) -> list[str]:
             problems.append(f"{p}: unfinished episode (the recording was killed or interrupted); salvage its "
                             f"complete frames with `python -m recorder.doctor_mcap {d} --recover` "
                             f"(writes {rec.name}) or delete it")
-    for p in sorted({*d.glob(".*.tmp-*"), *(q for q in stale_atomic_temps(d) if q.parent == d)}):
+    for p in sorted({*d.glob(".*.tmp-*"), *stale_atomic_temps(d, recursive=False)}):
         problems.append(f"{p}: leftover temporary file of an interrupted write; delete it")
     for p in sorted(d.glob("*.mcap")):
         try:

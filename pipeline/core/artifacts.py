@@ -105,15 +105,17 @@ def atomic_write_with(path: Path, write: Callable[[IO[bytes]], object]) -> Path:
     return path
 
 
-def stale_atomic_temps(directory: Path) -> list[Path]:
-    """The temporary files of :func:`atomic_write_with` under ``directory`` (recursively) whose writing process is
-    gone: what a writer killed between creating its temporary file and renaming it over the target left behind.
+def stale_atomic_temps(directory: Path, recursive: bool = True) -> list[Path]:
+    """The temporary files of :func:`atomic_write_with` in ``directory`` (and its subdirectories when ``recursive``)
+    whose writing process is gone: what a writer killed between creating its temporary file and renaming it over the
+    target left behind.
 
     Their names are ``.<target>.<pid>.<random>.tmp``; one whose pid is still alive (or that does not parse) is
     kept. Returns them sorted; nothing is deleted here.
     """
     out = []
-    for p in sorted(Path(directory).rglob(f".*{ATOMIC_SUFFIX}")):
+    pattern = f".*{ATOMIC_SUFFIX}"
+    for p in sorted(Path(directory).rglob(pattern) if recursive else Path(directory).glob(pattern)):
         parts = p.name[: -len(ATOMIC_SUFFIX)].rsplit(".", 2)  # [".<target>", "<pid>", "<random>"]
         if len(parts) == 3 and parts[1].isdigit() and p.is_file() and not pid_alive(int(parts[1])):
             out.append(p)
