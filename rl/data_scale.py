@@ -39,7 +39,7 @@ from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, InputMissingError, reports_errors
-from rl.dagger import bev_stats
+from rl.dagger import bev_stats, pool_frames
 from rl.networks import STUDENT_HEADS
 from rl.observe import load_student_encoder, load_student_heads, observer_for_env
 from rl.policy import (
@@ -112,7 +112,8 @@ def check_same_sources(policy_dirs: list[Path], keys: tuple[str, ...] = ("encode
                                   f"(digest {first[k]}), got {src[k]}: pool only trainings on one {k}")
 
 
-def reference_scores(ckpts: list[Path], holdout: list[Path], soft_tau: float) -> dict[str, dict[str, float]]:
+def reference_scores(ckpts: list[Path], holdout: list[Path], soft_tau: float,
+                     memory_gb: float | None = None) -> dict[str, dict[str, float]]:
     """:func:`holdout_scores` of trained students (``load_policy``, unshielded: the distribution as cloned) on the
     held-out iterations' frames; each must have been trained on the held-out frames' teacher."""
     ho_its = iteration_dirs(holdout)
@@ -122,7 +123,7 @@ def reference_scores(ckpts: list[Path], holdout: list[Path], soft_tau: float) ->
         check_same_sources([ho_its[0] / "policy", ckpt], ("teacher",))
         policies[str(ckpt)] = load_policy(ckpt, shield_s=0.0)[0]
     keys = {k for pol in policies.values() for k in pol.observation_space.spaces} | {"action", "teacher_logits"}
-    ho = load_frames([f for f, _, _ in files], tuple(sorted(keys)), int(sum(n for _, _, n in files)))  # read once
+    ho = pool_frames([f for f, _, _ in files], tuple(sorted(keys)), memory_gb)  # read once
     out = {}
     for ckpt, policy in policies.items():
         out[ckpt] = holdout_scores(policy, ho, soft_tau)
@@ -147,22 +148,6 @@ def episode_files(iters: list[Path]) -> list[tuple[Path, str, int]]:
                     out.append((f, key, int(len(z["action"]))))
             except (OSError, ValueError, KeyError) as e:
                 raise InputMissingError(f"{f}: unreadable cached features ({type(e).__name__}: {e})") from None
-    return out
-
-
-def load_frames(files: list[Path], keys: tuple[str, ...], total: int) -> dict[str, np.ndarray]:
-    """The ``keys`` of ``files`` concatenated in order into preallocated arrays (no second copy of the set)."""
-    out: dict[str, np.ndarray] = {}
-    at = 0
-    for f in files:
-        with np.load(f) as z:
-            n = len(z["action"])
-            for k in keys:
-                a = z[k]
-                if k not in out:
-                    out[k] = np.empty((total, *a.shape[1:]), a.dtype)
-                out[k][at:at + n] = a
-            at += n
     return out
 
 
@@ -227,9 +212,10 @@ def learning_curve(cfg: TrainConfig, train: list[Path], holdout: list[Path], siz
     n_files = [int(np.searchsorted(ends, s) + 1) for s in sizes]  # whole episodes up to at least `size` frames
     log.info("data scale: %d distinct training episodes (%d frames), %d held-out episodes", len(tr_files), pool,
              len(ho_files))
-    data = load_frames([f for f, _ in tr_files[:n_files[-1]]], keys, int(ends[n_files[-1] - 1]))
+    # the pool in memory up to the profile's dagger.pool_memory_gb, memory-mapped beyond (rl.dagger.pool_frames)
+    data = pool_frames([f for f, _ in tr_files[:n_files[-1]]], keys, d.pool_memory_gb)
     data["costs"] = -data.pop("teacher_logits")  # the cloning objective's form (rl.stage: softmin of the costs)
-    ho = load_frames([f for f, _, _ in ho_files], keys, int(sum(n for _, _, n in ho_files)))
+    ho = pool_frames([f for f, _, _ in ho_files], keys, d.pool_memory_gb)
     teacher_dir = policy_root(cfg) / "teacher"
     n_rot = cfg.sim.robot.n_rotations
     torch.set_num_threads(cfg.threads or torch.get_num_threads())
@@ -320,6 +306,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="trained students (same teacher) scored on the same held-out frames")
     ap.add_argument("--epochs", type=int, default=None, help="cloning epochs (default: the profile's dagger.bc_epochs)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--pool-memory-gb", type=float, default=None,
+                    help="frames in memory up to this many GiB, memory-mapped beyond (default: the profile's "
+                         "dagger.pool_memory_gb)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--figure", type=Path, default=None)
     ap.add_argument("--save", type=Path, default=None, help="write the largest size's student as a checkpoint")
@@ -335,6 +324,8 @@ def main(argv: list[str] | None = None) -> int:
     over = {"data_dir": str(a.data_dir), "variant": a.variant, "head": a.head}
     if a.epochs is not None:
         over["dagger.bc_epochs"] = str(a.epochs)
+    if a.pool_memory_gb is not None:
+        over["dagger.pool_memory_gb"] = str(a.pool_memory_gb)
     cfg = load_config(TrainConfig, "train", a.profile, over)
     if sizes and not layout.checkpoint_dir(cfg.data_dir, cfg.encoder).exists() and cfg.variant != "no_bev":
         raise InputMissingError(f"{layout.checkpoint_dir(cfg.data_dir, cfg.encoder)}: the encoder checkpoint the "
@@ -347,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         raise ConfigError("--train: expected the DAgger frames to clone on (checkpoints or iterations), got none")
     result = learning_curve(cfg, a.train, a.holdout, sizes, a.seed, a.save) if sizes else {"rows": []}
     if a.reference:
-        result["reference"] = reference_scores(a.reference, a.holdout, cfg.dagger.soft_tau)
+        result["reference"] = reference_scores(a.reference, a.holdout, cfg.dagger.soft_tau, cfg.dagger.pool_memory_gb)
     if a.acceptance:
         result["acceptance"] = acceptance(cfg, a.save, f"{cfg.variant}_{cfg.head}_{result['rows'][-1]['frames']}")
     if a.json:

@@ -176,6 +176,9 @@ class DaggerConfig:
     # the teacher's, with its pedestrian terms refitted by the same regression together with the map cost (the
     # student's tracks and intention forecasts are not the teacher's ground truth)
     linear_cost: str = "teacher"
+    # the cloning set (every iteration's cached frames) in memory up to this size; larger, it is memory-mapped from
+    # unlinked files beside the checkpoint (rl.dagger.pool_frames: the same arrays, the page cache holds what fits)
+    pool_memory_gb: float = 8.0
     scenes: list[str] = field(default_factory=lambda: ["hallway", "corner", "doorway", "cluttered_room", "open_crowd"])
     densities: list[float] = field(default_factory=lambda: [0.1, 0.2])
 
@@ -294,6 +297,8 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError("train: ppo_steps and teacher.critic_warmup_steps must be >= 0")
         if d.soft_tau < 0:
             raise ConfigError(f"train.dagger.soft_tau: expected >= 0, got {d.soft_tau}")
+        if not d.pool_memory_gb > 0:  # NaN fails too
+            raise ConfigError(f"train.dagger.pool_memory_gb: expected > 0 (GiB), got {d.pool_memory_gb}")
         it = self.intention_tune
         if it.epochs < 0:
             raise ConfigError(f"train.intention_tune.epochs: expected an integer >= 0 (0 = frozen), got {it.epochs}")
@@ -598,8 +603,9 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         tuned = _tune_intention(cfg, out, k, device) if tune else None
         if tuned and "skipped" not in tuned:
             int_dir = it / "intention"
-        new = load_features([it])
-        data = load_features([out / "dagger" / f"iter_{j}" for j in range(k + 1)])
+        new = load_features([it], memory_gb=d.pool_memory_gb, scratch=out / "dagger")
+        data = load_features([out / "dagger" / f"iter_{j}" for j in range(k + 1)], memory_gb=d.pool_memory_gb,
+                             scratch=out / "dagger")
         if k == 0 and "bev" in space.spaces:
             policy.features_extractor.set_bev_stats(*bev_stats(data))
         before = bc_loss(policy, new)

@@ -706,6 +706,9 @@ def test_data_scale_clones_nested_subsets_of_pooled_dagger_frames(tmp_path, teac
         assert h["frames"] == n1 and h["ce"] >= h["teacher_entropy"] - 1e-4 and 0.0 <= h["top1_agreement"] <= 1.0
     policy, desc = load_policy(tmp_path / "scaled")
     assert desc["produced_by"]["offline_distillation"]["episodes"] == 2 and desc["net"]["head"] == "mlp"
+    # the same curve when the pool is memory-mapped (a pool larger than dagger.pool_memory_gb)
+    mapped = learning_curve(replace(cfg, dagger=replace(cfg.dagger, pool_memory_gb=1e-9)), [out, it0], [it1], [1, n0])
+    assert [r["holdout"] for r in mapped["rows"]] == [r["holdout"] for r in res["rows"]]
     # a trained student scored on the same held-out frames: the saved one reproduces its row
     ref = reference_scores([tmp_path / "scaled"], [it1], cfg.dagger.soft_tau)[str(tmp_path / "scaled")]
     assert ref["frames"] == n1 and ref["ce"] == pytest.approx(big["holdout"]["ce"], rel=1e-5)
