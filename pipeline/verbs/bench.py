@@ -63,7 +63,7 @@ from recorder.bench import measure_chunk_loading
 from recorder.export import write_dataset
 from recorder.record import RecordConfig
 from recorder.record import body as record_body
-from rl.bench import measure_inference, measure_student_ppo, measure_teacher
+from rl.bench import measure_frame_pool, measure_inference, measure_student_ppo, measure_teacher
 from rl.stage import TrainConfig
 from sim.crowd import Crowd, social_force_reference
 from sim.env import SimConfig
@@ -178,6 +178,7 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
         enc_cfg = load_config(PretrainConfig, "pretrain", cfg.profile).encoder
         out.update(measure_inference(cfg.sim, cfg.scene, cfg.density, cfg.seed, enc_cfg, s))
         out.update(measure_student_ppo(cfg.sim, cfg.scene, cfg.density, cfg.seed, train_cfg, enc_cfg, 2 * s))
+        out.update(measure_frame_pool())
     if cfg.record_episodes > 0:
         out.update(measure_recorder(cfg))
     return {k: round(float(v), 3) for k, v in out.items()}
