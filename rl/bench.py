@@ -17,7 +17,7 @@
   forward pass and the update run on one thread while the env workers wait, ``1 / (env / cores + policy +
   update)``; ``teacher_cores`` is the usable core count (``os.sched_getaffinity``);
 * ``dagger_pool_*`` — the students' DAgger frame pool in memory and memory-mapped against the list + concatenate
-  it replaced: peak memory and seconds per mode, each in its own process (:func:`measure_frame_pool`);
+  it replaced: peak allocated memory and seconds per mode (:func:`measure_frame_pool`);
 * ``student_ppo_env_steps_per_s_<no_bev|full>`` / ``student_ppo_update_share_<variant>`` — the rendered student's
   PPO fine-tuning throughput as ``train`` runs it (:func:`measure_student_ppo`);
 * ``policy_inference_ms`` / ``policy_inference_hz`` — the full visual policy (variant ``full``) from the two RGB-D
@@ -56,6 +56,7 @@ from pretrain.geometry import cameras_from_dataset
 from pretrain.intention import ForecasterConfig, IntentionForecaster
 from pretrain.model import BEVEncoder, BEVStream, EncoderConfig, PretextHeads
 from pretrain.stage import PretrainConfig
+from rl.dagger import pool_frames
 from rl.observe import BEV_POOL, StudentEnv, StudentObserver, env_cameras, observer_for_env, perception_params
 from rl.policy import act, build_policy, policy_class, policy_kwargs
 from rl.stage import TrainConfig, student_net
@@ -149,41 +150,18 @@ def measure_teacher(sim_cfg: Any, scene: str, density: float, seed: int, train_c
     return out
 
 
-def _proc_status_kb() -> dict[str, int]:
-    """This process's ``/proc/self/status`` memory lines in kB (Linux)."""
-    out = {}
-    for line in Path("/proc/self/status").read_text().splitlines():
-        key, _, val = line.partition(":")
-        if val.strip().endswith("kB"):
-            out[key] = int(val.split()[0])
-    return out
-
-
-def _pool_child(mode: str, root: str) -> dict[str, float]:
-    """In a forked process (peak memory is per process): pool the ``*.npz`` episodes of ``root`` by ``mode`` —
-    ``concat`` (the reference: a list of every episode's arrays, then ``np.concatenate``, as the DAgger loop pooled
-    before :func:`rl.dagger.pool_frames`), ``memory`` or ``mapped`` (``pool_frames`` under / over its memory limit)
-    — and report the seconds and the peak resident and anonymous memory it added."""
-    from rl.dagger import pool_frames
-
-    files = sorted(Path(root).glob("*.npz"))
-    before = _proc_status_kb()
-    t = time.perf_counter()
+def _pool_by(mode: str, files: list[Path]) -> dict[str, np.ndarray]:
+    """The episodes ``files`` pooled by ``mode``: ``concat`` — the reference, a list of every episode's arrays and
+    then ``np.concatenate`` (how the DAgger loop pooled before :func:`rl.dagger.pool_frames`) —, ``memory`` or
+    ``mapped`` (``pool_frames`` under / over its memory limit)."""
     if mode == "concat":
         parts: dict[str, list[np.ndarray]] = {}
         for f in files:
             with np.load(f) as z:
                 for k in z.files:
                     parts.setdefault(k, []).append(z[k])
-        data = {k: np.concatenate(v) for k, v in parts.items()}
-        del parts
-    else:
-        data = pool_frames(files, memory_gb=None if mode == "memory" else 1e-9, scratch=Path(root))
-    seconds = time.perf_counter() - t
-    after = _proc_status_kb()
-    gib = 1 / 2**20  # kB -> GiB
-    return {"seconds": seconds, "pool_gib": sum(a.nbytes for a in data.values()) / 2**30,
-            "peak_gib": (after["VmHWM"] - before["VmRSS"]) * gib, "anon_gib": (after["RssAnon"] - before["RssAnon"]) * gib}
+        return {k: np.concatenate(v) for k, v in parts.items()}
+    return pool_frames(files, memory_gb=None if mode == "memory" else 1e-9, scratch=files[0].parent)
 
 
 def measure_frame_pool(frames: int = 5000, bev_shape: tuple[int, int, int] = (32, 30, 48), n_actions: int = 105,
@@ -191,13 +169,16 @@ def measure_frame_pool(frames: int = 5000, bev_shape: tuple[int, int, int] = (32
     """The DAgger frame pool (:func:`rl.dagger.pool_frames`) against the reference it replaced (a list of parts, then
     ``np.concatenate``): ``frames`` synthetic frames of the students' cached features (``bev`` and ``bev_mirror``
     float16 of ``bev_shape`` — the default profile's pooled s_bev —, state, action, teacher logits) in episodes of
-    ``episode_frames``, each mode in its own process, two rounds. Keys ``dagger_pool_<concat|memory|mapped>_<peak_gib|s>``,
-    ``dagger_pool_mapped_anon_gib`` (what the memory-mapped pool holds outside the page cache) and the reference's
-    peak over the pool's, ``dagger_pool_peak_ratio_concat_vs_memory``."""
-    import multiprocessing
+    ``episode_frames``. Keys ``dagger_pool_<concat|memory|mapped>_peak_gib`` — the peak of the memory allocated while
+    pooling, the pool included (``tracemalloc``, which numpy reports its arrays to; a memory-mapped pool lives in
+    the page cache, which the kernel can drop, not in allocated memory) — and ``..._s`` (untraced, the faster of two
+    rounds, modes alternating), ``dagger_pool_gib`` and the reference's peak over the pool's,
+    ``dagger_pool_peak_ratio_concat_vs_memory``."""
     import tempfile
+    import tracemalloc
 
     g = np.random.default_rng(0)
+    modes = ("concat", "memory", "mapped")
     out: dict[str, float] = {}
     with tempfile.TemporaryDirectory(prefix="icrowdnav-bench-pool-") as root:
         for e in range(0, frames, episode_frames):
@@ -207,17 +188,22 @@ def measure_frame_pool(frames: int = 5000, bev_shape: tuple[int, int, int] = (32
                      bev_mirror=g.standard_normal((n, *bev_shape)).astype(np.float16),
                      state=g.standard_normal((n, 7)).astype(np.float32),
                      teacher_logits=g.standard_normal((n, n_actions)).astype(np.float32))
-        ctx = multiprocessing.get_context("fork")  # no re-import: the child starts from this process's pages
-        for _ in range(2):  # two rounds, modes alternating: each mode's faster time, the larger of its peaks
-            for mode in ("concat", "memory", "mapped"):
-                with ctx.Pool(1) as pool:
-                    res = pool.apply(_pool_child, (mode, root))
-                key = f"dagger_pool_{mode}"
-                out[f"{key}_peak_gib"] = max(res["peak_gib"], out.get(f"{key}_peak_gib", 0.0))
-                out[f"{key}_s"] = min(res["seconds"], out.get(f"{key}_s", np.inf))
-                if mode == "mapped":
-                    out["dagger_pool_mapped_anon_gib"] = max(res["anon_gib"], out.get("dagger_pool_mapped_anon_gib", 0.0))
-                out["dagger_pool_gib"] = res["pool_gib"]
+        files = sorted(Path(root).glob("*.npz"))
+        for _ in range(2):
+            for mode in modes:
+                t = time.perf_counter()
+                pool = _pool_by(mode, files)
+                out[f"dagger_pool_{mode}_s"] = min(time.perf_counter() - t, out.get(f"dagger_pool_{mode}_s", np.inf))
+                out["dagger_pool_gib"] = sum(a.nbytes for a in pool.values()) / 2**30
+                del pool
+        for mode in modes:
+            tracemalloc.start()
+            try:
+                pool = _pool_by(mode, files)
+                out[f"dagger_pool_{mode}_peak_gib"] = tracemalloc.get_traced_memory()[1] / 2**30
+                del pool
+            finally:
+                tracemalloc.stop()
     out["dagger_pool_frames"] = float(frames)
     out["dagger_pool_peak_ratio_concat_vs_memory"] = out["dagger_pool_concat_peak_gib"] / out["dagger_pool_memory_peak_gib"]
     return out

@@ -96,16 +96,17 @@ def test_bench_main_times_the_profiles_encoder(tiny_dataset, monkeypatch, capsys
 
 
 def test_frame_pool_figures_against_the_concatenating_reference():
-    """Each pooling mode in its own process: the pool's size is the frames' bytes, the list + concatenate
-    reference peaks near twice the pool, the pool itself near once, and the memory-mapped pool holds next to
-    nothing outside the page cache (memory, not speed, is asserted: it does not depend on the machine's load)."""
+    """The pool's size is the frames' bytes; while pooling, the list + concatenate reference allocates about twice
+    the pool, the pool itself about once, and the memory-mapped pool a few episodes (allocated memory, traced:
+    it does not depend on the machine's load or the process's history; speed is not asserted)."""
     out = measure_frame_pool(frames=1000, bev_shape=(32, 30, 48), episode_frames=100)
     per_frame = 2 * 32 * 30 * 48 * 2 + 7 * 4 + 8 + 105 * 4  # bev + bev_mirror (float16), state, action, logits
     assert out["dagger_pool_gib"] == pytest.approx(1000 * per_frame / 2**30, rel=1e-6)
     for key in ("dagger_pool_concat_s", "dagger_pool_memory_s", "dagger_pool_mapped_s"):
         assert math.isfinite(out[key]) and out[key] > 0, key
     pool = out["dagger_pool_gib"]
-    assert out["dagger_pool_concat_peak_gib"] > 1.5 * pool
-    assert out["dagger_pool_memory_peak_gib"] < 1.3 * pool
-    assert out["dagger_pool_mapped_anon_gib"] < 0.3 * pool
-    assert out["dagger_pool_peak_ratio_concat_vs_memory"] > 1.2
+    assert out["dagger_pool_concat_peak_gib"] > 1.9 * pool
+    episode = pool / 10  # reading one episode holds it about twice (the member's bytes, then the array)
+    assert pool < out["dagger_pool_memory_peak_gib"] < pool + 3 * episode
+    assert out["dagger_pool_mapped_peak_gib"] < 3 * episode
+    assert out["dagger_pool_peak_ratio_concat_vs_memory"] > 1.6
