@@ -10,8 +10,8 @@ data dir.
 Each argument is a file of per-episode rows — ``acceptance_episodes.jsonl`` (end of ``train``) or an eval run's
 ``episodes.jsonl`` / ``scenarios/episodes.jsonl`` — or a directory holding one (``acceptance_episodes.jsonl``, then
 ``episodes.jsonl``), or an eval run that has not finished (its ``rows/`` so far, with a warning). Rows are matched
-by (scene, density, seed); per cell and pooled over the cells: SR of each,
-the exact McNemar test, the SR difference detectable at 80 % power with these pairs, and the Wilcoxon test of the
+by (scene, density, seed); per cell, pooled over the cells of each density and of each scene (where the runs hold
+more than one), and pooled over all cells: SR of each, the exact McNemar test, the SR difference detectable at 80 % power with these pairs, and the Wilcoxon test of the
 time in private zones (TPZ); pooled over the pairs, each failure outcome the two runs' rows both carry (collision,
 pedestrian and obstacle collision, timeout: the exact McNemar test on who alone failed that way) and the mean jerk
 of each. A run of several methods (an eval run of ``--methods '[a, b]'``) is compared on one of them:
@@ -165,8 +165,30 @@ def compare(a: list[dict[str, Any]], b: list[dict[str, Any]], labels: tuple[str,
                 sr[lab].setdefault(f"{r['scene']}@{float(r['density']):g}", []).append(float(r["success"]))
     return {"reference": labels[0], "other": labels[1], "cells": cells,
             "pooled": paired_pooled(rows, labels[0]).get(labels[1]),
+            "pooled_by": pooled_groups(rows, labels),
             "sr": {lab: {c: sum(v) / len(v) for c, v in cs.items()} for lab, cs in sr.items()},
             **pooled_outcomes(rows, labels[0])}
+
+
+GROUPS = {"density": lambda r: f"{float(r['density']):g}",
+          "scene": lambda r: str(r["scene"]).split(" [")[0]}  # a replicate's cells join their scene (replicate())
+"""What the cells are pooled by besides all at once: the density (the paper reports each), the scene."""
+
+
+def pooled_groups(rows: list[dict[str, Any]], labels: tuple[str, str]) -> dict[str, dict[str, Any]]:
+    """Per grouping of :data:`GROUPS` that splits the runs' cells into more than one group: per group, the pooled
+    paired test of :func:`evaluation.report.paired_pooled` (``labels[0]`` against ``labels[1]``) over its cells."""
+    out: dict[str, dict[str, Any]] = {}
+    for name, key in GROUPS.items():
+        groups = sorted({key(r) for r in rows})
+        if len(groups) < 2:
+            continue
+        out[name] = {}
+        for g in groups:
+            res = paired_pooled([r for r in rows if key(r) == g], labels[0]).get(labels[1])
+            if res is not None:
+                out[name][g] = res
+    return out
 
 
 def pooled_outcomes(rows: list[dict[str, Any]], ref: str) -> dict[str, Any]:
@@ -206,6 +228,12 @@ def markdown(res: dict[str, Any]) -> str:
     lines += ["", f"Pooled over {res['pooled']['n_cells']} cells: {pooled['n']} pairs, ΔSR ({a} − {b}) "
               f"{pooled['sr_diff']:+.3f}, {pooled['a_only']} / {pooled['b_only']} discordant, McNemar p = "
               f"{p(pooled['p_value'])}, detectable ΔSR at 80 % power {p(pooled['detectable_diff'])}."]
+    for name, groups in res.get("pooled_by", {}).items():
+        lines += ["", f"| pooled by {name} | cells | pairs | ΔSR ({a} − {b}) | {a} only / {b} only | McNemar p | "
+                  "detectable ΔSR |", "|---|---|---|---|---|---|---|"]
+        lines += [f"| {g} | {d['n_cells']} | {d['sr']['n']} | {d['sr']['sr_diff']:+.3f} | {d['sr']['a_only']} / "
+                  f"{d['sr']['b_only']} | {p(d['sr']['p_value'])} | {p(d['sr']['detectable_diff'])} |"
+                  for g, d in groups.items()]
     if res["outcomes"]:
         lines += ["", f"| pooled failure outcome | {a} | {b} | only {a} / only {b} failed so | McNemar p |", "|---|---|---|---|---|"]
         lines += [f"| {k} | {o['count_a']} | {o['count_b']} | {o['a_only']} / {o['b_only']} | {p(o['p_value'])} |"

@@ -128,3 +128,31 @@ def test_replicates_are_matched_each_on_their_own_and_pooled(tmp_path, capsys):
     _write(tmp_path / "other.jsonl", _rows([1] * 20, scene="warehouse"))
     assert compare.main([str(r1a), str(r1b), "--also", str(r2a), str(tmp_path / "other.jsonl")]) == 2
     assert "--also" in capsys.readouterr().err
+
+
+def test_cells_are_also_pooled_per_density_and_per_scene(tmp_path, capsys):
+    """Besides all cells at once, the pairs are pooled per density and per scene (a replicate's cells joining their
+    scene); a grouping with one group only (every row at one density) is left out."""
+    def rows(successes: list[int], scene: str, density: float) -> list[dict]:
+        return [{**r, "density": density} for r in _rows(successes, scene)]
+
+    a = rows([1] * 10, "office_lobby", 0.1) + rows([1] * 10, "warehouse", 0.1) + rows([0] * 10, "warehouse", 0.2)
+    b = rows([1] * 4 + [0] * 6, "office_lobby", 0.1) + rows([1] * 8 + [0] * 2, "warehouse", 0.1) + \
+        rows([0] * 7 + [1] * 3, "warehouse", 0.2)
+    res = compare.compare(a, b, ("full", "no_bev"))
+    by_d, by_s = res["pooled_by"]["density"], res["pooled_by"]["scene"]
+    assert set(by_d) == {"0.1", "0.2"} and set(by_s) == {"office_lobby", "warehouse"}
+    assert (by_d["0.1"]["n_cells"], by_d["0.1"]["sr"]["n"], by_d["0.1"]["sr"]["a_only"], by_d["0.1"]["sr"]["b_only"]) \
+        == (2, 20, 8, 0)
+    assert (by_d["0.2"]["sr"]["a_only"], by_d["0.2"]["sr"]["b_only"]) == (0, 3)
+    assert (by_s["warehouse"]["n_cells"], by_s["warehouse"]["sr"]["a_only"], by_s["warehouse"]["sr"]["b_only"]) \
+        == (2, 2, 3)
+    assert by_d["0.1"]["sr"]["p_value"] == pytest.approx(2 * 0.5 ** 8)
+    text = compare.markdown(res)
+    assert "| pooled by density |" in text and "| 0.1 | 2 | 20 | +0.400 | 8 / 0 | 0.008 |" in text
+    # replicates: the tagged cells of one scene pool together; one density only -> no density grouping
+    one = compare.compare(compare.replicate(rows([1] * 10, "warehouse", 0.1), 1)
+                          + compare.replicate(rows([1] * 10, "warehouse", 0.1), 2),
+                          compare.replicate(rows([0] * 10, "warehouse", 0.1), 1)
+                          + compare.replicate(rows([1] * 10, "warehouse", 0.1), 2), ("full", "no_bev"))
+    assert "density" not in one["pooled_by"] and "scene" not in one["pooled_by"]
