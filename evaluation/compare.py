@@ -176,18 +176,18 @@ GROUPS = {"density": lambda r: f"{float(r['density']):g}",
 
 
 def pooled_groups(rows: list[dict[str, Any]], labels: tuple[str, str]) -> dict[str, dict[str, Any]]:
-    """Per grouping of :data:`GROUPS` that splits the runs' cells into more than one group: per group, the pooled
-    paired test of :func:`evaluation.report.paired_pooled` (``labels[0]`` against ``labels[1]``) over its cells."""
+    """Per grouping of :data:`GROUPS` that splits the runs' cells into more than one group and pools more than one
+    cell in some group (else it would repeat the per-cell or the overall test): per group, the pooled paired test of
+    :func:`evaluation.report.paired_pooled` (``labels[0]`` against ``labels[1]``) over its cells."""
     out: dict[str, dict[str, Any]] = {}
     for name, key in GROUPS.items():
-        groups = sorted({key(r) for r in rows})
-        if len(groups) < 2:
-            continue
-        out[name] = {}
-        for g in groups:
+        groups = {}
+        for g in sorted({key(r) for r in rows}):
             res = paired_pooled([r for r in rows if key(r) == g], labels[0]).get(labels[1])
             if res is not None:
-                out[name][g] = res
+                groups[g] = res
+        if len(groups) > 1 and max(d["n_cells"] for d in groups.values()) > 1:
+            out[name] = groups
     return out
 
 

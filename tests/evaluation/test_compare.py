@@ -132,7 +132,7 @@ def test_replicates_are_matched_each_on_their_own_and_pooled(tmp_path, capsys):
 
 def test_cells_are_also_pooled_per_density_and_per_scene(tmp_path, capsys):
     """Besides all cells at once, the pairs are pooled per density and per scene (a replicate's cells joining their
-    scene); a grouping with one group only (every row at one density) is left out."""
+    scene); a grouping with one group only (every row at one density), or with one cell in each group, is left out."""
     def rows(successes: list[int], scene: str, density: float) -> list[dict]:
         return [{**r, "density": density} for r in _rows(successes, scene)]
 
@@ -156,3 +156,6 @@ def test_cells_are_also_pooled_per_density_and_per_scene(tmp_path, capsys):
                           compare.replicate(rows([0] * 10, "warehouse", 0.1), 1)
                           + compare.replicate(rows([1] * 10, "warehouse", 0.1), 2), ("full", "no_bev"))
     assert "density" not in one["pooled_by"] and "scene" not in one["pooled_by"]
+    per_cell = compare.compare(rows([1] * 10, "warehouse", 0.1) + rows([1] * 10, "office_lobby", 0.1),
+                               rows([0] * 10, "warehouse", 0.1) + rows([1] * 10, "office_lobby", 0.1), ("full", "no_bev"))
+    assert per_cell["pooled_by"] == {}  # scenes of one cell each: the per-cell table already says it
