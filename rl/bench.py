@@ -391,10 +391,11 @@ def measure_student_encoder(cameras, device: str, streams: int, steps: int = 20,
 
 
 def measure_student_devices(cameras, train_cfg: Any, devices: list[str], frames: int = 2048,
-                            fuse_pool: int = 0, encoder_cfg: EncoderConfig | None = None) -> dict[str, float]:
+                            fuse_pool: int = 0, encoder_cfg: EncoderConfig | None = None,
+                            encoder_steps: int = 20) -> dict[str, float]:
     """The student's update and encoder figures for each device, with the CUDA / CPU ratios (module docstring), with
     ``encoder_cfg`` (default: the built-in :class:`EncoderConfig`); ``fuse_pool`` > 0 adds the encoder with that
-    ``encoder.fuse_pool``."""
+    ``encoder.fuse_pool``; each encoder figure is the median of ``encoder_steps`` steps."""
     encoder_cfg = encoder_cfg or EncoderConfig()
     pooled = replace(encoder_cfg, fuse_pool=fuse_pool) if fuse_pool else None
     if pooled is not None:
@@ -405,11 +406,11 @@ def measure_student_devices(cameras, train_cfg: Any, devices: list[str], frames:
         out[f"student_clone_ms_per_kframe_{key}"] = round(measure_student_update(cameras, train_cfg, d, frames,
                                                                                  encoder_cfg=encoder_cfg), 1)
         for b in (2, 16):
-            out[f"student_encoder_ms_{key}_b{b}"] = round(measure_student_encoder(cameras, d, b,
-                                                                                  encoder_cfg=encoder_cfg), 2)
+            out[f"student_encoder_ms_{key}_b{b}"] = round(measure_student_encoder(
+                cameras, d, b, encoder_steps, encoder_cfg=encoder_cfg), 2)
             if pooled is not None:
                 out[f"student_encoder_ms_{key}_b{b}_fuse_pool{fuse_pool}"] = round(
-                    measure_student_encoder(cameras, d, b, encoder_cfg=pooled), 2)
+                    measure_student_encoder(cameras, d, b, encoder_steps, encoder_cfg=pooled), 2)
     if "student_clone_ms_per_kframe_cpu" in out and "student_clone_ms_per_kframe_cuda" in out:
         out["student_clone_speedup_cuda_vs_cpu"] = round(out["student_clone_ms_per_kframe_cpu"]
                                                          / out["student_clone_ms_per_kframe_cuda"], 2)

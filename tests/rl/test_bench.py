@@ -58,7 +58,8 @@ def test_student_device_figures_on_the_cpu(tiny_dataset):
     from pretrain.geometry import cameras_from_dataset
     from rl.bench import measure_student_devices
 
-    out = measure_student_devices(cameras_from_dataset(tiny_dataset.root), TrainConfig(), ["cpu"], frames=64)
+    out = measure_student_devices(cameras_from_dataset(tiny_dataset.root), TrainConfig(), ["cpu"], frames=64,
+                                  encoder_steps=3)
     assert set(out) == {"student_clone_ms_per_kframe_cpu", "student_encoder_ms_cpu_b2", "student_encoder_ms_cpu_b16"}
     assert all(math.isfinite(v) and v > 0 for v in out.values())
 
