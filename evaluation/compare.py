@@ -144,8 +144,8 @@ def pair_key(r: dict[str, Any]) -> tuple[str, float, int]:
 
 def replicate(rows: list[dict[str, Any]], k: int) -> list[dict[str, Any]]:
     """``rows`` with their scene tagged as replicate ``k`` (``--also``): pairs are then matched within a replicate,
-    and every replicate's cells count as cells of their own."""
-    return [{**r, "scene": f"{r['scene']} [{k}]"} for r in rows]
+    and every replicate's cells count as cells of their own (``replicate_of`` keeps the scene for :data:`GROUPS`)."""
+    return [{**r, "scene": f"{r['scene']} [{k}]", "replicate_of": r["scene"]} for r in rows]
 
 
 def compare(a: list[dict[str, Any]], b: list[dict[str, Any]], labels: tuple[str, str]) -> dict[str, Any]:
@@ -171,7 +171,7 @@ def compare(a: list[dict[str, Any]], b: list[dict[str, Any]], labels: tuple[str,
 
 
 GROUPS = {"density": lambda r: f"{float(r['density']):g}",
-          "scene": lambda r: str(r["scene"]).split(" [")[0]}  # a replicate's cells join their scene (replicate())
+          "scene": lambda r: r.get("replicate_of", r["scene"])}  # a replicate's cells join their scene
 """What the cells are pooled by besides all at once: the density (the paper reports each), the scene."""
 
 
@@ -228,7 +228,7 @@ def markdown(res: dict[str, Any]) -> str:
     lines += ["", f"Pooled over {res['pooled']['n_cells']} cells: {pooled['n']} pairs, ΔSR ({a} − {b}) "
               f"{pooled['sr_diff']:+.3f}, {pooled['a_only']} / {pooled['b_only']} discordant, McNemar p = "
               f"{p(pooled['p_value'])}, detectable ΔSR at 80 % power {p(pooled['detectable_diff'])}."]
-    for name, groups in res.get("pooled_by", {}).items():
+    for name, groups in res["pooled_by"].items():
         lines += ["", f"| pooled by {name} | cells | pairs | ΔSR ({a} − {b}) | {a} only / {b} only | McNemar p | "
                   "detectable ΔSR |", "|---|---|---|---|---|---|---|"]
         lines += [f"| {g} | {d['n_cells']} | {d['sr']['n']} | {d['sr']['sr_diff']:+.3f} | {d['sr']['a_only']} / "

@@ -605,17 +605,16 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             int_dir = it / "intention"
         data = load_features([out / "dagger" / f"iter_{j}" for j in range(k + 1)], memory_gb=d.pool_memory_gb,
                              scratch=out / "dagger")
-        # the newest iteration's frames: the pool's tail (views, not a second read of its episodes)
-        tail = slice(len(data["action"]) - len(load_features([it], ("action",))["action"]), None)
-        new = {key: v[tail] for key, v in data.items()}
-        if k == 0 and "bev" in space.spaces:
-            policy.features_extractor.set_bev_stats(*bev_stats(data))
-        before = bc_loss(policy, new)
         # every episode has the teacher's logits (the pool keeps only keys all episodes hold)
         soft = d.soft_tau > 0 and "teacher_logits" in data
         if soft:  # distillation: softmin(-logits / τ) = the teacher's distribution softmax(logits / τ)
             data["costs"] = -data.pop("teacher_logits")
-            new = {key: v[tail] for key, v in data.items()}
+        # the newest iteration's frames: the pool's tail after the earlier iterations' frames_total (views)
+        new = {key: v[frames_total:] for key, v in data.items()}
+        if k == 0 and "bev" in space.spaces:
+            policy.features_extractor.set_bev_stats(*bev_stats(data))
+        before = bc_loss(policy, new)  # the hard-label loss (bc_loss reads costs only with soft_tau)
+        if soft:
             soft_before = bc_loss(policy, new, soft_tau=d.soft_tau)
         hist, linear_fit = distill(policy, data, d, cfg.map_signs, cfg.seed + k, n_rot, inherited, soft,
                                    cfg.progress, f"student {cfg.variant} iteration {k}")
