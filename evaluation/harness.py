@@ -149,7 +149,7 @@ def run_episode(job: Job) -> dict[str, Any]:
            "outcome": trace.outcome, "steps": trace.n_steps, **episode_metrics(trace),
            "time_limit_s": time_limit_s, **job.extra}
     if job.scenario:
-        row.update(scenario_metrics(trace, scripted, events))
+        row.update(scenario_metrics(trace, scripted, events), scripted_peds=np.nonzero(scripted)[0].tolist())
     if job.save_trace:
         (job.out / "traces").mkdir(parents=True, exist_ok=True)
         trace.save_npz(job.out / "traces" / f"{job.name}.npz")

@@ -195,7 +195,8 @@ def report_markdown(rows: Sequence[dict[str, Any]], labels: dict[str, str], head
                     lh_rows: Sequence[dict[str, Any]] = (), references: Sequence[str] = (),
                     budgets: dict[str, dict[str, Any]] | None = None,
                     routing_rows: Sequence[dict[str, Any]] = (), ref: str = "full",
-                    scenario_rows: Sequence[dict[str, Any]] = ()) -> str:
+                    scenario_rows: Sequence[dict[str, Any]] = (),
+                    cue_twin_rows: Sequence[dict[str, Any]] = ()) -> str:
     """The run's ``report.md``: tables per cell, paired comparisons of ``ref`` with every other method (per cell
     and pooled, with the detectable difference), the paper's ordering, routing cells and long horizon."""
     res = results(rows)
@@ -249,6 +250,8 @@ def report_markdown(rows: Sequence[dict[str, Any]], labels: dict[str, str], head
         parts.extend(_paired_section(routing_rows, labels, "### Paired comparisons (routing)", ref))
     if scenario_rows:
         parts.extend(scenario_table(scenario_rows, labels))
+    if cue_twin_rows:
+        parts.extend(cue_twin_table(cue_twin_rows, labels, ref))
     if lh_rows:
         parts.append("## Long-horizon navigation on the topological map (paper §IV-C)\n")
         by_map: dict[str, dict[str, list]] = {}
@@ -283,6 +286,58 @@ def scenario_table(rows: Sequence[dict[str, Any]], labels: dict[str, str]) -> li
                          f"{int(sum(r['collision_scripted'] for r in rs))} | {np.nanmean(clr):.2f} ± "
                          f"{np.nanstd(clr):.2f} | {(f'{np.median(react):.1f}' if len(react) else 'n/a')} "
                          f"({len(react)}/{len(rs)}) |")
+    parts.append("")
+    return parts
+
+
+def cue_twin_table(rows: Sequence[dict[str, Any]], labels: dict[str, str], ref: str = "full") -> list[str]:
+    """What the pedestrians' cue alone changed, per scenario and method (:func:`sim.scenario.cue_twin_metrics`), and
+    ``ref`` against each other method on the trials the cue made change course before the walk turned."""
+    parts = ["## The cue alone: each scenario trial with and without the head/torso lead\n",
+             "Each trial also ran as its no-cue twin: the same seed and walk, the scripted pedestrians' head and torso "
+             "not turning before their walking direction does. *Changed*: trials in which the robot's commands differ "
+             "between the two runs after the cue's onset (only the cue differs, so that difference is a response to "
+             "it); *before the turn*: changed within the cue's lead, before the walking direction changed; *at [s]*: "
+             "median seconds from the onset to the first differing command; *safer*: of the changed trials, those "
+             "whose first differing command predicts more clearance to the scripted pedestrians over 2 s; clearance "
+             "and hits with / without the cue; *twins*: trials whose two runs agree on every command before the "
+             "onset (all, or the runs are not twins).\n",
+             "| scenario | method | N | changed | before the turn | at [s] | safer | min clearance with / without cue "
+             "[m] | hit scripted with / without | twins |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    for scene in scenes:
+        for m in methods_of(rows):
+            rs = [r for r in rows if r["scene"] == scene and r["method"] == m]
+            if not rs:
+                continue
+            div = np.array([r["cue_divergence_s"] for r in rs], float)
+            changed = np.isfinite(div)
+            safer = [r["cue_divergence_safer"] for r in rs if r["cue_divergence_safer"] == r["cue_divergence_safer"]]
+            parts.append(
+                f"| {scene} | {labels.get(m, m)} | {len(rs)} | {int(changed.sum())} | "
+                f"{int(sum(r['cue_anticipated'] for r in rs))} | "
+                f"{(f'{np.median(div[changed]):.1f}' if changed.any() else 'n/a')} | {int(sum(safer))} / {len(safer)} | "
+                f"{np.nanmean([r['min_clearance_scripted_m'] for r in rs]):.2f} / "
+                f"{np.nanmean([r['twin_min_clearance_scripted_m'] for r in rs]):.2f} | "
+                f"{int(sum(r['collision_scripted'] for r in rs))} / {int(sum(r['twin_collision_scripted'] for r in rs))}"
+                f" | {int(sum(r['twin_identical_before_cue'] for r in rs))} / {len(rs)} |")
+    tests = []
+    for scene in scenes:
+        own = {r["seed"]: r for r in rows if r["scene"] == scene and r["method"] == ref}
+        for m in methods_of(rows):
+            other = {r["seed"]: r for r in rows if r["scene"] == scene and r["method"] == m}
+            seeds = sorted(set(own) & set(other))
+            if m == ref or not seeds:
+                continue
+            t = mcnemar_exact([own[k]["cue_anticipated"] for k in seeds], [other[k]["cue_anticipated"] for k in seeds])
+            tests.append(f"| {scene} | {labels.get(m, m)} | {len(seeds)} | {t['a_only']} / {t['b_only']} | "
+                         f"{_fmt_p(t['p_value'])} |")
+    if tests:
+        parts += ["", f"Changed course before the turn: {labels.get(ref, ref)} against each method on the same trials "
+                      "(exact McNemar).\n",
+                  f"| scenario | other | trials | only {labels.get(ref, ref)} / only other | p |", "|---|---|---|---|---|",
+                  *tests]
     parts.append("")
     return parts
 

@@ -25,6 +25,8 @@ nothing. Output ``DATA_DIR/eval/<run_name>/``::
     routing/episodes.jsonl       the routing cells' rows (global-planner waypoints), apart from the paper's cells
     scenarios/episodes.jsonl     the scenario suite's rows (+ collision with / clearance to the scripted pedestrians,
                                  reaction time); scenarios/figures, videos, mcap: the first trials
+    scenarios/cue_twins.jsonl    per trial of the ``cue_twins`` scenarios: what the cue alone changed (the trial's
+                                 no-cue twin under scenarios/nocue/: the same walk without the head/torso lead)
     results.json, results.csv    per cell and method: N, mean, std, 95 % CI of every metric
     paired.json                  the full model against each method on the same seeds (McNemar / Wilcoxon, the
                                  detectable SR difference), per cell and pooled over the cells
@@ -37,7 +39,7 @@ nothing. Output ``DATA_DIR/eval/<run_name>/``::
                                  assumes the same config and checkpoints, as ``train --resume`` does)
     long_horizon/episodes.jsonl, long_horizon/<map>_gvg.png (the map, its GVG and every method's paths)
 
-``<episode>`` is ``[lh_|route_|sc_]<scene or scenario>_d<density>_s<seed>_<method>``.
+``<episode>`` is ``[lh_|route_|sc_|scnc_]<scene or scenario>_d<density>_s<seed>_<method>``.
 """
 
 from __future__ import annotations
@@ -71,7 +73,7 @@ from rl.lookahead import check_shield_s
 from rl.policy import check_checkpoint_weights
 from sim.env import CrowdNavEnv, SimConfig
 from sim.planners.topomap import build_gvg, plot_topomap
-from sim.scenario import load_scenario
+from sim.scenario import cue_twin_metrics, load_scenario
 from sim.scene import check_episode_grid
 from sim.trace import EpisodeTrace
 
@@ -112,6 +114,10 @@ class EvalConfig(BaseStageConfig):
                                                           "doorway"],
                                  metadata={"help": "scenario files (sim/scenarios/ or paths) every method runs"})
     scenario_trials: int = field(default=3, metadata={"help": "seeded episodes per scenario and method"})
+    cue_twins: list[str] = field(default_factory=list, metadata={
+        "help": "scenarios (of `scenarios`) whose trials also run as their no-cue twin — the same seed and walk, the "
+                "scripted pedestrians' head and torso lead switched off — to measure what the cue alone changes in "
+                "each method's commands (sim.scenario.cue_twin_metrics)"})
     paired_with: str = field(default="full", metadata={"help": "the method every other is paired against"})
     shield_s: float | None = field(default=None, metadata={
         "help": "the saved policies' obstacle shield horizon in s instead of their own (rl.lookahead; 0 = off, "
@@ -162,6 +168,9 @@ class EvalConfig(BaseStageConfig):
             load_scenario(name)  # unknown / invalid -> one ConfigError naming file, field, expected, actual
         if len(set(self.scenarios)) != len(self.scenarios):
             raise ConfigError(f"eval.scenarios: expected distinct scenarios, got {self.scenarios}")
+        if not set(self.cue_twins) <= set(self.scenarios):
+            raise ConfigError(f"eval.cue_twins: expected scenarios of eval.scenarios {self.scenarios}, got "
+                              f"{self.cue_twins}")
         if not isinstance(self.scenario_trials, int) or not 1 <= self.scenario_trials <= 1000:
             raise ConfigError(f"eval.scenario_trials: expected an integer in [1, 1000], got {self.scenario_trials!r}")
         if not self.methods:
@@ -249,6 +258,42 @@ def scenario_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path) -> list:
     return jobs
 
 
+def cue_twin_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path) -> list:
+    """The no-cue twin of every job of the ``cue_twins`` scenarios: the same seed with the scripted pedestrians'
+    head and torso lead switched off (``SimConfig.scenario_cues``), files under ``out`` prefixed ``scnc_``."""
+    sim = replace(cfg.sim, scenario_cues=False)
+    return [replace(j, sim=sim, out=out, tag="scnc_") for j in scenario_jobs(cfg, specs, out)
+            if j.scenario in cfg.cue_twins]
+
+
+def cue_twin_rows(cued_rows: list[dict[str, Any]], twin_rows: list[dict[str, Any]], cued_dir: Path,
+                  twin_dir: Path) -> list[dict[str, Any]]:
+    """Per trial and method with both runs: :func:`sim.scenario.cue_twin_metrics` on the two traces, with the
+    scripted pedestrians' clearance, collision and success in each run (``twin_*``: without the cue)."""
+    cued_by = {(r["scene"], r["seed"], r["method"]): r for r in cued_rows}
+    out = []
+    for t in twin_rows:
+        c = cued_by.get((t["scene"], t["seed"], t["method"]))
+        if c is None:
+            continue
+        name = f"{t['scene']}_d{float(t['density']):g}_s{t['seed']}_{t['method']}"
+        cued = EpisodeTrace.load_npz(cued_dir / "traces" / f"sc_{name}.npz")
+        twin = EpisodeTrace.load_npz(twin_dir / "traces" / f"scnc_{name}.npz")
+        peds = c.get("scripted_peds")
+        if peds is None:  # a row of a run older than the twins: without a crowd every pedestrian is scripted
+            if float(c["density"]):
+                raise ConfigError(f"{cued_dir / 'episodes.jsonl'}: expected scenario rows with 'scripted_peds' "
+                                  f"(rerun the scenarios without --resume), got a row of {name} without it")
+            peds = list(range(cued.ped_xy.shape[1]))
+        m = cue_twin_metrics(cued, twin, np.asarray(peds, int), float(c["cue_onset_s"]),
+                             float(c.get("cue_lead_s", math.nan)))
+        out.append({"method": t["method"], "scene": t["scene"], "density": t["density"], "seed": t["seed"],
+                    "trial": t.get("trial"), **m,
+                    **{k: c[k] for k in ("success", "collision_scripted", "min_clearance_scripted_m")},
+                    **{f"twin_{k}": t[k] for k in ("success", "collision_scripted", "min_clearance_scripted_m")}})
+    return out
+
+
 def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:
     """Per map and run: the seed, a start node, a goal among the candidate goals, the GVG waypoints."""
 
@@ -299,6 +344,13 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
                                   "eval: scenarios", cfg.progress, ex)
         atomic_write_text(out / "scenarios" / "episodes.jsonl",
                           "".join(json.dumps(r) + "\n" for r in json_safe(sc_rows)))
+    tw_rows: list[dict[str, Any]] = []
+    if cfg.cue_twins:
+        twins = run_jobs_cached(cue_twin_jobs(cfg, specs, out / "scenarios" / "nocue"), out / "rows", cfg.workers,
+                                "eval: no-cue twins", cfg.progress, ex)
+        tw_rows = cue_twin_rows(sc_rows, twins, out / "scenarios", out / "scenarios" / "nocue")
+        atomic_write_text(out / "scenarios" / "cue_twins.jsonl",
+                          "".join(json.dumps(r) + "\n" for r in json_safe(tw_rows)))
     lh_rows: list[dict[str, Any]] = []
     lh_seeds: dict[str, list[int]] = {}
     if cfg.long_horizon.runs:
@@ -320,6 +372,7 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
                                                          "routing_scenes": cfg.routing_scenes,
                                                          "scenarios": cfg.scenarios,
                                                          "scenario_trials": cfg.scenario_trials,
+                                                         "cue_twins": cfg.cue_twins,
                                                          "densities": cfg.densities, "episodes": protocol_of(cfg),
                                                          "episodes_per_method": {m.name: cfg.episodes_of(m.name)
                                                                                  for m in specs}},
@@ -343,9 +396,10 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
     refs = [m.name for m in specs if m.reference]
     budgets = {m.name: training_budget(m.checkpoint) for m in specs if m.checkpoint is not None}
     atomic_write_text(out / "report.md", report_markdown(rows, labels, header, lh_rows, refs, budgets,
-                                                         routing_rows, cfg.paired_with, sc_rows))
+                                                         routing_rows, cfg.paired_with, sc_rows, tw_rows))
     counts: dict[str, Any] = {"episodes": len(rows), "routing_episodes": len(routing_rows),
-                              "scenario_episodes": len(sc_rows), "long_horizon_episodes": len(lh_rows)}
+                              "scenario_episodes": len(sc_rows), "cue_twin_episodes": len(tw_rows),
+                              "long_horizon_episodes": len(lh_rows)}
     for cell, by in {**res, **results(routing_rows)}.items():
         for m, agg in by.items():
             counts[f"sr_{m}_{cell}"] = round(float(agg["success"]["mean"]), 3)

@@ -25,7 +25,9 @@ show the same cue: each stands at its start until its trigger fires (a time, or 
 of a point), then announces its first waypoint for ``lead_s`` (head and torso turn, feet still) and walks; ``lead_s``
 before it reaches a waypoint it announces the next one, so the walking direction changes at the waypoint while the
 head has led by ``lead_s``. After the last waypoint it stands. Every trigger and turn cue is logged in
-:attr:`Crowd.events` (the onset of the cue, for the robot's reaction time). They are appended after the random
+:attr:`Crowd.events` (the onset of the cue, for the robot's reaction time). ``cue=False`` keeps the walk and its
+timing and drops the announcement the reaction is timed from (every turn's; the start's when the walk is one straight
+leg): the head and torso look where the feet go (a scenario's no-cue twin). They are appended after the random
 pedestrians (indices ``n_random ..``), drawing nothing from the random stream.
 
 :func:`social_force_reference` is the plain per-agent loop the vectorised :meth:`Crowd.social_forces` is
@@ -58,6 +60,7 @@ class ScriptedPed:
     trigger_time_s: float | None = None  # starts at this time ...
     trigger_within_m: float | None = None  # ... or when the robot comes this close to ``trigger_point``
     trigger_point: tuple[float, float] | None = None  # (default: its start)
+    cue: bool = True  # False: the head and torso do not lead (the same walk, unannounced: a scenario's no-cue twin)
 
     def fires(self, time_s: float, robot_xy: np.ndarray | None) -> bool:
         """Whether the trigger fires now (no trigger: at once)."""
@@ -162,9 +165,10 @@ class Crowd:
         self.idle_left = np.concatenate([np.zeros(n), np.full(k, np.inf)])
         self.slow_for = np.zeros(self.n)
         self.scripted = np.arange(self.n) >= n
+        self.cue_shown = np.ones(self.n, bool)  # whether the running lead turns the head and torso (_announce)
         self.script_next = [-1] * k  # per scripted pedestrian: the waypoint it walks (or will walk) to; -1: waiting
         self.time_s = 0.0
-        self.events: list[dict[str, float | int | str]] = []  # {"t_s", "ped", "kind": "start" | "turn"}
+        self.events: list[dict[str, float | int | str]] = []  # {"t_s", "ped", "kind": "start" | "turn", "lead_s"}
 
     def initial_yaw(self) -> np.ndarray:
         """``N`` facing directions at reset: toward the goal (random pedestrians), toward the first waypoint
@@ -354,12 +358,15 @@ class Crowd:
         p = self.script[j]
         self.pending[i] = p.waypoints[k]
         self.lead[i] = max(p.lead_s, 1e-3)
+        # cue=False hides the cue the reaction is timed from: every turn's, or the start's on a single straight leg
+        self.cue_shown[i] = p.cue or (kind == "start" and len(p.waypoints) > 1)
         self.script_next[j] = k
-        self.events.append({"t_s": round(self.time_s, 9), "ped": i, "kind": kind})
+        self.events.append({"t_s": round(self.time_s, 9), "ped": i, "kind": kind, "lead_s": p.lead_s})
 
     def attention_xy(self) -> np.ndarray:
-        """``N x 2`` where each pedestrian is heading in mind: the pending goal during a lead, else the goal."""
-        return np.where((self.lead > 0)[:, None], self.pending, self.goal)
+        """``N x 2`` where each pedestrian is heading in mind: the pending goal during a lead, else the goal (a
+        scripted pedestrian without its cue looks where it walks until the lead has run out)."""
+        return np.where(((self.lead > 0) & self.cue_shown)[:, None], self.pending, self.goal)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """Copies of the privileged per-pedestrian state (world frame)."""

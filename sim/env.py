@@ -111,6 +111,8 @@ class SimConfig:
     scene: str = "office_lobby"  # shipped scene name or path to a scene YAML file
     scenario: str = ""  # a scenario name or file (sim.scenario): its scene, start, goal and scripted pedestrians
     #                     replace `scene` and the drawn pair; `density` still adds a random crowd
+    scenario_cues: bool = True  # False: the scripted pedestrians walk the same, but their head and torso do not lead
+    #                             (the scenario's no-cue twin: what the cue alone changes, evaluation.stage)
     density: float = 0.1  # pedestrians per m² of free area (the paper: 0.1 low, 0.2 high)
     dt_s: float = 0.1  # control period
     substeps: int = 1  # social-force integration steps per control step
@@ -270,7 +272,8 @@ class CrowdNavEnv(gym.Env):
         self.robot_v = np.zeros(2)  # [v, omega] last command
         n = self.layout.ped_count(c.density)
         scripted = () if sc is None else tuple(
-            replace(p, speed_mps=p.speed_mps * (1 + r_sg.uniform(-sc.speed_jitter, sc.speed_jitter)))
+            replace(p, speed_mps=p.speed_mps * (1 + r_sg.uniform(-sc.speed_jitter, sc.speed_jitter)),
+                    cue=p.cue and c.scenario_cues)
             for p in sc.pedestrians)
         self.bodies = Bodies(c.body, r_body, n + len(scripted), np.zeros(n + len(scripted)))
         self.crowd = Crowd(self.layout, c.crowd, r_crowd, n, self.bodies.radius, avoid_xy=[start, goal],

@@ -35,6 +35,12 @@ the minimum clearance to them, and the robot's **reaction time** — from the on
 a scripted pedestrian, else the first start) to the first change of command that increases the robot's predicted
 clearance to where that pedestrian actually walks over the next 2 s (robot: the command held; pedestrian: its
 recorded future). A method that reads intention from pose can react before the walking direction changes.
+
+That reaction time counts any clearance-raising change of command, and a policy's commands change every few
+steps near a person, so it sits at its floor (0.1–0.2 s) for every method. The direct test of "intention from
+pose" is a **no-cue twin**: the same trial run again with the scripted pedestrians' head and torso lead switched
+off (``SimConfig.scenario_cues``; the walk and its timing unchanged), and :func:`cue_twin_metrics` — the first step
+at which the robot's commands differ between the two runs is a response to the cue and to nothing else.
 """
 
 from __future__ import annotations
@@ -312,6 +318,45 @@ def reaction_time_s(trace: EpisodeTrace, peds: np.ndarray, onset_s: float, horiz
     return math.nan
 
 
+def cue_lead_s(events: list[dict[str, Any]]) -> float:
+    """How long the cue of :func:`cue_onset_s` leads the change of walking direction (s; nan without a cue)."""
+    onset = cue_onset_s(events)
+    lead = [e.get("lead_s", math.nan) for e in events if e["t_s"] == onset and e["kind"] in ("turn", "start")]
+    return float(lead[0]) if lead else math.nan
+
+
+def cue_twin_metrics(cued: EpisodeTrace, twin: EpisodeTrace, peds: np.ndarray, onset_s: float, lead_s: float,
+                     horizon_s: float = REACTION_HORIZON_S) -> dict[str, float]:
+    """What the cue alone changed: ``cued`` and ``twin`` are one scenario trial run twice, the twin with the scripted
+    pedestrians' head and torso lead switched off (``SimConfig.scenario_cues``) — the same seed, the same walk.
+
+    ``cue_divergence_s``: seconds from the cue's onset to the first step at which the robot's commands differ
+    between the two runs (nan: never within their common steps) — a reaction caused by the cue and nothing else, so
+    it has no floor of command jitter; ``cue_anticipated`` 1 if that came before the walking direction changed
+    (``< lead_s`` after the onset); ``cue_divergence_safer`` 1 if, at that step (the same pose in both runs), the cued
+    command's predicted clearance to the scripted pedestrians over ``horizon_s`` (their recorded future in the cued
+    run) is larger than the twin's command's, 0 if not, nan without divergence; ``twin_identical_before_cue`` 1 if
+    the runs' commands agree on every step before the onset (0 would mean the runs are not twins)."""
+    n = min(len(cued.robot_cmd), len(twin.robot_cmd))
+    diff = np.any(np.abs(cued.robot_cmd[:n] - twin.robot_cmd[:n]) > 1e-9, axis=1)
+    dt = cued.dt_s
+    first = max(0, math.ceil(onset_s / dt - 1e-9)) if math.isfinite(onset_s) else n
+    out = {"cue_divergence_s": math.nan, "cue_anticipated": 0.0, "cue_divergence_safer": math.nan,
+           "twin_identical_before_cue": float(not diff[:min(first, n)].any())}
+    after = np.nonzero(diff[first:])[0]
+    if not len(after) or len(peds) == 0:
+        return out
+    k = first + int(after[0])
+    div = k * dt - onset_s
+    out["cue_divergence_s"] = float(div)
+    out["cue_anticipated"] = float(div < lead_s - 1e-9)
+    fut = cued.ped_xy[k + 1:k + 1 + max(1, int(round(horizon_s / dt)))][:, peds]
+    if len(fut):
+        out["cue_divergence_safer"] = float(_clearance(cued.robot_pose[k], cued.robot_cmd[k], fut, dt)
+                                            > _clearance(cued.robot_pose[k], twin.robot_cmd[k], fut, dt) + 1e-3)
+    return out
+
+
 def _clearance(pose: np.ndarray, cmd: np.ndarray, fut: np.ndarray, dt: float) -> float:
     """Smallest centre distance between the robot holding ``cmd`` from ``pose`` and pedestrians ``fut`` (T x P x 2)."""
     path = _rollout(pose, cmd, dt, len(fut))
@@ -320,12 +365,12 @@ def _clearance(pose: np.ndarray, cmd: np.ndarray, fut: np.ndarray, dt: float) ->
 
 def scenario_metrics(trace: EpisodeTrace, scripted: np.ndarray, events: list[dict[str, Any]]) -> dict[str, float]:
     """``collision_scripted`` (1 if the episode ended in a collision with a scripted pedestrian),
-    ``min_clearance_scripted_m`` (robot footprint to the nearest scripted body, m), ``cue_onset_s`` and
-    ``reaction_time_s`` (nan: no reaction)."""
+    ``min_clearance_scripted_m`` (robot footprint to the nearest scripted body, m), ``cue_onset_s``, ``cue_lead_s``
+    (how long that cue leads the turn) and ``reaction_time_s`` (nan: no reaction)."""
     peds = np.nonzero(np.asarray(scripted, bool))[0]
     if len(peds) == 0:
         return {"collision_scripted": 0.0, "min_clearance_scripted_m": math.nan, "cue_onset_s": math.nan,
-                "reaction_time_s": math.nan}
+                "cue_lead_s": math.nan, "reaction_time_s": math.nan}
     d = np.hypot(*(trace.ped_xy[:, peds] - trace.robot_pose[:, None, :2]).transpose(2, 0, 1))
     clr = d - trace.ped_radius[peds][None] - trace.robot_radius_m
     collided = 0.0
@@ -334,4 +379,4 @@ def scenario_metrics(trace: EpisodeTrace, scripted: np.ndarray, events: list[dic
         collided = float(int(np.argmin(final)) in set(peds.tolist()))
     onset = cue_onset_s(events)
     return {"collision_scripted": collided, "min_clearance_scripted_m": float(np.min(clr)),
-            "cue_onset_s": onset, "reaction_time_s": reaction_time_s(trace, peds, onset)}
+            "cue_onset_s": onset, "cue_lead_s": cue_lead_s(events), "reaction_time_s": reaction_time_s(trace, peds, onset)}

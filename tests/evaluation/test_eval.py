@@ -123,6 +123,7 @@ def test_unknown_method_and_missing_checkpoint_are_clear_errors(tmp_path):
     (["--scenarios", "[{bad}]"], "config key 'pedestrians[0].waypoints[0]': expected a waypoint outside every"),
     (["--scenarios", "[{nan}]"], "config key 'goal[0]': expected a finite number"),
     (["--goals", "0"], "eval.goals: expected an integer in [1, 10000], got 0"),
+    (["--scenarios", "[head_on]", "--cue_twins", "[doorway]"], "eval.cue_twins: expected scenarios of eval.scenarios"),
     (["--shield_s", "5"], "eval.shield_s: expected none or 0 (off) .. 2.0 s, got 5"),
     (["--shield_s", "nan"], "config key 'shield_s': expected a finite number, got nan"),
     (["--ray_files", "nfs"], "eval.ray_files: expected one of ['shared', 'transfer'], got 'nfs'"),
@@ -191,7 +192,8 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
 
     cfg = EvalConfig(data_dir=str(tmp_path), methods=["expert"], scenes=["office_lobby"], densities=[0.1],
                      goals=1, trials=2, routing_scenes=["warehouse_routing"], scenarios=["head_on"],
-                     scenario_trials=1, workers=1, figures=0, videos=0, sim=TINY, progress=False)
+                     cue_twins=["head_on"], scenario_trials=1, workers=1, figures=0, videos=0, sim=TINY,
+                     progress=False)
     cfg.long_horizon = replace(cfg.long_horizon, maps=["office_floor"], runs=1, max_episode_s=2.0)
     run(cfg)
     out = tmp_path / "eval" / "benchmark"
@@ -209,6 +211,12 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
     assert sc["scene"] == "head_on" and {"collision_scripted", "min_clearance_scripted_m", "reaction_time_s"} <= set(sc)
     assert "Scenario suite" in (out / "report.md").read_text()
     assert (out / "scenarios" / "figures" / f"sc_head_on_d0_s{sc['seed']}_expert.png").is_file()
+    # its no-cue twin: the same trial without the walker's head lead, the two runs' commands compared
+    (tw,) = [json.loads(line) for line in (out / "scenarios" / "cue_twins.jsonl").read_text().splitlines()]
+    assert (tw["scene"], tw["seed"], tw["method"]) == ("head_on", sc["seed"], "expert")
+    assert tw["twin_identical_before_cue"] == 1.0 and tw["min_clearance_scripted_m"] == sc["min_clearance_scripted_m"]
+    assert (out / "scenarios" / "nocue" / "traces" / f"scnc_head_on_d0_s{sc['seed']}_expert.npz").is_file()
+    assert "The cue alone" in (out / "report.md").read_text()
     # a killed run: the manifest never came and one episode's row is missing; --resume runs only that episode
     (out / "manifest.json").unlink()
     rows = sorted((out / "rows").glob("office_lobby_*.json"))

@@ -16,6 +16,7 @@ from sim.geometry import wrap_angle
 from sim.scenario import (
     SCENARIOS_DIR,
     available_scenarios,
+    cue_twin_metrics,
     load_scenario,
     parse_scenario,
     reaction_time_s,
@@ -213,3 +214,51 @@ def test_reaction_time_finds_the_first_command_that_opens_the_gap():
     assert reaction_time_s(tr, peds, 0.0) == pytest.approx(3.0)
     assert reaction_time_s(tr, peds, 1.0) == pytest.approx(2.0)
     assert math.isnan(reaction_time_s(tr, peds, 3.5))  # no change of command after the onset
+
+
+def _drive(scenario: str, commands, **kw):
+    env = _env(scenario, **kw)
+    _reset_facing_east(env, 0)
+    for v, w in commands:
+        _, _, term, trunc, _ = env.step(env.encode_command(v, w))
+        if term or trunc:
+            break
+    return env
+
+
+def test_the_no_cue_twin_walks_the_same_without_the_head_lead():
+    """``scenario_cues=False``: the scripted walker's path, timing and events are unchanged; only its head and torso
+    no longer turn before its walking direction does."""
+    straight = [(0.6, 0.0)] * 120
+    cued, twin = _drive("crossing_turn", straight), _drive("crossing_turn", straight, scenario_cues=False)
+    a, b = cued.trace(), twin.trace()
+    np.testing.assert_array_equal(a.ped_xy, b.ped_xy)
+    np.testing.assert_array_equal(a.robot_pose, b.robot_pose)
+    assert cued.crowd.events == twin.crowd.events
+    turn = next(e for e in cued.crowd.events if e["kind"] == "turn")
+    k_turn, k_walk = round(turn["t_s"] / 0.1), round((turn["t_s"] + turn["lead_s"]) / 0.1)
+    i = cued.crowd.n_random
+    lead_gap = np.abs(wrap_angle(a.ped_head_yaw[k_turn + 2:k_walk, i] - b.ped_head_yaw[k_turn + 2:k_walk, i]))
+    assert np.all(a.ped_head_yaw[:k_turn, i] == b.ped_head_yaw[:k_turn, i])
+    assert lead_gap.max() > math.radians(30)  # the cued head looks across the robot's path, the twin's ahead
+
+
+def test_cue_twin_metrics_find_the_first_command_the_cue_changed():
+    """Two runs of head_on that agree until 3 s, then one veers away from the walker: the divergence is read from
+    the commands alone, timed from the onset, and judged against the walker's recorded future."""
+    same = [(0.6, 0.0)] * 30
+    cued = _drive("head_on", same + [(0.6, 0.8)] * 30).trace()
+    twin = _drive("head_on", same + [(0.6, 0.0)] * 30).trace()
+    peds = np.array([0])
+    m = cue_twin_metrics(cued, twin, peds, onset_s=2.5, lead_s=0.7)
+    assert m["cue_divergence_s"] == pytest.approx(0.5) and m["cue_anticipated"] == 1.0
+    assert m["cue_divergence_safer"] == 1.0 and m["twin_identical_before_cue"] == 1.0
+    late = cue_twin_metrics(cued, twin, peds, onset_s=2.0, lead_s=0.7)
+    assert late["cue_divergence_s"] == pytest.approx(1.0) and late["cue_anticipated"] == 0.0
+    toward = cue_twin_metrics(twin, cued, peds, onset_s=2.5, lead_s=0.7)  # the straight run is the less safe one
+    assert toward["cue_divergence_safer"] == 0.0
+    before = cue_twin_metrics(cued, twin, peds, onset_s=4.0, lead_s=0.7)  # they differed before this onset
+    assert before["twin_identical_before_cue"] == 0.0
+    none = cue_twin_metrics(twin, twin, peds, onset_s=1.0, lead_s=0.7)
+    assert math.isnan(none["cue_divergence_s"]) and none["cue_anticipated"] == 0.0 and math.isnan(
+        none["cue_divergence_safer"])
