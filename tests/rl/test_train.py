@@ -119,13 +119,24 @@ def test_dagger_rollouts_on_ray_equal_the_local_pool(tmp_path, teacher_dir):
     same rows, byte-identical MCAP logs and equal feature caches."""
     pytest.importorskip("ray")
     from pipeline.core.executor import Executor
-    from rl.dagger import run_iteration
+    from rl.dagger import rollout_bundle, run_iteration
+    from rl.evaluate import evaluate
 
     executors = {"local": Executor("local", "", tmp_path), "ray": Executor("ray", "", tmp_path),
                  "transfer": Executor("ray", "", tmp_path, "transfer")}
     its = {ex: tmp_path / ex / "iter_0" for ex in executors}
-    rows = {ex: run_iteration(it, _dagger_jobs(it, teacher_dir), workers=2, progress=False,
-                              executor=executors[ex]) for ex, it in its.items()}
+
+    def both(ex: str) -> tuple[list, list]:  # the DAgger iteration, and train's acceptance episodes (rl.evaluate)
+        return (run_iteration(its[ex], _dagger_jobs(its[ex], teacher_dir), workers=2, progress=False,
+                              executor=executors[ex]),
+                evaluate(teacher_dir, TINY_SIM, [("hallway", 0.1)], [1, 2], 2, progress=False,
+                         executor=executors[ex]))
+
+    runs = {"local": both("local")}  # the local pool forks: before Ray's threads exist in this process
+    with executors["ray"].session(2):  # one Ray instance (and its warm workers) for both file modes
+        runs.update({ex: both(ex) for ex in ("ray", "transfer")})
+    rows = {ex: r[0] for ex, r in runs.items()}
+    acc = {ex: r[1] for ex, r in runs.items()}
     for ex in ("ray", "transfer"):
         assert [{k: v for k, v in r.items() if k != "seconds"} for r in rows[ex]] == \
             [{k: v for k, v in r.items() if k != "seconds"} for r in rows["local"]]
@@ -139,14 +150,8 @@ def test_dagger_rollouts_on_ray_equal_the_local_pool(tmp_path, teacher_dir):
                     np.testing.assert_array_equal(a[k], b[k])
         assert sorted(p.name for p in its[ex].rglob("*") if p.is_file()) == \
             sorted(p.name for p in its["local"].rglob("*") if p.is_file())  # nothing else (no scratch file)
-    # train's acceptance episodes (rl.evaluate) with the checkpoint shipped: the local pool's rows
-    from rl.dagger import rollout_bundle
-    from rl.evaluate import evaluate
-
-    acc = {ex: evaluate(teacher_dir, TINY_SIM, [("hallway", 0.1)], [1, 2], 2, progress=False,
-                        executor=executors[ex]) for ex in ("local", "transfer")}
-    assert [{k: v for k, v in r.items() if k != "seconds"} for r in acc["transfer"]] == \
-        [{k: v for k, v in r.items() if k != "seconds"} for r in acc["local"]]
+        assert [{k: v for k, v in r.items() if k != "seconds"} for r in acc[ex]] == \
+            [{k: v for k, v in r.items() if k != "seconds"} for r in acc["local"]]  # the checkpoint shipped or read
     bundle = rollout_bundle(_dagger_jobs(its["transfer"], teacher_dir)[0])
     unpacked = Path(tempfile.gettempdir()) / f"icrowdnav-files-{bundle.key[:20]}"  # this machine's node's copy
     assert bundle.local(unpacked, teacher_dir / "policy.safetensors").is_file()
@@ -405,7 +410,7 @@ def test_intention_model_fine_tuned_on_the_students_rollouts(tmp_path, teacher_d
 
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
     pretrained = tiny_intention_checkpoint(tmp_path / "checkpoints" / "intention")
-    sizes = {"dagger.episodes_per_iter": 4, "sim.max_episode_s": 8.0, "dagger.densities": 0.2,
+    sizes = {"dagger.episodes_per_iter": 3, "sim.max_episode_s": 6.0, "dagger.densities": 0.2,
              "intention_tune.epochs": 2, "intention_tune.val_fraction": 0.3}
     run(_train_cfg(tmp_path, "no_bev", **sizes))
     out = tmp_path / "checkpoints" / "policy" / "no_bev"
