@@ -411,3 +411,41 @@ def plot_sr(res: dict[str, dict[str, Any]], labels: dict[str, str], path: Path) 
 
     save_figure(fig, path, 120)
     plt.close(fig)
+
+
+def plot_cue_twins(pairs: dict[str, tuple[Any, Any, dict[str, Any]]], labels: dict[str, str], title: str,
+                   path: Path) -> None:
+    """One scenario trial per method with and without the cue: the robot's speed and turn-rate commands and its
+    distance to the scripted pedestrians over time, the cue's onset, the walking direction's change (onset + lead)
+    and the first differing command marked. ``pairs``: method -> (cued trace, twin trace, its cue-twin row)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(pairs), 3, figsize=(11, 1.9 * len(pairs) + 0.6), squeeze=False, sharex=True)
+    for row, (m, (cued, twin, r)) in zip(axes, pairs.items(), strict=True):
+        onset, lead = float(r["cue_onset_s"]), float(r["cue_lead_s"])
+        peds = np.asarray(r["scripted_peds"], int)
+        for tr, style, name in ((cued, "-", "with cue"), (twin, "--", "without cue")):
+            t = np.arange(len(tr.robot_cmd)) * tr.dt_s
+            dist = np.min(np.hypot(*(tr.ped_xy[:, peds] - tr.robot_pose[:, None, :2]).transpose(2, 0, 1)), axis=1)
+            for ax, y in zip(row, (tr.robot_cmd[:, 0], tr.robot_cmd[:, 1], dist[:len(t)]), strict=True):
+                ax.plot(t, y, style, lw=1.2, label=name)
+        for ax in row:
+            ax.axvline(onset, color="0.5", lw=0.8)
+            ax.axvline(onset + lead, color="k", ls=":", lw=0.8)
+            if math.isfinite(r["cue_divergence_s"]):
+                ax.axvline(onset + r["cue_divergence_s"], color="tab:red", lw=0.8)
+            ax.set_xlim(max(0.0, onset - 2.0), onset + 4.0)
+        row[0].set_ylabel(f"{labels.get(m, m)}\nv [m/s]", fontsize=8)
+        row[1].set_ylabel("ω [rad/s]", fontsize=8)
+        row[2].set_ylabel("to walker [m]", fontsize=8)
+    axes[0, 0].legend(fontsize=7, frameon=False)
+    for ax in axes[-1]:
+        ax.set_xlabel("t [s]", fontsize=8)
+    fig.suptitle(f"{title}\ngrey: the cue's onset; dotted: the walking direction changes; red: the first command "
+                 "that differs between the two runs", fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path, 110)
+    plt.close(fig)

@@ -26,7 +26,8 @@ nothing. Output ``DATA_DIR/eval/<run_name>/``::
     scenarios/episodes.jsonl     the scenario suite's rows (+ collision with / clearance to the scripted pedestrians,
                                  reaction time); scenarios/figures, videos, mcap: the first trials
     scenarios/cue_twins.jsonl    per trial of the ``cue_twins`` scenarios: what the cue alone changed (the trial's
-                                 no-cue twin under scenarios/nocue/: the same walk without the head/torso lead)
+                                 no-cue twin under scenarios/nocue/: the same walk without the head/torso lead);
+                                 scenarios/figures/cue_twin_<scenario>.png: the first trial's commands, both runs
     results.json, results.csv    per cell and method: N, mean, std, 95 % CI of every metric
     paired.json                  the full model against each method on the same seeds (McNemar / Wilcoxon, the
                                  detectable SR difference), per cell and pooled over the cells
@@ -58,6 +59,7 @@ from evaluation.methods import MethodSpec, available_methods, resolve_methods
 from evaluation.report import (
     paired,
     paired_pooled,
+    plot_cue_twins,
     plot_sr,
     report_markdown,
     results,
@@ -288,10 +290,27 @@ def cue_twin_rows(cued_rows: list[dict[str, Any]], twin_rows: list[dict[str, Any
         m = cue_twin_metrics(cued, twin, np.asarray(peds, int), float(c["cue_onset_s"]),
                              float(c.get("cue_lead_s", math.nan)))
         out.append({"method": t["method"], "scene": t["scene"], "density": t["density"], "seed": t["seed"],
-                    "trial": t.get("trial"), **m,
+                    "trial": t.get("trial"), "cue_onset_s": c["cue_onset_s"], "cue_lead_s": c.get("cue_lead_s"),
+                    "scripted_peds": [int(i) for i in peds], **m,
                     **{k: c[k] for k in ("success", "collision_scripted", "min_clearance_scripted_m")},
                     **{f"twin_{k}": t[k] for k in ("success", "collision_scripted", "min_clearance_scripted_m")}})
     return out
+
+
+def _plot_cue_twins(rows: list[dict[str, Any]], labels: dict[str, str], sc_dir: Path) -> None:
+    """Per scenario, its first trial with and without the cue for every method: figures/cue_twin_<scenario>.png."""
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        first = min(r["seed"] for r in rows if r["scene"] == scene)
+        pairs = {}
+        for r in rows:
+            if r["scene"] == scene and r["seed"] == first and math.isfinite(float(r["cue_onset_s"])):
+                name = f"{scene}_d{float(r['density']):g}_s{first}_{r['method']}"
+                pairs[r["method"]] = (EpisodeTrace.load_npz(sc_dir / "traces" / f"sc_{name}.npz"),
+                                      EpisodeTrace.load_npz(sc_dir / "nocue" / "traces" / f"scnc_{name}.npz"), r)
+        if pairs:
+            (sc_dir / "figures").mkdir(parents=True, exist_ok=True)
+            plot_cue_twins(pairs, labels, f"{scene}, seed {first}: with and without the walker's head/torso lead",
+                           sc_dir / "figures" / f"cue_twin_{scene}.png")
 
 
 def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:
@@ -349,6 +368,7 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
         twins = run_jobs_cached(cue_twin_jobs(cfg, specs, out / "scenarios" / "nocue"), out / "rows", cfg.workers,
                                 "eval: no-cue twins", cfg.progress, ex)
         tw_rows = cue_twin_rows(sc_rows, twins, out / "scenarios", out / "scenarios" / "nocue")
+        _plot_cue_twins(tw_rows, labels, out / "scenarios")
         atomic_write_text(out / "scenarios" / "cue_twins.jsonl",
                           "".join(json.dumps(r) + "\n" for r in json_safe(tw_rows)))
     lh_rows: list[dict[str, Any]] = []
