@@ -123,7 +123,7 @@ def test_unknown_method_and_missing_checkpoint_are_clear_errors(tmp_path):
     (["--scenarios", "[{bad}]"], "config key 'pedestrians[0].waypoints[0]': expected a waypoint outside every"),
     (["--scenarios", "[{nan}]"], "config key 'goal[0]': expected a finite number"),
     (["--goals", "0"], "eval.goals: expected an integer in [1, 10000], got 0"),
-    (["--scenarios", "[head_on]", "--cue_twins", "[doorway]"], "eval.cue_twins: expected scenarios of eval.scenarios"),
+    (["--cue_twins", "[nosuch]"], "unknown scenario 'nosuch'"),
     (["--shield_s", "5"], "eval.shield_s: expected none or 0 (off) .. 2.0 s, got 5"),
     (["--shield_s", "nan"], "config key 'shield_s': expected a finite number, got nan"),
     (["--ray_files", "nfs"], "eval.ray_files: expected one of ['shared', 'transfer'], got 'nfs'"),
