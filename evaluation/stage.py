@@ -278,18 +278,19 @@ def cue_twin_rows(cued_rows: list[dict[str, Any]], twin_rows: list[dict[str, Any
         if c is None:
             continue
         name = f"{t['scene']}_d{float(t['density']):g}_s{t['seed']}_{t['method']}"
+        peds = c.get("scripted_peds")
+        if peds is None and float(c["density"]):  # a row of a run older than the twins, with a crowd
+            raise ConfigError(f"{cued_dir / 'episodes.jsonl'}: expected scenario rows with 'scripted_peds' "
+                              f"(rerun the scenarios without --resume), got a row of {name} without it")
         cued = EpisodeTrace.load_npz(cued_dir / "traces" / f"sc_{name}.npz")
         twin = EpisodeTrace.load_npz(twin_dir / "traces" / f"scnc_{name}.npz")
-        peds = c.get("scripted_peds")
-        if peds is None:  # a row of a run older than the twins: without a crowd every pedestrian is scripted
-            if float(c["density"]):
-                raise ConfigError(f"{cued_dir / 'episodes.jsonl'}: expected scenario rows with 'scripted_peds' "
-                                  f"(rerun the scenarios without --resume), got a row of {name} without it")
+        if peds is None:  # ... without a crowd: every pedestrian is scripted
             peds = list(range(cued.ped_xy.shape[1]))
-        m = cue_twin_metrics(cued, twin, np.asarray(peds, int), float(c["cue_onset_s"]),
-                             float(c.get("cue_lead_s", math.nan)))
+        # a row read back from rows/ (--resume) holds null where a cue never came (NaN when written)
+        onset, lead = (math.nan if c.get(k) is None else float(c[k]) for k in ("cue_onset_s", "cue_lead_s"))
+        m = cue_twin_metrics(cued, twin, np.asarray(peds, int), onset, lead)
         out.append({"method": t["method"], "scene": t["scene"], "density": t["density"], "seed": t["seed"],
-                    "trial": t.get("trial"), "cue_onset_s": c["cue_onset_s"], "cue_lead_s": c.get("cue_lead_s"),
+                    "trial": t.get("trial"), "cue_onset_s": onset, "cue_lead_s": lead,
                     "scripted_peds": [int(i) for i in peds], **m,
                     **{k: c[k] for k in ("success", "collision_scripted", "min_clearance_scripted_m")},
                     **{f"twin_{k}": t[k] for k in ("success", "collision_scripted", "min_clearance_scripted_m")}})

@@ -265,3 +265,23 @@ def test_sr_figure_tolerates_intervals_that_miss_the_mean_by_rounding(tmp_path):
     plot_sr(res, {}, tmp_path / "sr.png")
     assert (tmp_path / "sr.png").stat().st_size > 0
 
+
+
+def test_cue_twin_rows_read_back_from_the_row_cache(tmp_path):
+    """Rows re-read on --resume hold null where a trial's cue never came: the twin row is still made (no
+    divergence timed), and an older row without ``scripted_peds`` reads every pedestrian of a crowd-free trial."""
+    from evaluation.stage import cue_twin_rows
+
+    env = CrowdNavEnv(scenario="head_on", density=0.0, obs_mode="state", info_level="basic")
+    env.reset(seed=0)
+    for _ in range(5):
+        env.step(env.encode_command(0.6, 0.0))
+    for d, prefix in ((tmp_path / "sc", "sc_"), (tmp_path / "sc" / "nocue", "scnc_")):
+        (d / "traces").mkdir(parents=True)
+        env.trace(method="dwa").save_npz(d / "traces" / f"{prefix}head_on_d0_s7_dwa.npz")
+    row = {"method": "dwa", "scene": "head_on", "density": 0.0, "seed": 7, "trial": 0, "success": 0.0,
+           "collision_scripted": 0.0, "min_clearance_scripted_m": 2.0, "cue_onset_s": None, "cue_lead_s": None}
+    (out,) = cue_twin_rows([row], [row], tmp_path / "sc", tmp_path / "sc" / "nocue")
+    assert np.isnan(out["cue_divergence_s"]) and out["cue_anticipated"] == 0.0 and out["scripted_peds"] == [0]
+    with pytest.raises(ConfigError, match="scripted_peds"):
+        cue_twin_rows([{**row, "density": 0.1}], [{**row, "density": 0.1}], tmp_path / "sc", tmp_path / "sc" / "nocue")
