@@ -10,6 +10,8 @@ import os
 import shutil
 import signal
 import socket
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -134,8 +136,6 @@ def test_a_bundle_unpacks_once_per_node_where_its_paths_say(tmp_path, monkeypatc
     assert all(h == hashlib.sha256(d).hexdigest() for _, d, h in returned_files(root))
     # a task killed while unpacking left its temporary folder: removed by the next unpack on the node, while a live
     # process's is kept
-    import subprocess
-
     dead = subprocess.Popen(["true"])
     dead.wait()
     other = Bundle.of({a: b"{}"})
@@ -282,6 +282,41 @@ def test_eval_with_files_through_the_object_store_equals_the_local_pool(cluster,
     shutil.rmtree(unpacked)
 
 
+_KILLER = """
+import os, signal, sys, time
+from pathlib import Path
+import psutil
+task, partial, wait = sys.argv[1], sys.argv[2], float(sys.argv[3])
+deadline = time.monotonic() + 120
+while time.monotonic() < deadline:
+    pids = [p.info["pid"] for p in psutil.process_iter(["pid", "cmdline"])
+            if f"ray::{task}" in " ".join(p.info.get("cmdline") or [])]
+    if pids and (not partial or any(Path(partial).glob("*.mcap.partial"))):
+        time.sleep(wait)
+        os.kill(pids[0], signal.SIGKILL)
+        print(pids[0], flush=True)
+        break
+    time.sleep(0.02)
+"""
+
+
+def _start_killer(task: str, partial_dir: Path | None = None, wait_s: float = 0.0) -> subprocess.Popen:
+    """A separate process that SIGKILLs the first Ray worker seen running ``task`` (once ``partial_dir`` holds an
+    open ``.mcap.partial``, when given), ``wait_s`` after seeing it, and prints its pid. A process, not a thread of
+    the test: the driver's own work holds the GIL and could starve a polling thread past a short task."""
+    return subprocess.Popen([sys.executable, "-c", _KILLER, task, str(partial_dir or ""), str(wait_s)],
+                            stdout=subprocess.PIPE, text=True)
+
+
+def _killed(killer: subprocess.Popen) -> list[int]:
+    try:
+        out, _ = killer.communicate(timeout=5)
+    except subprocess.TimeoutExpired:
+        killer.kill()
+        out, _ = killer.communicate()
+    return [int(v) for v in out.split()]
+
+
 def _ray_task_pids(name: str) -> list[int]:
     import psutil
 
@@ -297,22 +332,9 @@ def _ray_task_pids(name: str) -> list[int]:
 def test_a_worker_killed_mid_episode_loses_and_duplicates_nothing(cluster, local_record, tmp_path):
     data = tmp_path / "data"
     out = data / "raw" / "expert"
-    killed: list[int] = []
-
-    def kill_one() -> None:  # SIGKILL the first worker seen recording an episode (its .partial is open)
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not killed:
-            pids = _ray_task_pids("_record_task")
-            if pids and out.is_dir() and any(out.glob("*.mcap.partial")):
-                os.kill(pids[0], signal.SIGKILL)
-                killed.append(pids[0])
-            time.sleep(0.05)
-
-    t = threading.Thread(target=kill_one, daemon=True)
-    t.start()
+    killer = _start_killer("_record_task", out)  # the first worker seen recording an episode (its .partial open)
     assert cli.main(["record", "--data-dir", str(data), *RECORD, "--workers", "2", "--executor", "ray"]) == 0
-    t.join(timeout=5)
-    assert killed, "no worker was seen recording"
+    assert _killed(killer), "no worker was seen recording"
     assert _digests(out) == _digests(local_record)  # every episode, once, byte-identical
     assert not list(out.glob("*.partial")) and [r["file"] for r in _rows(out)] == NAMES
 
@@ -325,24 +347,10 @@ def test_files_through_the_object_store_equal_the_local_pool_and_survive_a_kille
     local pool's, with the same rows, and no temporary file is left in the data dir."""
     data = tmp_path / "data"
     out = data / "raw" / "expert"
-    killed: list[int] = []
-
-    def kill_one() -> None:  # SIGKILL the first worker seen running a transfer task, once it has had time to start
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not killed:
-            pids = _ray_task_pids("_record_transfer_task")
-            if pids:
-                time.sleep(0.3)
-                os.kill(pids[0], signal.SIGKILL)
-                killed.append(pids[0])
-            time.sleep(0.05)
-
-    t = threading.Thread(target=kill_one, daemon=True)
-    t.start()
+    killer = _start_killer("_record_transfer_task", wait_s=0.3)  # the first transfer task, once it has started
     assert cli.main(["record", "--data-dir", str(data), *RECORD, "--workers", "2", "--executor", "ray",
                      "--ray_files", "transfer"]) == 0
-    t.join(timeout=5)
-    assert killed, "no worker was seen recording"
+    assert _killed(killer), "no worker was seen recording"
     assert _digests(out) == _digests(local_record)
     assert _rows(out) == _rows(local_record)
     assert not [p.name for p in out.iterdir() if p.name.startswith(".") or p.suffix in (".partial", ".tmp")]
