@@ -63,7 +63,12 @@ class Job:
 
     @property
     def name(self) -> str:
-        return f"{self.tag}{Path(self.scene).stem}_d{self.density:g}_s{self.seed}_{self.method.name}"
+        return episode_name(self.tag, self.scene, self.density, self.seed, self.method.name)
+
+
+def episode_name(tag: str, scene: str, density: float, seed: int, method: str) -> str:
+    """An episode's file stem (trace, figure, row): ``<tag><scene>_d<density>_s<seed>_<method>``."""
+    return f"{tag}{Path(scene).stem}_d{float(density):g}_s{seed}_{method}"
 
 
 _DRIVERS: dict[str, Any] = {}

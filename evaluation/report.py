@@ -313,7 +313,7 @@ def cue_twin_table(rows: Sequence[dict[str, Any]], labels: dict[str, str], ref: 
                 continue
             div = np.array([r["cue_divergence_s"] for r in rs], float)
             changed = np.isfinite(div)
-            safer = [r["cue_divergence_safer"] for r in rs if r["cue_divergence_safer"] == r["cue_divergence_safer"]]
+            safer = [r["cue_divergence_safer"] for r in rs if math.isfinite(r["cue_divergence_safer"])]
             parts.append(
                 f"| {scene} | {labels.get(m, m)} | {len(rs)} | {int(changed.sum())} | "
                 f"{int(sum(r['cue_anticipated'] for r in rs))} | "

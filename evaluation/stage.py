@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.harness import Job, run_jobs_cached
+from evaluation.harness import Job, episode_name, run_jobs_cached
 from evaluation.methods import MethodSpec, available_methods, resolve_methods
 from evaluation.report import (
     paired,
@@ -277,13 +277,12 @@ def cue_twin_rows(cued_rows: list[dict[str, Any]], twin_rows: list[dict[str, Any
         c = cued_by.get((t["scene"], t["seed"], t["method"]))
         if c is None:
             continue
-        name = f"{t['scene']}_d{float(t['density']):g}_s{t['seed']}_{t['method']}"
         peds = c.get("scripted_peds")
         if peds is None and float(c["density"]):  # a row of a run older than the twins, with a crowd
             raise ConfigError(f"{cued_dir / 'episodes.jsonl'}: expected scenario rows with 'scripted_peds' "
-                              f"(rerun the scenarios without --resume), got a row of {name} without it")
-        cued = EpisodeTrace.load_npz(cued_dir / "traces" / f"sc_{name}.npz")
-        twin = EpisodeTrace.load_npz(twin_dir / "traces" / f"scnc_{name}.npz")
+                              f"(rerun the scenarios without --resume), got a row of "
+                              f"{episode_name('sc_', c['scene'], c['density'], c['seed'], c['method'])} without it")
+        cued, twin = _twin_traces(c, cued_dir, twin_dir)
         if peds is None:  # ... without a crowd: every pedestrian is scripted
             peds = list(range(cued.ped_xy.shape[1]))
         # a row read back from rows/ (--resume) holds null where a cue never came (NaN when written)
@@ -297,16 +296,19 @@ def cue_twin_rows(cued_rows: list[dict[str, Any]], twin_rows: list[dict[str, Any
     return out
 
 
+def _twin_traces(r: dict[str, Any], cued_dir: Path, twin_dir: Path) -> tuple[EpisodeTrace, EpisodeTrace]:
+    """The traces of scenario row ``r``'s trial with its cue (``cued_dir``) and without (``twin_dir``)."""
+    key = (r["scene"], r["density"], r["seed"], r["method"])
+    return (EpisodeTrace.load_npz(cued_dir / "traces" / f"{episode_name('sc_', *key)}.npz"),
+            EpisodeTrace.load_npz(twin_dir / "traces" / f"{episode_name('scnc_', *key)}.npz"))
+
+
 def _plot_cue_twins(rows: list[dict[str, Any]], labels: dict[str, str], sc_dir: Path) -> None:
     """Per scenario, its first trial with and without the cue for every method: figures/cue_twin_<scenario>.png."""
     for scene in dict.fromkeys(r["scene"] for r in rows):
         first = min(r["seed"] for r in rows if r["scene"] == scene)
-        pairs = {}
-        for r in rows:
-            if r["scene"] == scene and r["seed"] == first and math.isfinite(float(r["cue_onset_s"])):
-                name = f"{scene}_d{float(r['density']):g}_s{first}_{r['method']}"
-                pairs[r["method"]] = (EpisodeTrace.load_npz(sc_dir / "traces" / f"sc_{name}.npz"),
-                                      EpisodeTrace.load_npz(sc_dir / "nocue" / "traces" / f"scnc_{name}.npz"), r)
+        pairs = {r["method"]: (*_twin_traces(r, sc_dir, sc_dir / "nocue"), r) for r in rows
+                 if r["scene"] == scene and r["seed"] == first and math.isfinite(r["cue_onset_s"])}
         if pairs:
             (sc_dir / "figures").mkdir(parents=True, exist_ok=True)
             plot_cue_twins(pairs, labels, f"{scene}, seed {first}: with and without the walker's head/torso lead",

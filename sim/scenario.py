@@ -278,11 +278,16 @@ def _check_against_layout(spec: ScenarioSpec, source: str) -> None:
 
 
 # ------------------------------------------------------------------------------------------------- metrics
+def _cue_event(events: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The event the reaction is timed from: the first turn cue, else the first start (None: no cue yet)."""
+    turns = [e for e in events if e["kind"] == "turn"]
+    return min(turns or [e for e in events if e["kind"] == "start"], key=lambda e: e["t_s"], default=None)
+
+
 def cue_onset_s(events: list[dict[str, Any]]) -> float:
     """The onset of the cue the reaction time is measured from: the first turn cue, else the first start."""
-    turns = [e["t_s"] for e in events if e["kind"] == "turn"]
-    starts = [e["t_s"] for e in events if e["kind"] == "start"]
-    return float(min(turns)) if turns else float(min(starts)) if starts else math.nan
+    e = _cue_event(events)
+    return math.nan if e is None else float(e["t_s"])
 
 
 def _rollout(pose: np.ndarray, cmd: np.ndarray, dt: float, steps: int) -> np.ndarray:
@@ -320,9 +325,8 @@ def reaction_time_s(trace: EpisodeTrace, peds: np.ndarray, onset_s: float, horiz
 
 def cue_lead_s(events: list[dict[str, Any]]) -> float:
     """How long the cue of :func:`cue_onset_s` leads the change of walking direction (s; nan without a cue)."""
-    onset = cue_onset_s(events)
-    lead = [e.get("lead_s", math.nan) for e in events if e["t_s"] == onset and e["kind"] in ("turn", "start")]
-    return float(lead[0]) if lead else math.nan
+    e = _cue_event(events)
+    return math.nan if e is None else float(e.get("lead_s", math.nan))
 
 
 def cue_twin_metrics(cued: EpisodeTrace, twin: EpisodeTrace, peds: np.ndarray, onset_s: float, lead_s: float,
