@@ -290,6 +290,20 @@ def scenario_table(rows: Sequence[dict[str, Any]], labels: dict[str, str]) -> li
     return parts
 
 
+def cue_timing_test(a: Sequence[dict[str, Any]], b: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """When two methods respond to the cue, over paired trials (cue-twin rows in the same order) in which both
+    changed course: ``{"n", "median_diff": median of a − b [s], "earlier": pairs with a first, "later", "p_value":
+    two-sided Wilcoxon signed-rank (:func:`sim.metrics.paired_test`; nan under 5 pairs)}``. The times are multiples
+    of the control step, so they are rounded to the microsecond first: equal steps tie exactly."""
+    x = np.round(np.array([r["cue_divergence_s"] for r in a], float), 6)
+    y = np.round(np.array([r["cue_divergence_s"] for r in b], float), 6)
+    both = np.isfinite(x) & np.isfinite(y)
+    d = x[both] - y[both]
+    t = paired_test(x[both], y[both])
+    return {"n": int(both.sum()), "median_diff": float(np.median(d)) if d.size else math.nan,
+            "earlier": int((d < 0).sum()), "later": int((d > 0).sum()), "p_value": t["p_value"]}
+
+
 def cue_twin_table(rows: Sequence[dict[str, Any]], labels: dict[str, str], ref: str = "full") -> list[str]:
     """What the pedestrians' cue alone changed, per scenario and method (:func:`sim.scenario.cue_twin_metrics`), and
     ``ref`` against each other method on the trials the cue made change course before the walk turned."""
@@ -331,13 +345,19 @@ def cue_twin_table(rows: Sequence[dict[str, Any]], labels: dict[str, str], ref: 
             if m == ref or not seeds:
                 continue
             t = mcnemar_exact([own[k]["cue_anticipated"] for k in seeds], [other[k]["cue_anticipated"] for k in seeds])
+            w = cue_timing_test([own[k] for k in seeds], [other[k] for k in seeds])
             tests.append(f"| {scene} | {labels.get(m, m)} | {len(seeds)} | {t['a_only']} / {t['b_only']} | "
-                         f"{_fmt_p(t['p_value'])} |")
+                         f"{_fmt_p(t['p_value'])} | {w['n']} | {_fmt_d(w['median_diff'])} | "
+                         f"{w['earlier']} / {w['later']} | {_fmt_p(w['p_value'])} |")
     if tests:
-        parts += ["", f"Changed course before the turn: {labels.get(ref, ref)} against each method on the same trials "
-                      "(exact McNemar).\n",
-                  f"| scenario | other | trials | only {labels.get(ref, ref)} / only other | p |", "|---|---|---|---|---|",
-                  *tests]
+        r = labels.get(ref, ref)
+        parts += ["", f"{r} against each method on the same trials: *changed course before the turn* (exact McNemar); "
+                      f"*when*: over the trials in which both changed course, the first differing command's time, "
+                      f"{r} − other (median [s], trials in which {r} came earlier / later, two-sided Wilcoxon "
+                      "signed-rank).\n",
+                  f"| scenario | other | trials | before the turn: only {r} / only other | p | both changed | "
+                  f"when: median {r} − other [s] | {r} earlier / later | p |",
+                  "|---|---|---|---|---|---|---|---|---|", *tests]
     parts.append("")
     return parts
 
