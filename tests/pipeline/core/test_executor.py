@@ -8,12 +8,10 @@ import hashlib
 import json
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -283,28 +281,33 @@ def test_eval_with_files_through_the_object_store_equals_the_local_pool(cluster,
 
 
 _KILLER = """
-import os, signal, sys, time
-from pathlib import Path
+import glob, os, signal, sys, time
 import psutil
-task, partial, wait = sys.argv[1], sys.argv[2], float(sys.argv[3])
+task, ready, child, wait = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
 deadline = time.monotonic() + 120
 while time.monotonic() < deadline:
-    pids = [p.info["pid"] for p in psutil.process_iter(["pid", "cmdline"])
+    pids = [p for p in psutil.process_iter(["pid", "cmdline"])
             if f"ray::{task}" in " ".join(p.info.get("cmdline") or [])]
-    if pids and (not partial or any(Path(partial).glob("*.mcap.partial"))):
+    if child:  # only the worker whose child process runs `child`
+        try:
+            pids = [p for p in pids if any(child in " ".join(c.cmdline()) for c in p.children())]
+        except psutil.Error:
+            pids = []
+    if pids and (not ready or glob.glob(ready)):
         time.sleep(wait)
-        os.kill(pids[0], signal.SIGKILL)
-        print(pids[0], flush=True)
+        os.kill(pids[0].pid, signal.SIGKILL)
+        print(pids[0].pid, flush=True)
         break
     time.sleep(0.02)
 """
 
 
-def _start_killer(task: str, partial_dir: Path | None = None, wait_s: float = 0.0) -> subprocess.Popen:
-    """A separate process that SIGKILLs the first Ray worker seen running ``task`` (once ``partial_dir`` holds an
-    open ``.mcap.partial``, when given), ``wait_s`` after seeing it, and prints its pid. A process, not a thread of
-    the test: the driver's own work holds the GIL and could starve a polling thread past a short task."""
-    return subprocess.Popen([sys.executable, "-c", _KILLER, task, str(partial_dir or ""), str(wait_s)],
+def _start_killer(task: str, ready: str = "", wait_s: float = 0.0, child: str = "") -> subprocess.Popen:
+    """A separate process that SIGKILLs the first Ray worker seen running ``task`` (with a child process whose
+    command line holds ``child``, when given; once the glob ``ready`` matches a file, when given), ``wait_s`` after
+    seeing it, and prints its pid. A process, not a thread of the test: the driver's own work holds the GIL and
+    could starve a polling thread past a short task."""
+    return subprocess.Popen([sys.executable, "-c", _KILLER, task, ready, child, str(wait_s)],
                             stdout=subprocess.PIPE, text=True)
 
 
@@ -317,22 +320,11 @@ def _killed(killer: subprocess.Popen) -> list[int]:
     return [int(v) for v in out.split()]
 
 
-def _ray_task_pids(name: str) -> list[int]:
-    import psutil
-
-    out = []
-    for p in psutil.process_iter(["pid", "name", "cmdline"]):
-        cmd = " ".join(p.info.get("cmdline") or [])
-        if f"ray::{name}" in cmd or p.info.get("name") == f"ray::{name}":
-            out.append(p.info["pid"])
-    return out
-
-
 @pytest.mark.slow
 def test_a_worker_killed_mid_episode_loses_and_duplicates_nothing(cluster, local_record, tmp_path):
     data = tmp_path / "data"
     out = data / "raw" / "expert"
-    killer = _start_killer("_record_task", out)  # the first worker seen recording an episode (its .partial open)
+    killer = _start_killer("_record_task", f"{out}/*.mcap.partial")  # a worker recording (.partial open)
     assert cli.main(["record", "--data-dir", str(data), *RECORD, "--workers", "2", "--executor", "ray"]) == 0
     assert _killed(killer), "no worker was seen recording"
     assert _digests(out) == _digests(local_record)  # every episode, once, byte-identical
@@ -382,29 +374,12 @@ def test_train_all_runs_each_variant_in_a_ray_task_and_reruns_a_killed_one(clust
 
     data = tmp_path / "data"
     standin(data, seconds=4.0)
-    killed: list[int] = []
-
-    def kill_one() -> None:  # SIGKILL the Ray worker running sarl_om's task once its stand-in has started
-        deadline = time.monotonic() + 120
-        started = data / "checkpoints" / "policy" / "sarl_om" / "runs.txt"
-        while time.monotonic() < deadline and not killed:
-            pids = _ray_task_pids("run_child")
-            if pids and started.is_file():
-                import psutil
-
-                for pid in pids:
-                    kids = [c.cmdline() for c in psutil.Process(pid).children()]
-                    if any("sarl_om" in " ".join(k) for k in kids):
-                        os.kill(pid, signal.SIGKILL)
-                        killed.append(pid)
-            time.sleep(0.05)
-
-    t = threading.Thread(target=kill_one, daemon=True)
-    t.start()
+    # SIGKILL the Ray worker running sarl_om's task once its stand-in has started
+    killer = _start_killer("run_child", f"{data}/checkpoints/policy/sarl_om/runs.txt", child="sarl_om")
     plan = make_plan(["--variants", "[sarl_om, teacher, vint]", "--data-dir", str(data), "--cpus_per_variant", "1"])
     assert plan.executor == "ray"  # auto: RAY_ADDRESS
     res = run_plan(plan, module=STANDIN)
-    t.join(timeout=5)
+    killed = _killed(killer)
     assert [(r["name"], r["returncode"]) for r in res] == [("teacher", 0), ("sarl_om", 0), ("vint", 0)]
     assert killed, "no Ray worker was seen running sarl_om"
     assert [len(runs(data, v)) for v in ("teacher", "sarl_om", "vint")] == [1, 2, 1]
