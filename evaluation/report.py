@@ -469,3 +469,44 @@ def plot_cue_twins(pairs: dict[str, tuple[Any, Any, dict[str, Any]]], labels: di
     fig.tight_layout()
     save_figure(fig, path, 110)
     plt.close(fig)
+
+
+def plot_cue_timing(rows: Sequence[dict[str, Any]], labels: dict[str, str], path: Path) -> None:
+    """When each method answered the cue, per scenario (a panel each) and trial: the first cue-driven command's
+    time after the onset (``cue_divergence_s``) per method, the same trial joined across methods, the walking
+    direction's change (the cue's lead) dotted, trials whose commands the cue never changed at the top."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    methods = methods_of(rows)
+    fig, axes = plt.subplots(1, len(scenes), figsize=(1.2 + 1.3 * len(methods) * len(scenes), 3.6), squeeze=False)
+    for ax, scene in zip(axes[0], scenes, strict=True):
+        rs = [r for r in rows if r["scene"] == scene]
+        div = [r["cue_divergence_s"] for r in rs if math.isfinite(r["cue_divergence_s"])]
+        leads = [r["cue_lead_s"] for r in rs if math.isfinite(r["cue_lead_s"])]
+        top = max([*div, *leads, 0.5]) + 0.3  # where "never" goes
+        by_seed: dict[int, dict[str, float]] = {}
+        for r in rs:
+            by_seed.setdefault(r["seed"], {})[r["method"]] = r["cue_divergence_s"]
+        rng = np.random.default_rng(0)  # a fixed jitter, so that equal times (multiples of the step) stay visible
+        for times in by_seed.values():
+            xs = [i + rng.uniform(-0.12, 0.12) for i, m in enumerate(methods) if m in times]
+            ys = [times[m] if math.isfinite(times[m]) else top for m in methods if m in times]
+            ax.plot(xs, ys, "-", color="0.75", lw=0.6, zorder=1)
+            ax.scatter(xs, ys, s=12, color="tab:blue", zorder=2)
+        if leads:
+            ax.axhline(float(np.median(leads)), color="k", ls=":", lw=0.8)
+        ax.axhline(top, color="0.85", lw=6, zorder=0)
+        ax.text(len(methods) - 0.5, top, "never", fontsize=7, va="center", ha="right", color="0.4")
+        ax.set_xticks(range(len(methods)), [labels.get(m, m) for m in methods], rotation=20, fontsize=7)
+        ax.set_ylim(-0.05, top + 0.2)
+        ax.set_title(f"{scene} ({len(by_seed)} trials)", fontsize=9)
+    axes[0, 0].set_ylabel("first cue-driven command [s after onset]", fontsize=8)
+    fig.suptitle("When each method answered the head/torso cue (one dot per trial, the same trial joined)\n"
+                 "dotted: the walking direction changes; grey band: never", fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path, 110)
+    plt.close(fig)

@@ -59,6 +59,7 @@ from evaluation.methods import MethodSpec, available_methods, resolve_methods
 from evaluation.report import (
     paired,
     paired_pooled,
+    plot_cue_timing,
     plot_cue_twins,
     plot_sr,
     report_markdown,
@@ -304,7 +305,8 @@ def _twin_traces(r: dict[str, Any], cued_dir: Path, twin_dir: Path) -> tuple[Epi
 
 
 def _plot_cue_twins(rows: list[dict[str, Any]], labels: dict[str, str], sc_dir: Path) -> None:
-    """Per scenario, its first trial with and without the cue for every method: figures/cue_twin_<scenario>.png."""
+    """Per scenario, its first trial with and without the cue for every method (figures/cue_twin_<scenario>.png), and
+    when every method answered the cue in every trial (figures/cue_timing.png)."""
     for scene in dict.fromkeys(r["scene"] for r in rows):
         first = min(r["seed"] for r in rows if r["scene"] == scene)
         pairs = {r["method"]: (*_twin_traces(r, sc_dir, sc_dir / "nocue"), r) for r in rows
@@ -313,6 +315,9 @@ def _plot_cue_twins(rows: list[dict[str, Any]], labels: dict[str, str], sc_dir: 
             (sc_dir / "figures").mkdir(parents=True, exist_ok=True)
             plot_cue_twins(pairs, labels, f"{scene}, seed {first}: with and without the walker's head/torso lead",
                            sc_dir / "figures" / f"cue_twin_{scene}.png")
+    if rows:
+        (sc_dir / "figures").mkdir(parents=True, exist_ok=True)
+        plot_cue_timing(rows, labels, sc_dir / "figures" / "cue_timing.png")
 
 
 def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:

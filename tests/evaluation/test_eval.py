@@ -218,6 +218,7 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
     assert (out / "scenarios" / "nocue" / "traces" / f"scnc_head_on_d0_s{sc['seed']}_expert.npz").is_file()
     assert "The cue alone" in (out / "report.md").read_text()
     assert (out / "scenarios" / "figures" / "cue_twin_head_on.png").is_file()
+    assert (out / "scenarios" / "figures" / "cue_timing.png").is_file()  # when each method answered, every trial
     # a killed run: the manifest never came and one episode's row is missing; --resume runs only that episode
     (out / "manifest.json").unlink()
     rows = sorted((out / "rows").glob("office_lobby_*.json"))

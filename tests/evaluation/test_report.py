@@ -7,7 +7,7 @@ import math
 import numpy as np
 from scipy.stats import wilcoxon
 
-from evaluation.report import cue_timing_test, cue_twin_table
+from evaluation.report import cue_timing_test, cue_twin_table, plot_cue_timing
 
 
 def _row(method: str, seed: int, div: float) -> dict:
@@ -44,3 +44,12 @@ def test_cue_twin_table_reports_when_each_method_responds_against_the_reference(
     cells = [c.strip() for c in line.strip("|").split("|")]
     assert cells[5:8] == ["8", f"{np.median(np.array(FULL[:8]) - np.round(OTHER[:8], 6)):+.2f}", "6 / 1"]
     assert "full − other" in text
+
+
+def test_plot_cue_timing_draws_every_trial_of_every_scenario(tmp_path):
+    rows = [_row("full", s, d) for s, d in enumerate(FULL)] + [_row("no_i2", s, d) for s, d in enumerate(OTHER)]
+    rows += [{**r, "scene": "blind_corner"} for r in rows]
+    rows = [{**r, "cue_lead_s": 0.7} for r in rows]
+    path = tmp_path / "cue_timing.png"
+    plot_cue_timing(rows, {"no_i2": "w/o I²"}, path)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
