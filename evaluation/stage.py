@@ -110,6 +110,9 @@ class EvalConfig(BaseStageConfig):
         "help": "per method, at most n episodes per cell instead of goals x trials, e.g. {full: 10}: the cell's first n in "
                 "trial-major order (trial 0 of every goal, then trial 1, ...), so a capped method runs a paired subset "
                 "of the others' episodes on distinct goals (benchmark and routing cells)"})
+    routing_method_episodes: dict[str, int] = field(default_factory=dict, metadata={
+        "help": "per method capped by method_episodes, its cap in the routing cells instead (same order), e.g. "
+                "{full: 10}; a method without a method_episodes cap runs every routing episode"})
     routing_scenes: list[str] = field(default_factory=lambda: ["warehouse_routing"],
                                       metadata={"help": "extra cells where every method follows the global "
                                                         "planner's waypoints (reported separately)"})
@@ -148,9 +151,14 @@ class EvalConfig(BaseStageConfig):
         """Episodes per cell and method: ``goals`` × ``trials``."""
         return self.goals * self.trials
 
-    def episodes_of(self, method: str) -> int:
-        """Episodes per cell that ``method`` runs: ``goals`` × ``trials``, at most its ``method_episodes`` cap."""
-        return min(self.method_episodes.get(method, self.episodes), self.episodes)
+    def episodes_of(self, method: str, routing: bool = False) -> int:
+        """Episodes per cell that ``method`` runs: ``goals`` × ``trials``, at most its ``method_episodes`` cap (in a
+        routing cell its ``routing_method_episodes`` cap instead, when it has both: uncapping a method with
+        ``--method_episodes '{}'`` uncaps it everywhere)."""
+        cap = self.method_episodes.get(method, self.episodes)
+        if routing and method in self.method_episodes:
+            cap = self.routing_method_episodes.get(method, cap)
+        return min(cap, self.episodes)
 
     def validate(self) -> None:
         super().validate()
@@ -177,11 +185,12 @@ class EvalConfig(BaseStageConfig):
             raise ConfigError(f"eval.scenario_trials: expected an integer in [1, 1000], got {self.scenario_trials!r}")
         if not self.methods:
             raise ConfigError("eval.methods: expected at least one method")
-        for name, n in self.method_episodes.items():
-            if name not in available_methods():
-                raise ConfigError(f"eval.method_episodes: expected method names of {available_methods()}, got {name!r}")
-            if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 10_000:
-                raise ConfigError(f"eval.method_episodes.{name}: expected an integer in [1, 10000], got {n!r}")
+        for key in ("method_episodes", "routing_method_episodes"):
+            for name, n in getattr(self, key).items():
+                if name not in available_methods():
+                    raise ConfigError(f"eval.{key}: expected method names of {available_methods()}, got {name!r}")
+                if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 10_000:
+                    raise ConfigError(f"eval.{key}.{name}: expected an integer in [1, 10000], got {n!r}")
         check_executor(self.executor, self.ray_address, "eval")
         check_ray_files(self.ray_files, "eval")
         if self.figures < 0 or self.videos < 0:
@@ -232,7 +241,7 @@ def benchmark_jobs(cfg: EvalConfig, specs: list[MethodSpec], out: Path, scenes: 
     """Every (scene, density, episode, method) job; ``route``: the methods follow the global planner's waypoints."""
     jobs = []
     protocol = protocol_of(cfg)
-    caps = {m.name: cfg.episodes_of(m.name) for m in specs}
+    caps = {m.name: cfg.episodes_of(m.name, routing=route) for m in specs}
     for s in cfg.scenes if scenes is None else scenes:
         for d in cfg.densities:
             for k, ep in enumerate(protocol):
@@ -402,7 +411,10 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
                                                          "cue_twins": cfg.cue_twins,
                                                          "densities": cfg.densities, "episodes": protocol_of(cfg),
                                                          "episodes_per_method": {m.name: cfg.episodes_of(m.name)
-                                                                                 for m in specs}},
+                                                                                 for m in specs},
+                                                         "routing_episodes_per_method": {
+                                                             m.name: cfg.episodes_of(m.name, routing=True)
+                                                             for m in specs}},
                                            "long_horizon": lh_seeds})
     atomic_write_text(out / "episodes.jsonl", "".join(json.dumps(r) + "\n" for r in json_safe(rows)))
     res = results(rows)
@@ -435,12 +447,16 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
 
 def _capped_text(cfg: EvalConfig, specs: list[MethodSpec]) -> str:
     """The header's sentence on methods run on fewer episodes per cell (``method_episodes``), or nothing."""
-    capped = [m.name for m in specs if cfg.episodes_of(m.name) < cfg.episodes]
+    def n(m: str) -> str:
+        cell, route = cfg.episodes_of(m), cfg.episodes_of(m, routing=True)
+        return f"`{m}` N = {cell}" + (f" ({route} in the routing cells)" if cfg.routing_scenes and route != cell else "")
+
+    capped = [m.name for m in specs if min(cfg.episodes_of(m.name), cfg.episodes_of(m.name, routing=True))
+              < cfg.episodes]
     if not capped:
         return ""
     return (" Fewer episodes per cell (the first in trial-major order, a subset of the others' on distinct goals; "
-            "paired tests use the episodes both methods ran): "
-            + ", ".join(f"`{m}` N = {cfg.episodes_of(m)}" for m in capped) + ".")
+            "paired tests use the episodes both methods ran): " + ", ".join(n(m) for m in capped) + ".")
 
 
 def _plot_long_horizon(plans: list[dict[str, Any]], rows: list[dict[str, Any]], out: Path,

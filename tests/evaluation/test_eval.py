@@ -256,6 +256,19 @@ def test_a_capped_method_runs_a_paired_subset_on_distinct_goals(tmp_path):
     assert [j.figure for j in jobs if j.method.name == "dwa"] == [True] + [False] * 5 + [True] + [False] * 5
     assert "`dwa` N = 6" in _capped_text(cfg, specs) and _capped_text(replace(cfg, method_episodes={}), specs) == ""
     assert replace(cfg, method_episodes={"dwa": 50}).episodes_of("dwa") == 12  # a cap above goals x trials: all
+    # routing_method_episodes: another cap in the routing cells only (the paper's cells keep method_episodes')
+    routed = replace(cfg, routing_scenes=["warehouse_routing"], method_episodes={"dwa": 6, "expert": 12},
+                     routing_method_episodes={"dwa": 2, "expert": 5})
+    route_jobs = benchmark_jobs(routed, specs, tmp_path, routed.routing_scenes, route=True)
+    assert [sum(j.method.name == m for j in route_jobs) for m in ("expert", "dwa")] == [2 * 5, 2 * 2]
+    assert benchmark_jobs(routed, specs, tmp_path) == jobs  # the paper's cells unchanged
+    assert "`expert` N = 12 (5 in the routing cells), `dwa` N = 6 (2 in the routing cells)" in _capped_text(routed,
+                                                                                                          specs)
+    # a method without a method_episodes cap runs every routing episode: --method_episodes '{}' uncaps all
+    uncapped = replace(routed, method_episodes={})
+    assert uncapped.episodes_of("dwa", routing=True) == 12 and _capped_text(uncapped, specs) == ""
+    with pytest.raises(ConfigError, match="eval.routing_method_episodes.dwa: expected an integer"):
+        replace(routed, routing_method_episodes={"dwa": 0}).validate()
 
 
 def test_sr_figure_tolerates_intervals_that_miss_the_mean_by_rounding(tmp_path):
