@@ -297,11 +297,9 @@ def cue_timing_test(a: Sequence[dict[str, Any]], b: Sequence[dict[str, Any]]) ->
     of the control step, so they are rounded to the microsecond first: equal steps tie exactly."""
     x = np.round(np.array([r["cue_divergence_s"] for r in a], float), 6)
     y = np.round(np.array([r["cue_divergence_s"] for r in b], float), 6)
-    both = np.isfinite(x) & np.isfinite(y)
-    d = x[both] - y[both]
-    t = paired_test(x[both], y[both])
-    return {"n": int(both.sum()), "median_diff": float(np.median(d)) if d.size else math.nan,
-            "earlier": int((d < 0).sum()), "later": int((d > 0).sum()), "p_value": t["p_value"]}
+    d = (x - y)[np.isfinite(x) & np.isfinite(y)]
+    return {"n": int(d.size), "median_diff": float(np.median(d)) if d.size else math.nan,
+            "earlier": int((d < 0).sum()), "later": int((d > 0).sum()), "p_value": paired_test(x, y)["p_value"]}
 
 
 def cue_twin_table(rows: Sequence[dict[str, Any]], labels: dict[str, str], ref: str = "full") -> list[str]:

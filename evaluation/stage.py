@@ -316,17 +316,18 @@ def _twin_traces(r: dict[str, Any], cued_dir: Path, twin_dir: Path) -> tuple[Epi
 def _plot_cue_twins(rows: list[dict[str, Any]], labels: dict[str, str], sc_dir: Path) -> None:
     """Per scenario, its first trial with and without the cue for every method (figures/cue_twin_<scenario>.png), and
     when every method answered the cue in every trial (figures/cue_timing.png)."""
+    if not rows:
+        return
+    figs = sc_dir / "figures"
+    figs.mkdir(parents=True, exist_ok=True)
     for scene in dict.fromkeys(r["scene"] for r in rows):
         first = min(r["seed"] for r in rows if r["scene"] == scene)
         pairs = {r["method"]: (*_twin_traces(r, sc_dir, sc_dir / "nocue"), r) for r in rows
                  if r["scene"] == scene and r["seed"] == first and math.isfinite(r["cue_onset_s"])}
         if pairs:
-            (sc_dir / "figures").mkdir(parents=True, exist_ok=True)
             plot_cue_twins(pairs, labels, f"{scene}, seed {first}: with and without the walker's head/torso lead",
-                           sc_dir / "figures" / f"cue_twin_{scene}.png")
-    if rows:
-        (sc_dir / "figures").mkdir(parents=True, exist_ok=True)
-        plot_cue_timing(rows, labels, sc_dir / "figures" / "cue_timing.png")
+                           figs / f"cue_twin_{scene}.png")
+    plot_cue_timing(rows, labels, figs / "cue_timing.png")
 
 
 def long_horizon_plans(cfg: EvalConfig) -> list[dict[str, Any]]:
