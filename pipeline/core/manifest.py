@@ -183,6 +183,9 @@ def _records_from(value: Any, path: Path, key: str) -> list[FileRecord]:
     return records
 
 
+_OPTIONAL_FIELDS = ("code_hash", "wall_total_s", "invocations")  # absent from manifests of older code
+
+
 @dataclass
 class Manifest:
     """Provenance of one stage output directory (stored as ``manifest.json`` inside it).
@@ -199,7 +202,11 @@ class Manifest:
         git_commit: Commit of the code, or ``"unknown"``.
         git_dirty: Whether the work tree had uncommitted changes.
         versions: Python, platform and library versions.
-        duration_s: Wall time of the stage in seconds.
+        duration_s: Wall time of the invocation that finished the output, in seconds.
+        wall_total_s: Wall time of every invocation that built the output (a ``--resume`` continues an output in
+            place: each earlier invocation that finished counts its wall, a killed or failed one its time until its
+            last write to the output, so this is a lower bound after a kill); ``duration_s`` for a one-run output.
+        invocations: How many invocations built the output (1 unless resumed).
         command: The command line that ran the stage.
         code_hash: sha256 over the pipeline's own source files (:func:`code_hash`); a change makes outputs stale.
     """
@@ -218,6 +225,11 @@ class Manifest:
     duration_s: float = 0.0
     command: list[str] = field(default_factory=list)
     code_hash: str = ""
+    wall_total_s: float = 0.0
+    invocations: int = 1
+
+    def __post_init__(self) -> None:
+        self.wall_total_s = self.wall_total_s or self.duration_s
 
     def to_dict(self) -> dict[str, Any]:
         """Returns the manifest as a JSON-able dict."""
@@ -250,7 +262,7 @@ class Manifest:
         """
         _expect(isinstance(data, dict), path, f"expected a JSON object, got {type(data).__name__}")
         names = [f.name for f in dataclasses.fields(cls)]
-        missing = [n for n in names if n not in data and n != "code_hash"]
+        missing = [n for n in names if n not in data and n not in _OPTIONAL_FIELDS]
         _expect(not missing, path, f"missing field(s) {', '.join(missing)}")
 
         def typed(key: str, types: type | tuple[type, ...], desc: str) -> Any:
@@ -294,6 +306,9 @@ class Manifest:
             duration_s=float(typed("duration_s", (int, float), "a number")),
             command=list(command),
             code_hash=str(data.get("code_hash", "")),
+            # manifests written before these fields: one invocation, its own wall
+            wall_total_s=float(typed("wall_total_s", (int, float), "a number")) if "wall_total_s" in data else 0.0,
+            invocations=typed("invocations", int, "an int") if "invocations" in data else 1,
         )
 
     @classmethod

@@ -14,7 +14,9 @@
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import shutil
 import sys
 import time
@@ -24,7 +26,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from pipeline.core.artifacts import OutputDir, OutputMode, require_input
+from pipeline.core.artifacts import OutputDir, OutputMode, atomic_write_json, require_input
 from pipeline.core.config import config_hash, dump_yaml, to_dict, validate_tree
 from pipeline.core.errors import (
     ConfigError,
@@ -237,8 +239,6 @@ def _check_writable(directory: Path) -> None:
     """Fail fast, before any work, when ``directory`` cannot be created or written; creates nothing (a run refused
     later, e.g. for a damaged input, leaves no empty folders): the nearest existing ancestor must be a writable
     directory."""
-    import os
-
     existing = directory
     while not existing.exists() and existing.parent != existing:
         existing = existing.parent
@@ -299,18 +299,63 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
     command = list(sys.argv) if command is None else list(command)
     t0 = time.monotonic()
     created = mode == "resume" and not out.exists()
+    earlier = _begin_invocation(out) if mode == "resume" else (0.0, 0)
     try:
-        return _run_body(stage, cfg, out, mode, chash, params, inputs, command, t0)
+        return _run_body(stage, cfg, out, mode, chash, params, inputs, command, t0, earlier)
     except BaseException:
         if created and out.is_dir() and not holds_work(out, stage.scaffold):
             log.info("%s: failed before finishing any work; removing %s", stage.name, out)
             shutil.rmtree(out, ignore_errors=True)
+            _ledger_path(out).unlink(missing_ok=True)
         raise
 
 
+def _ledger_path(out: Path) -> Path:
+    """Where an output written in place notes its running invocation (beside it, so it is never an output file)."""
+    return out.parent / f".{out.name}.invocation.json"
+
+
+def _last_write(out: Path, default: float) -> float:
+    """The latest modification time (Unix seconds) of any file under ``out``; ``default`` when it holds none."""
+    latest = default
+    for dirpath, _, filenames in os.walk(out):
+        for name in filenames:
+            try:
+                latest = max(latest, os.stat(os.path.join(dirpath, name)).st_mtime)
+            except OSError:
+                continue
+    return latest
+
+
+def _begin_invocation(out: Path) -> tuple[float, int]:
+    """Notes this invocation of an output written in place and returns ``(wall_s, count)`` of the invocations
+    that built it before: the ledger of one that never finished (killed, or failed) counts it from its start to its
+    last write to ``out`` on top of the ones before it; otherwise an earlier finished run's manifest gives its
+    totals; else ``(0.0, 0)``. An unreadable ledger is logged and its invocations are not counted."""
+    ledger = _ledger_path(out)
+    earlier: tuple[float, int] = (0.0, 0)
+    try:
+        data = json.loads(ledger.read_text(encoding="utf-8"))
+        start = float(data["start_unix"])
+        earlier = (float(data["earlier_s"]) + max(0.0, _last_write(out, start) - start), int(data["earlier_n"]) + 1)
+    except FileNotFoundError:
+        if (out / MANIFEST_NAME).is_file():
+            try:
+                m = Manifest.read(out / MANIFEST_NAME)
+                earlier = (m.wall_total_s, m.invocations)
+            except ICrowdNavError as e:
+                log.warning("earlier invocations of %s not counted in its wall: %s", out, e)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        log.warning("earlier invocations of %s not counted in its wall: unreadable %s (%s)", out, ledger, e)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(ledger, {"start_unix": time.time(), "earlier_s": round(earlier[0], 3), "earlier_n": earlier[1]})
+    return earlier
+
+
 def _run_body(stage: Stage, cfg: Any, out: Path, mode: str, chash: str, params: dict, inputs: list[FileRecord],
-              command: list[str], t0: float) -> tuple[Manifest, bool]:
-    """The body in its :class:`OutputDir`, then ``config.yaml`` and ``manifest.json``."""
+              command: list[str], t0: float, earlier: tuple[float, int]) -> tuple[Manifest, bool]:
+    """The body in its :class:`OutputDir`, then ``config.yaml`` and ``manifest.json`` (its wall adds ``earlier``:
+    the walls and count of the invocations that built an output continued in place before this one)."""
     # the code that runs is the code at the start: a run that spans commits must not record a later one
     commit, dirty = git_info(_CODE_ROOT)
     chash_code = code_hash(None, stage.code)
@@ -335,7 +380,10 @@ def _run_body(stage: Stage, cfg: Any, out: Path, mode: str, chash: str, params: 
             command=command,
             code_hash=chash_code,
         )
+        manifest.wall_total_s = round(earlier[0] + manifest.duration_s, 3)
+        manifest.invocations = earlier[1] + 1
         manifest.write(od.path / MANIFEST_NAME)
+    _ledger_path(out).unlink(missing_ok=True)
     log.info("%s: done in %.1f s -> %s", stage.name, manifest.duration_s, out)
     return manifest, True
 

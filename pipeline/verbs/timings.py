@@ -5,8 +5,10 @@ manifests — how long ``make all`` (or any set of stages) took, stage by stage,
     icrowdnav timings /tmp/run --json
 
 A Markdown table in the order the stages finished: stage, output (relative to DATA_DIR), commit (``+`` = uncommitted
-changes), finish time (UTC), wall, and whether the run was resumed (its wall then covers the last invocation only);
-then the sum of the walls and the span from the first stage's start to the last one's end. Exit 0; 1 when a manifest
+changes), finish time (UTC), wall, and the invocations that built the output (more than 1 when continued with
+``--resume``: the wall then sums them, a killed one counted until its last write to the output, so it is a lower
+bound); then the sum of the walls and the span from the first stage's start to the last one's end (the start: the
+finish less the total wall). Exit 0; 1 when a manifest
 is damaged (one line each naming the file, the others still listed); 2 when DATA_DIR is not a directory.
 """
 
@@ -24,7 +26,8 @@ from pipeline.core.manifest import Manifest
 
 def stage_timings(data_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
     """``(rows, errors)``: one row per ``manifest.json`` under ``data_dir`` (stage, output, commit, dirty, start and
-    finish as datetimes, wall_s, resumed), sorted by finish time; ``errors``: one line per damaged manifest."""
+    finish as datetimes, wall_s: every invocation's, last_wall_s: the finishing one's, invocations), sorted by finish
+    time; ``errors``: one line per damaged manifest."""
     rows, errors = [], []
     for path in sorted(data_dir.rglob("manifest.json")):
         try:
@@ -34,8 +37,8 @@ def stage_timings(data_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
             errors.append(f"{path}: {e}")
             continue
         rows.append({"stage": m.stage, "output": str(path.parent.relative_to(data_dir)), "commit": m.git_commit[:7],
-                     "dirty": m.git_dirty, "start": end - timedelta(seconds=m.duration_s), "end": end,
-                     "wall_s": m.duration_s, "resumed": "--resume" in m.command})
+                     "dirty": m.git_dirty, "start": end - timedelta(seconds=m.wall_total_s), "end": end,
+                     "wall_s": m.wall_total_s, "last_wall_s": m.duration_s, "invocations": m.invocations})
     return sorted(rows, key=lambda r: r["end"]), errors
 
 
@@ -43,11 +46,16 @@ def _wall(seconds: float) -> str:
     return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
 
 
+def _invocations(row: dict[str, Any]) -> str:
+    n = row["invocations"]
+    return "1" if n == 1 else f"{n} (the last {_wall(row['last_wall_s'])})"
+
+
 def markdown(rows: list[dict[str, Any]]) -> str:
-    lines = ["| stage | output | commit | finished (UTC) | wall | resumed |", "|---|---|---|---|---|---|"]
+    lines = ["| stage | output | commit | finished (UTC) | wall | invocations |", "|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['stage']} | {r['output']} | {r['commit']}{'+' if r['dirty'] else ''} | "
-                     f"{r['end']:%Y-%m-%d %H:%M:%S} | {_wall(r['wall_s'])} | {'yes' if r['resumed'] else ''} |")
+                     f"{r['end']:%Y-%m-%d %H:%M:%S} | {_wall(r['wall_s'])} | {_invocations(r)} |")
     if rows:
         total = sum(r["wall_s"] for r in rows)
         span = (max(r["end"] for r in rows) - min(r["start"] for r in rows)).total_seconds()

@@ -6,6 +6,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,6 +15,7 @@ import pytest
 import yaml
 
 import pipeline
+import pipeline.core.stage as stage_mod
 from pipeline.core.config import BaseStageConfig, apply_dict, config_hash, from_dict
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError, OutputExistsError
 from pipeline.core.manifest import (
@@ -428,3 +430,44 @@ def test_release_output_drops_the_manifest_that_lists_a_rewritten_file(tmp_path:
     assert not (out / MANIFEST_NAME).exists()
     (out / "w.bin").write_bytes(b"new bytes of a resumed run")
     assert verify_output(out / "w.bin") is None  # unfinished until the stage writes a new manifest
+
+
+def test_a_resumed_output_counts_every_invocation_in_its_wall(cfg: ToyStageConfig, monkeypatch) -> None:
+    """An output continued in place sums its invocations' walls: a finished one's from its manifest, a killed one's
+    until its last write (its ledger beside the output survives the kill); a fresh run counts itself only."""
+    clock = {"t": 1000.0}
+    monkeypatch.setattr(stage_mod.time, "monotonic", lambda: clock["t"])
+    resume = apply_dict(cfg, {"resume": True}, "test")
+    out, ledger = cfg.data_dir / "toy", cfg.data_dir / ".toy.invocation.json"
+
+    def body_taking(seconds: float):
+        def body(c, o):
+            clock["t"] += seconds
+            return toy_body(c, o)
+        return body
+
+    m = run_stage(dataclasses.replace(TOY_IN_PLACE, body=body_taking(60.0)), resume)
+    assert (m.duration_s, m.wall_total_s, m.invocations) == (60.0, 60.0, 1) and not ledger.exists()
+    m = run_stage(dataclasses.replace(TOY_IN_PLACE, body=body_taking(3.0)), resume)  # nothing left to do
+    assert (m.duration_s, m.wall_total_s, m.invocations) == (3.0, 63.0, 2)
+    assert Manifest.read(out / MANIFEST_NAME).wall_total_s == 63.0
+
+    # a killed invocation: its ledger stays; it last wrote 40 s after its start
+    stage_mod._begin_invocation(out)
+    start = json.loads(ledger.read_text())["start_unix"]
+    os.utime(out / "summary.txt", (start + 40.0, start + 40.0))
+    m = run_stage(dataclasses.replace(TOY_IN_PLACE, body=body_taking(5.0)), resume)
+    assert (m.duration_s, m.invocations) == (5.0, 4) and m.wall_total_s == pytest.approx(63.0 + 40.0 + 5.0, abs=0.01)
+    assert not ledger.exists()
+
+    m = run_stage(dataclasses.replace(TOY_IN_PLACE, body=body_taking(7.0)), apply_dict(cfg, {"overwrite": True}, "t"))
+    assert (m.wall_total_s, m.invocations) == (7.0, 1)  # a fresh output starts its count again
+
+
+def test_a_manifest_of_older_code_reads_as_one_invocation(tmp_path: Path) -> None:
+    data = make_manifest().to_dict()
+    del data["wall_total_s"], data["invocations"]
+    m = Manifest.from_dict(data, tmp_path / MANIFEST_NAME)
+    assert (m.wall_total_s, m.invocations) == (m.duration_s, 1)
+    with pytest.raises(CorruptArtifactError, match="'invocations' must be an int"):
+        Manifest.from_dict({**make_manifest().to_dict(), "invocations": "2"}, tmp_path / MANIFEST_NAME)

@@ -9,26 +9,29 @@ from pipeline.core.manifest import Manifest
 from pipeline.verbs.timings import main, stage_timings
 
 
-def _stage(root, out, stage, finished, wall, command=("icrowdnav",), dirty=False):
+def _stage(root, out, stage, finished, wall, command=("icrowdnav",), dirty=False, total=0.0, invocations=1):
     (root / out).mkdir(parents=True)
     Manifest(stage=stage, params={}, config_hash="0" * 64, seed=0, created_utc=finished, git_commit="abcdef0123",
-             git_dirty=dirty, duration_s=wall, command=list(command)).write(root / out / "manifest.json")
+             git_dirty=dirty, duration_s=wall, command=list(command), wall_total_s=total,
+             invocations=invocations).write(root / out / "manifest.json")
 
 
 def test_stages_are_listed_in_finishing_order_with_sum_and_span(tmp_path, capsys):
     _stage(tmp_path, "checkpoints/bev", "pretrain", "2026-11-27T10:40:00Z", 2400.0, dirty=True)
     _stage(tmp_path, "raw/expert", "record", "2026-11-27T10:00:00Z", 120.0)
-    _stage(tmp_path, "eval/benchmark", "eval", "2026-11-27T12:00:00Z", 600.0, ("icrowdnav", "eval", "--resume"))
+    # resumed: 3 s to finish what two earlier invocations (10 min in all) had done
+    _stage(tmp_path, "eval/benchmark", "eval", "2026-11-27T12:00:00Z", 3.0, ("icrowdnav", "eval", "--resume"),
+           total=603.0, invocations=3)
     rows, errors = stage_timings(tmp_path)
     assert not errors and [r["stage"] for r in rows] == ["record", "pretrain", "eval"]
     assert main([str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert "| pretrain | checkpoints/bev | abcdef0+ | 2026-11-27 10:40:00 | 40.0 min |  |" in out
-    assert "| eval | eval/benchmark | abcdef0 | 2026-11-27 12:00:00 | 10.0 min | yes |" in out
-    # 2 + 40 + 10 min of walls; from 09:58 (the record's start) to 12:00
+    assert "| pretrain | checkpoints/bev | abcdef0+ | 2026-11-27 10:40:00 | 40.0 min | 1 |" in out
+    assert "| eval | eval/benchmark | abcdef0 | 2026-11-27 12:00:00 | 10.1 min | 3 (the last 3 s) |" in out
+    # 2 + 40 + 10.05 min of walls; from 09:58 (the record's start) to 12:00
     assert "3 stages: sum of walls 52.0 min (0.87 h); from the first start to the last finish 122.0 min (2.03 h)" in out
     assert main([str(tmp_path), "--json"]) == 0
-    assert [r["wall_s"] for r in json.loads(capsys.readouterr().out)] == [120.0, 2400.0, 600.0]
+    assert [r["wall_s"] for r in json.loads(capsys.readouterr().out)] == [120.0, 2400.0, 603.0]
 
 
 def test_a_damaged_manifest_is_named_and_the_rest_still_listed(tmp_path, capsys):
