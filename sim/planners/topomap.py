@@ -752,7 +752,10 @@ def plot_topomap(layout: SceneLayout, topomap: TopoMap, out_png: str | os.PathLi
     j, e = topomap.junctions, topomap.endpoints
     ax.scatter(*topomap.nodes_xy[j].T, marker="s", s=22, c="#1f3f8f", zorder=3, label=f"junctions ({len(j)})")
     ax.scatter(*topomap.nodes_xy[e].T, marker="o", s=14, c="#777777", zorder=3, label=f"endpoints ({len(e)})")
-    colors = ["tab:orange", "tab:purple", "tab:cyan", "tab:brown", "tab:pink", "tab:olive"]
+    # one distinct colour per method for the nine of a benchmark, none of the map's own (GVG light blue, waypoints
+    # blue, goals green, start red, obstacles black)
+    colors = ["tab:orange", "tab:purple", "tab:cyan", "tab:brown", "tab:pink", "tab:olive", "gold", "indigo",
+              "tab:gray", "darkgoldenrod"]
     for k, (name, p) in enumerate((paths or {}).items()):
         p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
         ax.plot(p[:, 0], p[:, 1], "-", color=colors[k % len(colors)], lw=2.0, zorder=4, label=name)
