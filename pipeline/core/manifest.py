@@ -229,7 +229,7 @@ class Manifest:
     invocations: int = 1
 
     def __post_init__(self) -> None:
-        self.wall_total_s = self.wall_total_s or self.duration_s
+        self.wall_total_s = self.wall_total_s or self.duration_s  # not given: the one invocation's wall
 
     def to_dict(self) -> dict[str, Any]:
         """Returns the manifest as a JSON-able dict."""
@@ -291,6 +291,7 @@ class Manifest:
             path,
             f"field 'seed' must be an int or null, got {seed!r}",
         )
+        duration_s = float(typed("duration_s", (int, float), "a number"))
         return cls(
             stage=typed("stage", str, "a string"),
             params=typed("params", dict, "an object"),
@@ -303,11 +304,12 @@ class Manifest:
             git_commit=typed("git_commit", str, "a string"),
             git_dirty=typed("git_dirty", bool, "a bool"),
             versions={str(k): str(v) for k, v in versions.items()},
-            duration_s=float(typed("duration_s", (int, float), "a number")),
+            duration_s=duration_s,
             command=list(command),
             code_hash=str(data.get("code_hash", "")),
             # manifests written before these fields: one invocation, its own wall
-            wall_total_s=float(typed("wall_total_s", (int, float), "a number")) if "wall_total_s" in data else 0.0,
+            wall_total_s=float(typed("wall_total_s", (int, float), "a number")) if "wall_total_s" in data
+            else duration_s,
             invocations=typed("invocations", int, "an int") if "invocations" in data else 1,
         )
 

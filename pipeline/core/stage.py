@@ -364,24 +364,26 @@ def _run_body(stage: Stage, cfg: Any, out: Path, mode: str, chash: str, params: 
         counts = _clean_counts(stage.name, stage.body(cfg, od.path))
         dump_yaml(cfg, od.path / CONFIG_NAME)
         seed = getattr(cfg, "seed", None)
+        outputs = hash_tree(od.path)
+        wall = round(time.monotonic() - t0, 3)  # the outputs' hashing included
         manifest = Manifest(
             stage=stage.name,
             params=params,
             config_hash=chash,
             seed=seed if isinstance(seed, int) and not isinstance(seed, bool) else None,
             inputs=inputs,
-            outputs=hash_tree(od.path),
+            outputs=outputs,
             counts=counts,
             created_utc=datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
             git_commit=commit,
             git_dirty=dirty,
             versions=collect_versions(),
-            duration_s=round(time.monotonic() - t0, 3),
+            duration_s=wall,
             command=command,
             code_hash=chash_code,
+            wall_total_s=round(earlier[0] + wall, 3),
+            invocations=earlier[1] + 1,
         )
-        manifest.wall_total_s = round(earlier[0] + manifest.duration_s, 3)
-        manifest.invocations = earlier[1] + 1
         manifest.write(od.path / MANIFEST_NAME)
     _ledger_path(out).unlink(missing_ok=True)
     log.info("%s: done in %.1f s -> %s", stage.name, manifest.duration_s, out)
