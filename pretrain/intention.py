@@ -77,6 +77,7 @@ from pretrain.data import split_episodes
 from pretrain.figures import plot_model_errors, pyplot
 from pretrain.i2former import N_JOINTS, POSE_SCALE_M, I2Former, I2FormerConfig, mlp
 from pretrain.probe import read_episodes
+from pretrain.schedule import one_cycle
 from recorder.dataset_info import read_dataset_info
 from sim.geometry import robot_to_world, wrap_angle
 from sim.tracking import PedestrianTracker, person_detections
@@ -369,7 +370,7 @@ def fit_model(model: IntentionForecaster, train: dict[str, np.ndarray], val: dic
     optim = torch.optim.AdamW(model.parameters(), lr=opt.lr, weight_decay=1e-4)
     n = len(train["speed"])
     steps = math.ceil(n / opt.batch)
-    sched = torch.optim.lr_scheduler.OneCycleLR(optim, opt.lr, total_steps=opt.epochs * steps)
+    sched = one_cycle(optim, opt.lr, opt.epochs * steps)
     gen = np.random.default_rng(opt.seed)
     for epoch in range(opt.epochs):
         order = gen.permutation(n)

@@ -51,6 +51,7 @@ from pipeline.core.keys import (
 from pretrain.data import check_dataset, split_episodes
 from pretrain.figures import plot_model_errors
 from pretrain.i2former import N_JOINTS, I2Former, I2FormerConfig
+from pretrain.schedule import one_cycle
 from recorder.dataset_info import read_dataset_info
 
 log = logging.getLogger("icrowdnav")
@@ -284,7 +285,7 @@ def train_probe(cue: str, train: Samples, cfg: ProbeConfig, hist_n: int) -> Prob
     data = _tensors(train)
     gen = torch.Generator().manual_seed(cfg.seed)
     steps = math.ceil(len(train) / cfg.batch)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, cfg.lr, total_steps=cfg.epochs * steps)
+    sched = one_cycle(opt, cfg.lr, cfg.epochs * steps)
     model.train()
     for _ in range(cfg.epochs):
         order = torch.randperm(len(train), generator=gen)

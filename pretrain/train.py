@@ -37,6 +37,7 @@ from pipeline.core.device import cpu_state
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.data import FrameStore, make_batches, make_clips
 from pretrain.model import TARGETS, BEVEncoder, PretextHeads
+from pretrain.schedule import one_cycle
 
 log = logging.getLogger("icrowdnav")
 
@@ -247,8 +248,7 @@ def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slice
     total = max(1, sum(math.ceil(len(make_clips(store, train_slices, fc.clip_frames, encoder.frames,
                                                 np.random.default_rng([fc.seed, e]))) / fc.clips_per_batch)
                        for e in range(fc.epochs)))
-    sched = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=fc.lr, total_steps=total,
-                                                pct_start=fc.warmup_frac, anneal_strategy="cos")
+    sched = one_cycle(optim, fc.lr, total, pct_start=fc.warmup_frac)
     state_path = out / "state" / "last.pt"
     log_path = out / "train_log.csv"
     step, epoch0, skip, history = 0, 0, 0, []
