@@ -50,8 +50,13 @@ def save_safetensors(module: torch.nn.Module, path: Path, metadata: dict[str, st
     file that a finished output's manifest lists (a ``--resume`` run writing in place) first drops that manifest
     (:func:`pipeline.core.manifest.release_output`): the directory is unfinished until its stage writes a new one.
     """
+    save_tensors(module.state_dict(), path, metadata)
+
+
+def save_tensors(tensors: Mapping[str, torch.Tensor], path: Path, metadata: dict[str, str] | None = None) -> None:
+    """:func:`save_safetensors` of a mapping of names to tensors (not a module's state dict)."""
     path = Path(path)
-    state = {k: v.detach().cpu().contiguous().clone() for k, v in module.state_dict().items()}  # from any device
+    state = {k: v.detach().cpu().contiguous().clone() for k, v in tensors.items()}  # from any device
     meta = {"icrowdnav": json.dumps(metadata, sort_keys=True)} if metadata else None
     blob = save_safetensors_bytes(state, metadata=meta)
     release_output(path)
@@ -181,20 +186,28 @@ def encoder_from_json(desc: dict[str, Any], where: str = "encoder.json") -> BEVE
     return BEVEncoder(cfg, cameras)
 
 
-def load_encoder(ckpt: Path, frozen: bool = True) -> BEVEncoder:
+def load_encoder(ckpt: Path, frozen: bool = True, precision: str = "fp32") -> BEVEncoder:
     """Loads the pretrained encoder of a checkpoint directory, ready for ``train``.
 
     Args:
         ckpt: ``DATA_DIR/checkpoints/bev`` (or another pretrain output).
         frozen: eval mode and ``requires_grad=False`` on every parameter (the paper freezes it during RL).
+        precision: ``fp32``, or ``int8`` — its convolutions quantized with the calibration saved beside it
+            (:func:`pretrain.quantize.load_int8_encoder`; CPU inference only, always frozen).
 
     Raises:
-        InputMissingError: no or unfinished checkpoint. CorruptArtifactError: unreadable or mismatching files.
+        InputMissingError: no or unfinished checkpoint (or no calibration for int8). CorruptArtifactError:
+            unreadable or mismatching files.
     """
+    from pretrain.quantize import check_precision, load_int8_encoder  # lazy: quantize imports this module
+
+    check_precision(precision, "encoder precision")
     ckpt = Path(ckpt)
     desc = read_encoder_json(ckpt)
     encoder = encoder_from_json(desc, str(ckpt / ENCODER_JSON))
     load_safetensors(encoder, ckpt / ENCODER_WEIGHTS)
+    if precision == "int8":
+        return load_int8_encoder(ckpt, encoder)
     if frozen:
         encoder.eval()
         encoder.requires_grad_(False)

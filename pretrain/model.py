@@ -285,6 +285,13 @@ class BEVEncoder(nn.Module):
         rel = relative_pose(poses[:, :-1].double(), newest_pose.double()).float()
         past = warp_bev(window[:, :-1].flatten(0, 1), rel.flatten(0, 1), self.fuse_grid) if t > 1 else window[:, :0]
         aligned = torch.cat([past.view(b, t - 1, *window.shape[2:]), window[:, -1:]], 1)
+        return self.fuse_aligned(aligned, newest)
+
+    def fuse_aligned(self, aligned: torch.Tensor, newest: torch.Tensor) -> torch.Tensor:
+        """The dense part of :meth:`fuse_pooled`: a window already warped into its newest frame
+        (``B x T x C x X' x Y'``) → temporal model → decoder → (``fuse_pool`` > 1) upsampling and refinement with the
+        newest full-resolution map → ``s_bev``. All convolutions, no geometry (what :mod:`pretrain.quantize` runs in
+        int8)."""
         s_bev = self.temporal(aligned)
         if self.cfg.decoder == "unet":
             s_bev = self.decoder(s_bev)

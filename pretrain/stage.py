@@ -38,12 +38,15 @@ from pretrain.data import (
     check_dataset,
     check_grid_in_local_map,
     load_frames,
+    make_batches,
+    make_clips,
     split_episodes,
 )
 from pretrain.evaluate import CAL_THRESHOLDS, calibrate, episode_counts, turning_pedestrian_frame
 from pretrain.figures import plot_curves, plot_fov, plot_sample
 from pretrain.geometry import check_grid_fits_cameras
 from pretrain.model import TARGETS, BEVEncoder, EncoderConfig, PretextHeads
+from pretrain.quantize import QuantizedBEVEncoder, save_calibration
 from pretrain.train import LOSS_REGIONS, FitConfig, evaluate, fit, forward_batch
 
 log = logging.getLogger("icrowdnav")
@@ -82,6 +85,10 @@ class PretrainConfig(BaseStageConfig):
     # cuda); not in the config hash: a run resumes on another device, and the manifest's counts record the one used
     device: str = "auto"
     figures: int = 4  # validation samples drawn as figures
+    # training frames (whole seeded clips) whose activations calibrate the encoder's int8 version, saved beside it
+    # (int8_calibration.safetensors, pretrain.quantize; train.encoder_precision int8 uses it); its validation IoU
+    # is in metrics.json "int8". 0 = no int8 version
+    int8_calibration_frames: int = 400
     max_ram_gb: float = 16.0  # refuse to load more frames than this (GB, estimated before reading)
     progress: bool = True  # progress bars
 
@@ -91,7 +98,7 @@ class PretrainConfig(BaseStageConfig):
         for k in ("epochs", "clip_frames", "clips_per_batch", "checkpoint_every_steps", "log_every_steps"):
             if getattr(self, k) < 1:
                 raise ConfigError(f"pretrain.{k}: expected an integer >= 1, got {getattr(self, k)}")
-        for k in ("max_episodes", "threads", "figures"):
+        for k in ("max_episodes", "threads", "figures", "int8_calibration_frames"):
             if getattr(self, k) < 0:
                 raise ConfigError(f"pretrain.{k}: expected an integer >= 0, got {getattr(self, k)}")
         if not (math.isfinite(self.pos_weight_cap) and self.pos_weight_cap >= 1):
@@ -150,6 +157,36 @@ def load_backbone_weights(encoder, path: str) -> None:
     log.info("pretrain: trunk initialised from %s", p)
 
 
+def int8_version(encoder: BEVEncoder, heads: PretextHeads, store, train_slices, val_slices, fov, pos_weight,
+                 cfg: PretrainConfig, out: Path) -> dict:
+    """Calibrates the int8 version of the trained encoder (:mod:`pretrain.quantize`, CPU) on seeded whole clips of
+    the training episodes (at least ``cfg.int8_calibration_frames`` target frames), saves the calibration beside the
+    weights and returns its validation metrics (loss and IoU at p > 0.5, as ``final``) for metrics.json."""
+    q = QuantizedBEVEncoder(encoder)  # CPU copies of the weights
+    heads_cpu = PretextHeads(cfg.encoder.bev_channels)
+    heads_cpu.load_state_dict({k: v.cpu() for k, v in heads.state_dict().items()})
+    heads_cpu.eval()
+    clips = make_clips(store, train_slices, cfg.clip_frames, encoder.frames, np.random.default_rng([cfg.seed, 8]))
+    order = np.random.default_rng([cfg.seed, 9]).permutation(len(clips))
+    picked, n = [], 0
+    for i in order:
+        if n >= cfg.int8_calibration_frames:
+            break
+        picked.append(clips[int(i)])
+        n += len(clips[int(i)][1])
+    with torch.no_grad():
+        for batch in make_batches(picked, cfg.clips_per_batch, encoder.frames):
+            forward_batch(q, heads_cpu, store, batch)  # the observers record every activation's range
+    state = q.calibration_state()
+    q.freeze()
+    save_calibration(out, state, {"target_frames": str(n), "clips": str(len(picked))})
+    metrics = evaluate(q, heads_cpu, store, val_slices, fov, torch.as_tensor(pos_weight), cfg.clip_frames,
+                       cfg.clips_per_batch)
+    log.info("pretrain: int8 version calibrated on %d frames; validation %s", n,
+             ", ".join(f"{k} {v:.4f}" for k, v in metrics.items() if k.startswith("iou_")))
+    return {"calibration_target_frames": n, "calibration_clips": len(picked), **metrics}
+
+
 def body(cfg: PretrainConfig, out: Path) -> dict:
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
     device = resolve_device(cfg.device, "pretrain.device")
@@ -198,7 +235,10 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
     inter, union = episode_counts(encoder, heads, store, val_slices, fov, CAL_THRESHOLDS, cfg.clip_frames,
                                   cfg.clips_per_batch)
     decision = json_safe(calibrate(inter, union, CAL_THRESHOLDS, result["pos_weight"]))
+    int8 = (int8_version(encoder, heads, store, train_slices, val_slices, fov, result["pos_weight"], cfg, out)
+            if cfg.int8_calibration_frames else None)
     atomic_write_json(out / METRICS_JSON, {
+        "int8": int8,
         "final": final, "history": history, "targets": list(TARGETS), "iou": "dataset-level IoU at p > 0.5 over "
         "validation frames, cells in the cameras' field of view only", "pos_weight": result["pos_weight"],
         "decision": decision, "thresholds": decision["best_threshold"],

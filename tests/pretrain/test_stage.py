@@ -51,12 +51,15 @@ def test_stage_writes_the_documented_tree(trained) -> None:
     cfg, out = trained
     for name in ("encoder.safetensors", "heads.safetensors", "encoder.json", "metrics.json", "train_log.csv",
                  "manifest.json", "config.yaml", "state/last.pt", "figures/curves.png", "figures/fov.png",
-                 "figures/sample_0.png"):
+                 "figures/sample_0.png", "int8_calibration.safetensors"):
         assert (out / name).is_file(), name
     assert any((out / "tb").iterdir())
     metrics = json.loads((out / "metrics.json").read_text())
     for t in ("static", "ped_t", "ped_t+0.5s", "ped_t+1.0s"):
         assert f"iou_{t}" in metrics["final"]
+    int8 = metrics["int8"]  # the int8 version's calibration and its validation metrics (pretrain.quantize)
+    assert int8["calibration_target_frames"] > 0 and int8["calibration_clips"] > 0
+    assert set(metrics["final"]) <= set(int8) | {"epoch", "step"}
     dec = metrics["decision"]  # the calibrated decision rule (pretrain.evaluate.calibrate)
     assert metrics["thresholds"] == dec["best_threshold"] and len(dec["best_threshold"]) == 4
     assert set(dec) >= {"at_0.5", "best", "cross_fitted", "bayes", "bayes_threshold", "cross_fit_thresholds"}
@@ -87,6 +90,8 @@ def test_loaded_encoder_is_frozen_and_streams(trained, tiny_dataset) -> None:
     s = stream.step(rgb, depth, torch.zeros(1, 3, dtype=torch.float64))
     assert s.shape == (1, c, x, y) and torch.isfinite(s).all()
     assert heads(s).shape == (1, 4, x, y)
+    q = load_encoder(out, precision="int8")  # the int8 version from the calibration the stage saved
+    assert BEVStream(q).step(rgb, depth, torch.zeros(1, 3, dtype=torch.float64)).shape == (1, c, x, y)
 
 
 def test_corrupt_or_unfinished_checkpoint_is_named(trained, tmp_path: Path) -> None:

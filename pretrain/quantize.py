@@ -1,0 +1,256 @@
+"""Post-training static int8 quantization of the frozen BEV encoder, for CPU inference.
+
+A rendered student's step on the 2-core CPU is dominated by the frozen encoder (≈ 39 of ≈ 74 ms per step at
+160 × 120, one thread: the ResNet trunk ≈ 18 ms, the temporal model + decoder + refinement ≈ 17 ms; docs/results.md,
+Performance). Both are stacks of convolutions, which x86 CPUs run several times faster in int8 (oneDNN / FBGEMM
+kernels) than in float32. This module quantizes exactly those two parts with PyTorch's FX graph-mode post-training
+static quantization (``torch.ao.quantization``: per-channel int8 weights, per-tensor uint8 activations whose ranges
+come from histogram observers run on calibration frames, the ``x86`` backend); the geometry — lifting, splatting,
+the depth evidence, pooling and warping — stays float32, so the int8 encoder consumes and produces exactly what the
+float one does (same shapes, same frames), only with the quantization error of its convolutions.
+
+What we write ourselves and why: the two traceable float modules (:class:`ImageNet`, :class:`DenseFuse`) that
+restate the encoder's dense parts without data-dependent Python (the temporal model's causal 3-D convolutions as
+2-D convolutions over channel-stacked frame pairs, mathematically the same as :class:`pretrain.model.TimeConv`),
+and the storage of a calibration: the activation observers' state (a few kB of histograms) in one safetensors file,
+so a quantized encoder is rebuilt bit-identically from the float checkpoint and that file, with no pickled graph.
+
+The calibration is deterministic given the float weights and the calibration frames (histogram observers, no
+randomness), and so is the quantized encoder built from it.
+"""
+
+from __future__ import annotations
+
+import copy
+import warnings
+from collections.abc import Iterable
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pretrain.checkpoint import read_weights, save_tensors
+from pretrain.model import BEVEncoder
+
+PRECISIONS = ("fp32", "int8")
+CALIBRATION_FILE = "int8_calibration.safetensors"
+BACKEND = "x86"
+
+
+class ImageNet(nn.Module):
+    """The encoder's image branch after normalisation: trunk → neck → (resize to the lift pixels)."""
+
+    def __init__(self, enc: BEVEncoder) -> None:
+        super().__init__()
+        self.trunk = copy.deepcopy(enc.trunk)
+        self.neck = copy.deepcopy(enc.neck)
+        self.lift_hw = tuple(int(v) for v in enc.geom.lift_hw)
+        self.resize = None  # decided on the first shapes seen (prepare_fx traces with concrete example inputs)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f = self.neck(self.trunk(x))
+        if self.resize:
+            f = F.interpolate(f, size=self.lift_hw, mode="bilinear", align_corners=False)
+        return f
+
+
+class DenseFuse(nn.Module):
+    """:meth:`BEVEncoder.fuse_aligned` as a traceable module: the temporal model's causal blocks as 2-D convolutions
+    over channel-stacked consecutive frames (+ BatchNorm + ReLU), the newest frame's 1x1 skip, the decoder, and —
+    with ``fuse_pool`` > 1 — the upsampling and refinement with the newest full-resolution map."""
+
+    def __init__(self, enc: BEVEncoder) -> None:
+        super().__init__()
+        tm = enc.temporal
+        self.frames = enc.frames
+        self.blocks = nn.ModuleList()
+        for block in tm.blocks:
+            time_conv, bn3 = block[0], block[1]
+            w = time_conv.weight.detach()
+            conv = nn.Conv2d(2 * w.shape[1], w.shape[0], 3, padding=1, bias=False)
+            conv.weight.data.copy_(torch.cat([w[:, :, 0], w[:, :, 1]], 1))
+            bn = nn.BatchNorm2d(bn3.num_features, eps=bn3.eps, momentum=bn3.momentum)
+            bn.load_state_dict(bn3.state_dict())
+            self.blocks.append(nn.Sequential(conv, bn, nn.ReLU()))
+        self.skip = copy.deepcopy(tm.skip)
+        self.norm = copy.deepcopy(tm.norm)
+        self.decoder = copy.deepcopy(enc.decoder) if enc.cfg.decoder == "unet" else None
+        self.refine = copy.deepcopy(enc.refine) if enc.cfg.fuse_pool > 1 else None
+        self.grid_hw = tuple(int(v) for v in enc.grid.shape)
+
+    def forward(self, aligned: torch.Tensor, newest: torch.Tensor) -> torch.Tensor:
+        maps = [aligned[:, i] for i in range(self.frames)]
+        last = maps[-1]
+        for block in self.blocks:  # the time axis shrinks by one per causal block
+            maps = [block(torch.cat([maps[i], maps[i + 1]], 1)) for i in range(len(maps) - 1)]
+        out = self.skip(last)
+        if len(self.blocks):
+            out = out + maps[-1]
+        s_bev = F.relu(self.norm(out))
+        if self.decoder is not None:
+            s_bev = self.decoder(s_bev)
+        if self.refine is None:
+            return s_bev
+        up = F.interpolate(s_bev, size=self.grid_hw, mode="bilinear", align_corners=False)
+        return self.refine(torch.cat([up, newest], 1))
+
+
+def _fx():
+    with warnings.catch_warnings():  # torch >= 2.9 announces the move of FX quantization to torchao on import
+        warnings.simplefilter("ignore")
+        from torch.ao.quantization import get_default_qconfig_mapping
+        from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
+    return get_default_qconfig_mapping, prepare_fx, convert_fx
+
+
+def _prepare(module: nn.Module, example: tuple[torch.Tensor, ...]) -> nn.Module:
+    get_mapping, prepare_fx, _ = _fx()
+    torch.backends.quantized.engine = BACKEND
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return prepare_fx(module.eval(), get_mapping(BACKEND), example)
+
+
+def _convert(prepared: nn.Module) -> nn.Module:
+    _, _, convert_fx = _fx()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return convert_fx(prepared)
+
+
+class QuantizedBEVEncoder(BEVEncoder):
+    """A :class:`BEVEncoder` whose image branch and dense fusion run in int8 (module docstring). Built from a float
+    encoder; :meth:`calibrate` feeds it calibration frames (it computes the float results meanwhile), :meth:`freeze`
+    converts it. Used for inference only (``eval()``, no gradients); the float weights stay inside (``state_dict``
+    is the float encoder's), so :func:`pretrain.checkpoint` treats it as the encoder it came from."""
+
+    def __init__(self, encoder: BEVEncoder) -> None:
+        super().__init__(encoder.cfg, encoder.cameras)
+        self.load_state_dict(encoder.state_dict())
+        self.eval().requires_grad_(False)
+        self._image_q: nn.Module | None = None
+        self._dense_q: nn.Module | None = None
+        self.frozen = False
+
+    # the two dense parts: observed (calibrating) or int8 (frozen); prepared lazily on the first call's shapes
+    def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
+        x = rgb.float() / 255.0 if rgb.dtype == torch.uint8 else rgb
+        x = (x - self.mean) / self.std
+        if self._image_q is None:
+            net = ImageNet(self)
+            with torch.no_grad():
+                net.resize = tuple(net.neck(net.trunk(x[:1])).shape[-2:]) != net.lift_hw
+            self._image_q = _prepare(net, (x,))
+        return self._image_q(x)
+
+    def fuse_aligned(self, aligned: torch.Tensor, newest: torch.Tensor) -> torch.Tensor:
+        if self._dense_q is None:
+            self._dense_q = _prepare(DenseFuse(self), (aligned, newest))
+        return self._dense_q(aligned, newest)
+
+    @torch.no_grad()
+    def calibrate(self, windows: Iterable[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]) -> int:
+        """Runs ``(rgb B x T x N x 3 x H x W, depth B x T x N x H x W, poses B x T x 3)`` windows through the encoder
+        (:meth:`forward`), the observers recording the ranges of every activation; returns the number of windows."""
+        if self.frozen:
+            raise RuntimeError("calibrate: this encoder is already converted to int8")
+        n = 0
+        for rgb, depth, poses in windows:
+            self(rgb, depth, poses)
+            n += 1
+        if n == 0:
+            raise ConfigError("int8 calibration: expected at least one calibration window, got none")
+        return n
+
+    def freeze(self) -> QuantizedBEVEncoder:
+        """Converts the observed parts to int8 (after :meth:`calibrate` or :meth:`load_calibration`)."""
+        if self._image_q is None or self._dense_q is None:
+            raise ConfigError("int8 encoder: calibrate (or load a calibration) before converting")
+        if not self.frozen:
+            self._image_q, self._dense_q = _convert(self._image_q), _convert(self._dense_q)
+            self.frozen = True
+        return self
+
+    def calibration_state(self) -> dict[str, torch.Tensor]:
+        """The activation observers' state (names → tensors): what :meth:`load_calibration` needs."""
+        if self.frozen or self._image_q is None or self._dense_q is None:
+            raise RuntimeError("calibration_state: only a calibrated, not yet converted encoder has observers")
+        out = {}
+        for part, mod in (("image", self._image_q), ("dense", self._dense_q)):
+            for k, v in mod.state_dict().items():
+                if "activation_post_process" in k:
+                    out[f"{part}.{k}"] = v.detach().clone().contiguous()
+        return out
+
+    def load_calibration(self, state: dict[str, torch.Tensor], example: tuple[torch.Tensor, ...],
+                         where: str = "int8 calibration") -> QuantizedBEVEncoder:
+        """Prepares the two parts on ``example`` = ``(rgb, depth, poses)`` of one window (shapes only), loads the
+        observers' ``state`` and converts; ``where`` names the source in errors."""
+        with torch.no_grad():
+            self._image_q = self._dense_q = None
+            self(*example)  # prepares both parts on these shapes (their observers then overwritten below)
+            expected = {f"{part}.{k}" for part, mod in (("image", self._image_q), ("dense", self._dense_q))
+                        for k in mod.state_dict() if "activation_post_process" in k}
+            if set(state) != expected:
+                missing, extra = sorted(expected - set(state))[:3], sorted(set(state) - expected)[:3]
+                raise CorruptArtifactError(f"{where}: the calibration does not match this encoder's architecture "
+                                           f"(missing {missing}, unexpected {extra}); re-run the calibration")
+            for part, mod in (("image", self._image_q), ("dense", self._dense_q)):
+                sub = {k[len(part) + 1:]: v for k, v in state.items() if k.startswith(part + ".")}
+                own = mod.state_dict()
+                own.update(sub)
+                mod.load_state_dict(own)
+        return self.freeze()
+
+
+def quantize_encoder(encoder: BEVEncoder, windows: Iterable[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+                     ) -> tuple[QuantizedBEVEncoder, dict[str, torch.Tensor]]:
+    """The int8 encoder of ``encoder`` calibrated on ``windows`` (:meth:`QuantizedBEVEncoder.calibrate`) and its
+    calibration state (to save with :func:`save_calibration`)."""
+    q = QuantizedBEVEncoder(encoder)
+    q.calibrate(windows)
+    state = q.calibration_state()
+    return q.freeze(), state
+
+
+
+
+def example_window(encoder: BEVEncoder, batch: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A blank ``(rgb, depth, poses)`` window of the encoder's cameras (shapes only: what preparing needs)."""
+    cams, t = encoder.cameras, encoder.frames
+    h, w = int(cams[0].height), int(cams[0].width)
+    return (torch.zeros(batch, t, len(cams), 3, h, w, dtype=torch.uint8), torch.zeros(batch, t, len(cams), h, w),
+            torch.zeros(batch, t, 3, dtype=torch.float64))
+
+
+def save_calibration(ckpt: Path, state: dict[str, torch.Tensor], meta: dict[str, str]) -> Path:
+    """Writes the calibration ``state`` (:meth:`QuantizedBEVEncoder.calibration_state`) beside the encoder's
+    weights (``<ckpt>/int8_calibration.safetensors``, atomically); returns the path."""
+    path = Path(ckpt) / CALIBRATION_FILE
+    save_tensors(state, path, {"backend": BACKEND, **meta})
+    return path
+
+
+def load_int8_encoder(ckpt: Path, encoder: BEVEncoder) -> QuantizedBEVEncoder:
+    """The int8 version of ``encoder`` (loaded from ``ckpt``) from the calibration saved beside it.
+
+    Raises:
+        InputMissingError: ``ckpt`` has no calibration (a checkpoint of code before int8 inference: re-run
+            ``make pretrain``). CorruptArtifactError: unreadable, not matching its manifest, or another architecture.
+    """
+    path = Path(ckpt) / CALIBRATION_FILE
+    if not path.is_file():
+        raise InputMissingError(f"no int8 calibration {path} for encoder_precision int8: the BEV checkpoint predates "
+                                "int8 inference (re-run `make pretrain`), or use encoder_precision fp32")
+    state = read_weights(path, hint="re-run `make pretrain` to write it again")
+    q = QuantizedBEVEncoder(encoder)
+    return q.load_calibration({k: v for k, v in state.items()}, example_window(encoder), where=str(path))
+
+
+def check_precision(value: str, where: str) -> str:
+    """``value`` if it is one of :data:`PRECISIONS`, else a ConfigError naming ``where``."""
+    if value not in PRECISIONS:
+        raise ConfigError(f"{where}: expected one of {list(PRECISIONS)}, got {value!r}")
+    return value

@@ -1,0 +1,138 @@
+"""Tests of pretrain.quantize: the traceable restatement of the dense parts equals the float encoder, the int8
+encoder stays close to it and streams, its calibration round-trips bit-identically through the file, and bad
+calibrations are named (tiny cameras and grid of test_model, eval mode)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pretrain.checkpoint import load_encoder, save_tensors, write_encoder_checkpoint
+from pretrain.model import BEVEncoder, BEVStream, PretextHeads
+from pretrain.quantize import (
+    CALIBRATION_FILE,
+    DenseFuse,
+    QuantizedBEVEncoder,
+    check_precision,
+    load_int8_encoder,
+    quantize_encoder,
+    save_calibration,
+)
+from tests.pretrain.test_model import L, cameras, randomise_norms, sequence, tiny_config
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module", params=[1, 2], ids=["fuse_pool1", "fuse_pool2"])
+def encoder(request) -> BEVEncoder:
+    torch.manual_seed(0)
+    enc = BEVEncoder(tiny_config(fuse_pool=request.param), cameras())
+    randomise_norms(enc, torch.Generator().manual_seed(1))
+    return enc.eval()
+
+
+def windows(enc: BEVEncoder, n: int, seed: int, b: int = 2):
+    rgb, depth, poses = sequence(b * n, seed)
+    t = enc.frames
+    return [(rgb[i * b:(i + 1) * b, :t], depth[i * b:(i + 1) * b, :t], poses[i * b:(i + 1) * b, :t])
+            for i in range(n)]
+
+
+def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).abs().mean() / b.abs().mean())
+
+
+def test_the_traceable_dense_part_equals_the_encoders(encoder):
+    """DenseFuse restates fuse_aligned (the causal 3-D blocks as 2-D convolutions over stacked pairs)."""
+    g = torch.Generator().manual_seed(3)
+    c = encoder.cfg.bev_channels
+    x, y = encoder.fuse_grid.shape
+    aligned = torch.relu(torch.randn(2, encoder.frames, c, x, y, generator=g))
+    newest = torch.relu(torch.randn(2, c, *encoder.grid.shape, generator=g))
+    with torch.no_grad():
+        assert torch.allclose(DenseFuse(encoder).eval()(aligned, newest), encoder.fuse_aligned(aligned, newest),
+                              atol=1e-5, rtol=1e-5)
+
+
+def test_int8_encoder_is_close_to_float_and_streams_like_the_batch_forward(encoder):
+    q, _ = quantize_encoder(encoder, windows(encoder, 4, seed=10))
+    assert q.frozen and not q.training
+    rgb, depth, poses = sequence(2, seed=20)
+    t = encoder.frames
+    with torch.no_grad():
+        batch_q, batch_f = q(rgb[:, :t], depth[:, :t], poses[:, :t]), encoder(rgb[:, :t], depth[:, :t], poses[:, :t])
+        assert batch_q.shape == batch_f.shape
+        assert 0 < rel_err(batch_q, batch_f) < 0.15  # quantized, but the same function
+        stream = BEVStream(q)
+        for k in range(L):
+            out = stream.step(rgb[:, k], depth[:, k], poses[:, k])
+        last = q(rgb[:, L - t:], depth[:, L - t:], poses[:, L - t:])
+    assert torch.equal(out, last)  # the int8 stream equals the int8 batch forward exactly, as the float one does
+
+
+def test_calibration_round_trips_bit_identically(encoder, tmp_path: Path):
+    q = QuantizedBEVEncoder(encoder)
+    q.calibrate(windows(encoder, 3, seed=11))
+    state = q.calibration_state()
+    q.freeze()
+    ckpt = tmp_path / "bev"
+    ckpt.mkdir()
+    write_encoder_checkpoint(ckpt, encoder, PretextHeads(encoder.cfg.bev_channels), {})
+    (ckpt / "manifest.json").write_text("{}")  # read_encoder_json wants a finished output (unlisted files unverified)
+    save_calibration(ckpt, state, {"target_frames": "3"})
+    again = load_int8_encoder(ckpt, encoder)
+    x = windows(encoder, 1, seed=12)[0]
+    loaded = load_encoder(ckpt, precision="int8")  # what the students load
+    assert isinstance(loaded, QuantizedBEVEncoder) and not any(p.requires_grad for p in loaded.parameters())
+    with torch.no_grad():
+        assert torch.equal(again(*x), q(*x)) and torch.equal(loaded(*x), q(*x))
+
+
+def test_same_frames_give_the_same_calibration(encoder):
+    a, b = QuantizedBEVEncoder(encoder), QuantizedBEVEncoder(encoder)
+    a.calibrate(windows(encoder, 2, seed=13))
+    b.calibrate(windows(encoder, 2, seed=13))
+    sa, sb = a.calibration_state(), b.calibration_state()
+    assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_missing_or_mismatched_calibration_is_named(encoder, tmp_path: Path):
+    ckpt = tmp_path / "bev"
+    ckpt.mkdir()
+    with pytest.raises(InputMissingError, match=CALIBRATION_FILE):
+        load_int8_encoder(ckpt, encoder)
+    q = QuantizedBEVEncoder(encoder)
+    q.calibrate(windows(encoder, 1, seed=14))
+    state = q.calibration_state()
+    other = BEVEncoder(tiny_config(fuse_pool=encoder.cfg.fuse_pool, history_frames=2), cameras()).eval()
+    save_calibration(ckpt, state, {})
+    with pytest.raises(CorruptArtifactError, match="does not match this encoder's architecture"):
+        load_int8_encoder(ckpt, other)
+    broken = tmp_path / "broken"
+    shutil.copytree(ckpt, broken)
+    save_tensors({k: v for k, v in list(state.items())[1:]}, broken / CALIBRATION_FILE)
+    with pytest.raises(CorruptArtifactError, match=str(broken / CALIBRATION_FILE)):
+        load_int8_encoder(broken, encoder)
+
+
+def test_precision_values_are_checked():
+    assert check_precision("int8", "train.encoder_precision") == "int8"
+    with pytest.raises(ConfigError, match="train.encoder_precision: expected one of \\['fp32', 'int8'\\], got 'fp16'"):
+        check_precision("fp16", "train.encoder_precision")
+
+
+def test_an_uncalibrated_encoder_cannot_be_converted(encoder):
+    with pytest.raises(ConfigError, match="calibrate"):
+        QuantizedBEVEncoder(encoder).freeze()
+    with pytest.raises(ConfigError, match="at least one calibration window"):
+        QuantizedBEVEncoder(encoder).calibrate([])
