@@ -55,6 +55,7 @@ from pretrain.checkpoint import write_encoder_checkpoint
 from pretrain.geometry import cameras_from_dataset
 from pretrain.intention import ForecasterConfig, IntentionForecaster
 from pretrain.model import BEVEncoder, BEVStream, EncoderConfig, PretextHeads
+from pretrain.quantize import QuantizedBEVEncoder
 from pretrain.stage import PretrainConfig
 from rl.dagger import pool_frames
 from rl.observe import BEV_POOL, StudentEnv, StudentObserver, env_cameras, observer_for_env, perception_params
@@ -490,14 +491,44 @@ def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encod
         def stream_lookahead() -> None:
             act(look, look_obs(obs))
 
+        # the same default student with the encoder's int8 version (pretrain.quantize), calibrated on this scene's
+        # frames of a short drive; the reference is the float student above, in the same run
+        q = QuantizedBEVEncoder(enc)
+        cal = BEVStream(q)
+        drive = CrowdNavEnv(config=replace(sim_cfg, scene=scene, density=density, obs_mode="visual"))
+        o, _ = drive.reset(seed=seed)
+        with torch.no_grad():
+            for k in range(12):  # forward, turning left then right
+                cal.step(*_stream_inputs(o, names))
+                o = drive.step(np.array([0.6, 0.4 if k < 6 else -0.4], np.float32))[0]
+        drive.close()
+        q.freeze()
+        look_q = observer_for_env(env, "full", q, head="lookahead")
+        look_q(obs)
+
+        def stream_lookahead_int8() -> None:
+            act(look, look_q(obs))
+
         ms = 1000.0 * time_call(stream, seconds)
         ref = 1000.0 * time_call(recompute, seconds)
         ms_look = 1000.0 * time_call(stream_lookahead, seconds)
+        ms_look_q = 1000.0 * time_call(stream_lookahead_int8, seconds)
+        enc_ms = 1000.0 * time_call(lambda: look_obs.stream.step(*_stream_inputs(obs, names)), seconds / 2)
+        enc_q_ms = 1000.0 * time_call(lambda: look_q.stream.step(*_stream_inputs(obs, names)), seconds / 2)
     finally:
         torch.set_num_threads(threads)
     return {"policy_inference_ms": ms, "policy_inference_hz": 1000.0 / ms, "policy_inference_recompute_ms": ref,
             "policy_inference_speedup_vs_recompute": ref / ms, "policy_inference_lookahead_ms": ms_look,
-            "policy_inference_lookahead_hz": 1000.0 / ms_look}
+            "policy_inference_lookahead_hz": 1000.0 / ms_look, "policy_inference_lookahead_int8_ms": ms_look_q,
+            "policy_inference_lookahead_int8_speedup": ms_look / ms_look_q, "bev_stream_step_ms": enc_ms,
+            "bev_stream_step_int8_ms": enc_q_ms, "bev_stream_step_int8_speedup": enc_ms / enc_q_ms}
+
+
+def _stream_inputs(obs: dict[str, np.ndarray], names: list[str]) -> tuple[torch.Tensor, ...]:
+    """One rendered observation as :meth:`pretrain.model.BEVStream.step` inputs (one stream)."""
+    rgb = torch.from_numpy(np.stack([obs[f"rgb_{n}"] for n in names])).permute(0, 3, 1, 2).unsqueeze(0)
+    depth = torch.from_numpy(np.stack([obs[f"depth_{n}"] for n in names])).unsqueeze(0)
+    return rgb, depth, torch.as_tensor(np.asarray(obs["odom"], np.float64)).view(1, 3)
 
 
 if __name__ == "__main__":

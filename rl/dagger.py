@@ -92,7 +92,8 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
         stale.unlink(missing_ok=True)  # a killed attempt's files (the features file, written last, is not there)
     env = CrowdNavEnv(config=replace(sim_cfg, scene=args["scene"], density=args["density"], obs_mode="visual",
                                      info_level="full", action_type="discrete"))
-    encoder = cached_student_encoder(args["variant"], args["encoder"], args.get("device", "cpu"))
+    encoder = cached_student_encoder(args["variant"], args["encoder"], args.get("device", "cpu"),
+                                     args.get("encoder_precision", "fp32"))
     teacher = cached_policy(args["teacher"])
     driver = _DaggerDriver(cached_policy(args["student"]), args["beta"], np.random.default_rng(args["seed"] + 7919))
     head = args.get("head", "mlp")

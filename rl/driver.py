@@ -45,11 +45,12 @@ def cached_policy(path: Path | None, shield_s: float | None = None):
                           lambda: load_policy(path, shield_s)[0])
 
 
-def cached_student_encoder(variant: str, encoder_ckpt: Path | str | None, device: str = "cpu"):
-    """The frozen encoder of a student variant (:func:`rl.observe.load_student_encoder`) on ``device``, once per
-    process."""
-    return process_cached(f"enc:{variant}:{encoder_ckpt}:{device}",
-                          lambda: load_student_encoder(variant, encoder_ckpt, device))
+def cached_student_encoder(variant: str, encoder_ckpt: Path | str | None, device: str = "cpu",
+                           precision: str = "fp32"):
+    """The frozen encoder of a student variant (:func:`rl.observe.load_student_encoder`) on ``device`` at
+    ``precision``, once per process."""
+    return process_cached(f"enc:{variant}:{encoder_ckpt}:{device}:{precision}",
+                          lambda: load_student_encoder(variant, encoder_ckpt, device, precision))
 
 
 def cached_student_heads(variant: str, head: str, map_cost: bool, encoder_ckpt: Path | str | None, encoder):
@@ -78,7 +79,9 @@ class PolicyDriver:
         self.policy = cached_policy(ckpt, shield_s)
         self.desc = read_policy_json(ckpt)
         self.student = self.desc["kind"] == "student"
-        self.encoder = cached_student_encoder(self.desc["variant"], self.desc.get("encoder")) if self.student else None
+        self.encoder = (cached_student_encoder(self.desc["variant"], self.desc.get("encoder"),
+                                               precision=self.desc.get("encoder_precision", "fp32"))
+                        if self.student else None)
         self.head = self.desc.get("net", {}).get("head", "mlp")
         self.forecaster = (cached_student_forecaster(self.desc["variant"], self.head, self.desc.get("intention"))
                            if self.student else None)

@@ -289,13 +289,13 @@ class StudentEnv(gym.Wrapper):
 
     def __init__(self, env: gym.Env, variant: str, encoder_ckpt: Path | None, threads: int = 1,
                  head: str = "mlp", device: torch.device | str = "cpu", intention_ckpt: Path | None = None,
-                 map_cost: bool = False) -> None:
+                 map_cost: bool = False, encoder_precision: str = "fp32") -> None:
         super().__init__(env)
         torch.set_num_threads(threads)
         u = env.unwrapped
         if u.cfg.obs_mode != "visual":
             raise ConfigError(f"StudentEnv needs obs_mode='visual', got {u.cfg.obs_mode!r}")
-        encoder = load_student_encoder(variant, encoder_ckpt, device)
+        encoder = load_student_encoder(variant, encoder_ckpt, device, encoder_precision)
         self.observer = observer_for_env(u, variant, encoder, head,
                                          forecaster=load_student_forecaster(variant, head, intention_ckpt),
                                          map_cost=map_cost,
@@ -312,17 +312,19 @@ class StudentEnv(gym.Wrapper):
         return self.observer(obs), r, term, trunc, info
 
 
-def load_student_encoder(variant: str, encoder_ckpt: Path | None,
-                         device: torch.device | str = "cpu") -> BEVEncoder | None:
+def load_student_encoder(variant: str, encoder_ckpt: Path | None, device: torch.device | str = "cpu",
+                         precision: str = "fp32") -> BEVEncoder | None:
     """The frozen encoder a variant needs on ``device`` (None for ``no_bev``, whose occupancy map needs no
-    network)."""
+    network); ``precision`` ``int8``: its int8 version (:mod:`pretrain.quantize`, CPU only)."""
     if "bev" not in variant_keys(variant):
         return None
     if encoder_ckpt is None:
         raise ConfigError(f"variant {variant!r} needs a pretrained encoder checkpoint (encoder_ckpt)")
     from pretrain.checkpoint import load_encoder  # lazy: torchvision (~3 s) only when an encoder is loaded
 
-    return load_encoder(Path(encoder_ckpt), frozen=True).to(device)
+    if precision == "int8" and torch.device(device).type != "cpu":
+        raise ConfigError(f"encoder precision int8 runs on the CPU only, got device {device} (use fp32 there)")
+    return load_encoder(Path(encoder_ckpt), frozen=True, precision=precision).to(device)
 
 
 def load_student_heads(variant: str, head: str, map_cost: bool, encoder_ckpt: Path | str | None,

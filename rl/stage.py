@@ -68,6 +68,7 @@ from pretrain.intention import (
     finetune_forecaster,
     load_forecaster,
 )
+from pretrain.quantize import CALIBRATION_FILE, check_precision
 from rl.baselines import BASELINES, baseline_module
 from rl.baselines.common import curve_points
 from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
@@ -223,6 +224,9 @@ class TrainConfig(BaseStageConfig):
 
     variant: str = "full"  # teacher | full | no_i2 | no_bev | a learned baseline: drl_vo | sarl_om | vint
     encoder: str = "bev"  # pretrained encoder: DATA_DIR/checkpoints/<encoder>/
+    # the students' frozen encoder in DAgger, fine-tuning, acceptance and eval: fp32 | int8 (its int8 version,
+    # calibrated by pretrain: ~2x faster on a CPU; CPU only; docs/results.md, Performance); saved in policy.json
+    encoder_precision: str = "fp32"
     # pretrained intention model DATA_DIR/checkpoints/<intention>/ (icrowdnav pretrain-intention): the lookahead head
     # of a variant with poses (full, no_bev) predicts the people it tracks with it; "" = constant velocity (the
     # ablation). The profiles set it; no_i2 and the mlp head never use it.
@@ -308,6 +312,10 @@ class TrainConfig(BaseStageConfig):
                               f"0 < val_fraction < 1, got {it.lr}, {it.pose_dropout}, {it.head_aux_weight}, "
                               f"{it.val_fraction}")
 
+        check_precision(self.encoder_precision, "train.encoder_precision")
+        if self.encoder_precision == "int8" and resolve_device(self.device, "train.device").type != "cpu":
+            raise ConfigError(f"train.encoder_precision: int8 runs on the CPU only, got train.device {self.device!r} "
+                              "(resolves to a GPU here); use --device cpu or encoder_precision fp32")
         if self.head not in STUDENT_HEADS:
             raise ConfigError(f"train.head: expected one of {list(STUDENT_HEADS)}, got {self.head!r}")
         if self.scorer_bound < 0:
@@ -369,11 +377,13 @@ def inputs(cfg: TrainConfig) -> list[Path]:
     if cfg.variant != "no_bev":
         read_encoder_json(encoder_dir(cfg))  # missing / unfinished / corrupt -> one clear error
 
-        enc = load_student_encoder(cfg.variant, encoder_dir(cfg))
+        enc = load_student_encoder(cfg.variant, encoder_dir(cfg), precision=cfg.encoder_precision)
         env = CrowdNavEnv(config=replace(cfg.sim, scene=cfg.dagger.scenes[0], obs_mode="state"))
         env.reset(seed=0)
         check_encoder_matches(enc, env_cameras(env), f"train --variant {cfg.variant} (encoder {encoder_dir(cfg)})")
         paths += [encoder_dir(cfg) / "encoder.json", encoder_dir(cfg) / "encoder.safetensors"]
+        if cfg.encoder_precision == "int8":
+            paths.append(encoder_dir(cfg) / CALIBRATION_FILE)
     if (int_dir := intention_dir(cfg)) is not None:
         load_forecaster(int_dir)  # missing / unfinished / corrupt -> one clear error naming it
         paths += [int_dir / INTENTION_JSON, int_dir / FORECASTER_WEIGHTS]
@@ -551,7 +561,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     logger = _Log(out)
     teacher_dir = policy_root(cfg) / "teacher"
     enc_dir = encoder_dir(cfg) if cfg.variant != "no_bev" else None
-    encoder = load_student_encoder(cfg.variant, enc_dir)
+    encoder = load_student_encoder(cfg.variant, enc_dir, precision=cfg.encoder_precision)
     int_dir = intention_dir(cfg)
     forecaster = load_student_forecaster(cfg.variant, cfg.head, int_dir)
     env = CrowdNavEnv(config=replace(cfg.sim, scene=d.scenes[0], obs_mode="state"))
@@ -560,7 +570,8 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                                 map_heads=load_student_heads(cfg.variant, cfg.head, cfg.map_cost, enc_dir, encoder))
     space = observer.observation_space
     net = student_net(cfg, observer.grid)
-    extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir)}
+    extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir),
+             **({"encoder_precision": cfg.encoder_precision} if enc_dir else {})}
     pairs = [(s, float(x)) for s in d.scenes for x in d.densities]
     n_rot = cfg.sim.robot.n_rotations  # yaw rates of the action grid (mirroring reverses them)
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
@@ -594,7 +605,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                  "seed": cfg.seed + 1000 * k + e, "variant": cfg.variant, "encoder": str(enc_dir) if enc_dir else None,
                  "teacher": str(teacher_dir), "student": str(student_dir) if student_dir else None, "beta": beta,
                  "iteration": k, "iter_dir": str(it), "mirror": d.mirror, "head": cfg.head, "device": str(device),
-                 "map_cost": cfg.map_cost,
+                 "map_cost": cfg.map_cost, "encoder_precision": cfg.encoder_precision,
                  "intention": str(int_dir) if int_dir else None}
                 for e in range(d.episodes_per_iter)]
         rows = run_iteration(it, jobs, cfg.workers, cfg.progress, Executor.of(cfg))
@@ -764,10 +775,11 @@ def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, e
 
     f = cfg.finetune
     sim, variant, head, dev, map_cost = cfg.sim, cfg.variant, cfg.head, str(device), cfg.map_cost
+    precision = cfg.encoder_precision
 
     def make():  # captures plain values only: pickled into spawned subprocesses
         return StudentEnv(SceneMixEnv(sim, pairs, obs_mode="visual"), variant, enc_dir, head=head, device=dev,
-                          intention_ckpt=int_dir, map_cost=map_cost)
+                          intention_ckpt=int_dir, map_cost=map_cost, encoder_precision=precision)
 
     venv = (SubprocVecEnv([make] * f.n_envs, start_method=start_method(device)) if f.n_envs > 1
             else DummyVecEnv([make]))

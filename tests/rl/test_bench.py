@@ -111,3 +111,19 @@ def test_frame_pool_figures_against_the_concatenating_reference():
     assert pool < out["dagger_pool_memory_peak_gib"] < pool + 3 * episode
     assert out["dagger_pool_mapped_peak_gib"] < 3 * episode
     assert out["dagger_pool_peak_ratio_concat_vs_memory"] > 1.6
+
+
+def test_inference_benchmark_times_the_int8_encoder_against_the_float_one():
+    """measure_inference: the float student, its recompute reference and the int8 encoder's student, same run."""
+    from pipeline.core.config import load_config
+    from pretrain.stage import PretrainConfig
+    from rl.bench import measure_inference
+    from sim.env import CameraConfig
+
+    sim = replace(SimConfig(max_episode_s=4.0), camera=CameraConfig(width_px=64, height_px=48))
+    enc = load_config(PretrainConfig, "pretrain", "smoke").encoder
+    out = measure_inference(sim, "hallway", 0.1, 0, enc, 0.2)
+    for key in ("policy_inference_lookahead_ms", "policy_inference_lookahead_int8_ms", "bev_stream_step_ms",
+                "bev_stream_step_int8_ms"):
+        assert math.isfinite(out[key]) and out[key] > 0, key
+    assert out["bev_stream_step_int8_speedup"] == out["bev_stream_step_ms"] / out["bev_stream_step_int8_ms"]

@@ -733,3 +733,47 @@ def test_data_scale_clones_nested_subsets_of_pooled_dagger_frames(tmp_path, teac
         learning_curve(cfg, [it0], [other / "iter_1"], [1])
     assert scale_main(["--train", str(it0), "--holdout", str(it1), "--sizes", "2,1", "--head", "mlp",
                        "--variant", "no_bev", "--data-dir", str(tmp_path)]) == 2
+
+
+def _tiny_bev_checkpoint(ck: Path, int8: bool) -> None:
+    """A random 8-channel encoder for the run's 64 x 48 cameras, with an int8 calibration on random windows."""
+    from pretrain.checkpoint import write_encoder_checkpoint
+    from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
+    from pretrain.quantize import QuantizedBEVEncoder, example_window, save_calibration
+    from rl.observe import env_cameras
+    from sim.env import CrowdNavEnv
+
+    env = CrowdNavEnv(config=replace(TINY_SIM, obs_mode="state"))
+    torch.manual_seed(0)
+    enc = BEVEncoder(EncoderConfig(bev_channels=8, resnet_stages=1), env_cameras(env)).eval()
+    ck.mkdir(parents=True)
+    write_encoder_checkpoint(ck, enc, PretextHeads(8), {})
+    if int8:
+        q = QuantizedBEVEncoder(enc)
+        rgb, depth, poses = example_window(enc, 2)
+        g = torch.Generator().manual_seed(1)
+        q.calibrate([(torch.randint(0, 256, rgb.shape, dtype=torch.uint8, generator=g),
+                      0.5 + 4 * torch.rand(depth.shape, generator=g), poses)])
+        save_calibration(ck, q.calibration_state(), {})
+    (ck / "manifest.json").write_text("{}")
+
+
+def test_an_int8_student_trains_records_its_precision_and_acts_with_the_int8_encoder(tmp_path, teacher_dir):
+    """train.encoder_precision int8: DAgger and acceptance run the int8 encoder, policy.json says so, and the eval
+    driver loads the same int8 encoder from it; without a calibration one error names the file, nothing written."""
+    from pipeline.verbs.train import run
+    from pretrain.quantize import CALIBRATION_FILE, QuantizedBEVEncoder
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    _tiny_bev_checkpoint(tmp_path / "checkpoints" / "bev", int8=False)
+    with pytest.raises(InputMissingError, match=CALIBRATION_FILE):
+        run(_train_cfg(tmp_path, "full", head="mlp", intention="", encoder_precision="int8"))
+    assert not (tmp_path / "checkpoints" / "policy" / "full").exists()
+    shutil.rmtree(tmp_path / "checkpoints" / "bev")
+    _tiny_bev_checkpoint(tmp_path / "checkpoints" / "bev", int8=True)
+    run(_train_cfg(tmp_path, "full", head="mlp", intention="", encoder_precision="int8", **{"dagger.iterations": 1}))
+    out = tmp_path / "checkpoints" / "policy" / "full"
+    assert json.loads((out / "policy.json").read_text())["encoder_precision"] == "int8"
+    assert isinstance(PolicyDriver(out).encoder, QuantizedBEVEncoder)
+    with pytest.raises(ConfigError, match="train.encoder_precision: expected one of"):
+        _train_cfg(tmp_path, "full", encoder_precision="fp16")
