@@ -76,7 +76,7 @@ _DRIVERS: dict[str, Any] = {}
 
 def cached_driver(spec: MethodSpec):
     """The driver of ``spec``, made once per process (its weights loaded once)."""
-    key = f"{spec.name}:{spec.checkpoint}:{spec.shield_s}"
+    key = f"{spec.name}:{spec.checkpoint}:{spec.shield_s}:{spec.sample_tau}:{spec.encoder_precision}"
     if key not in _DRIVERS:  # one driver per method and checkpoint per process (weights loaded once)
         _DRIVERS[key] = spec.driver()
     return _DRIVERS[key]

@@ -63,6 +63,7 @@ class MethodSpec:
     action_type: str = "continuous"
     shield_s: float | None = None  # kind == policy: the lookahead head's obstacle shield instead of the saved one
     sample_tau: float | None = None  # kind == policy: sample softmax(logits / τ) per step instead of the argmax
+    encoder_precision: str | None = None  # kind == policy (students): the frozen encoder's precision, not the saved
 
     def env_overrides(self) -> dict[str, Any]:
         return {"obs_mode": self.obs_mode, "action_type": self.action_type}
@@ -131,11 +132,12 @@ def spec_from_checkpoint(ckpt: Path, name: str | None = None) -> MethodSpec:
 
 
 def resolve_methods(names: list[str], data_dir: Path, shield_s: float | None = None,
-                    sample_tau: float | None = None) -> list[MethodSpec]:
+                    sample_tau: float | None = None, encoder_precision: str | None = None) -> list[MethodSpec]:
     """Specs of ``names``; an unknown name is a ConfigError, a missing or unfinished checkpoint InputMissingError.
     ``shield_s``: every saved policy's (teacher, students) obstacle shield horizon instead of its own (None = as
     saved; :func:`rl.policy.load_policy`); ``sample_tau``: every saved policy samples softmax(logits / τ) instead of
-    taking the argmax (None = argmax; :class:`rl.driver.PolicyDriver`)."""
+    taking the argmax (None = argmax; :class:`rl.driver.PolicyDriver`); ``encoder_precision``: every student's
+    frozen encoder at this precision (``fp32`` | ``int8``) instead of the one it was trained with (None = as saved)."""
     if not names:
         raise ConfigError("eval.methods: expected at least one method")
     out = []
@@ -156,7 +158,8 @@ def resolve_methods(names: list[str], data_dir: Path, shield_s: float | None = N
             ckpt = _checkpoint(data_dir, name)
         out.append(MethodSpec(name, label, kind, obs_mode, ref, ckpt,
                               "discrete" if kind == "policy" else "continuous",
-                              shield_s if kind == "policy" else None, sample_tau if kind == "policy" else None))
+                              shield_s if kind == "policy" else None, sample_tau if kind == "policy" else None,
+                              encoder_precision if kind == "policy" else None))
     if len({m.name for m in out}) != len(out):
         raise ConfigError(f"eval.methods: duplicate names in {names}")
     return out
@@ -171,6 +174,6 @@ def baseline_driver(spec: MethodSpec) -> Driver:
 _DRIVER_FACTORIES: dict[str, Callable[[MethodSpec], Driver]] = {
     "expert": lambda spec: ExpertDriver(),
     "dwa": lambda spec: DWADriver(),
-    "policy": lambda spec: PolicyDriver(spec.checkpoint, spec.shield_s, spec.sample_tau),
+    "policy": lambda spec: PolicyDriver(spec.checkpoint, spec.shield_s, spec.sample_tau, spec.encoder_precision),
     "baseline": baseline_driver,
 }

@@ -72,6 +72,7 @@ from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_s
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
 from pipeline.core.executor import Executor, check_executor, check_ray_files
+from pretrain.quantize import check_precision
 from rl.lookahead import check_shield_s
 from rl.policy import check_checkpoint_weights
 from sim.env import CrowdNavEnv, SimConfig
@@ -131,6 +132,9 @@ class EvalConfig(BaseStageConfig):
     sample_tau: float | None = field(default=None, metadata={
         "help": "the saved policies (teacher, students) pick each action by sampling softmax(logits / tau), seeded "
                 "per episode, instead of the argmax (none = argmax, as trained policies are normally evaluated)"})
+    encoder_precision: str | None = field(default=None, metadata={
+        "help": "the students' frozen encoder at this precision instead of the one each was trained with: fp32 | "
+                "int8 (its int8 version, pretrain.quantize; none = as trained)"})
     seed_base: int = field(default=20_000, metadata={"help": "episode seeds are seed_base + seed + k"})
     workers: int = 2
     executor: str = field(default="auto", metadata={"help": "where episodes run: auto (Ray when RAY_ADDRESS is set) "
@@ -166,6 +170,8 @@ class EvalConfig(BaseStageConfig):
         if not self.scenes:
             raise ConfigError("eval.scenes: expected at least one scene")
         check_shield_s(self.shield_s, "eval.shield_s", optional=True)
+        if self.encoder_precision is not None:
+            check_precision(self.encoder_precision, "eval.encoder_precision")
         if self.sample_tau is not None and not (math.isfinite(self.sample_tau) and 0.01 <= self.sample_tau <= 100.0):
             raise ConfigError(f"eval.sample_tau: expected none (argmax) or a temperature in [0.01, 100], got "
                               f"{self.sample_tau!r}")
@@ -210,7 +216,8 @@ def output_dir(cfg: EvalConfig) -> Path:
 
 
 def inputs(cfg: EvalConfig) -> list[Path]:
-    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s, cfg.sample_tau)  # unknown / missing -> one error
+    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s, cfg.sample_tau,
+                            cfg.encoder_precision)  # unknown / missing -> one error
     for m in specs:  # a damaged or non-finite checkpoint: one error naming the file, before any episode (or MCAP)
         if m.checkpoint is not None:
             check_checkpoint_weights(m.checkpoint)
@@ -363,7 +370,7 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
 
 
 def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
-    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s, cfg.sample_tau)
+    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s, cfg.sample_tau, cfg.encoder_precision)
     labels = {m.name: m.label for m in specs}
     seeds = seeds_of(cfg)
     rows = run_jobs_cached(benchmark_jobs(cfg, specs, out), out / "rows", cfg.workers, "eval: benchmark", cfg.progress,
@@ -432,7 +439,9 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
               f"{len(specs)} methods: " + ", ".join(f"`{m.name}` = {m.label}" for m in specs) + "."
               + _capped_text(cfg, specs)
               + (f" The saved policies sample their actions (softmax of the logits / {cfg.sample_tau:g}, seeded per "
-                 "episode) instead of taking the argmax." if cfg.sample_tau is not None else ""))
+                 "episode) instead of taking the argmax." if cfg.sample_tau is not None else "")
+              + (f" The students' frozen encoder runs in {cfg.encoder_precision} whatever they were trained with."
+                 if cfg.encoder_precision is not None else ""))
     refs = [m.name for m in specs if m.reference]
     budgets = {m.name: training_budget(m.checkpoint) for m in specs if m.checkpoint is not None}
     atomic_write_text(out / "report.md", report_markdown(rows, labels, header, lh_rows, refs, budgets,

@@ -70,9 +70,11 @@ def cached_student_forecaster(variant: str, head: str, intention_ckpt: Path | st
 class PolicyDriver:
     """A saved teacher or student policy (``policy.json`` kind ``teacher`` | ``student``) as a driver."""
 
-    def __init__(self, ckpt: Path, shield_s: float | None = None, sample_tau: float | None = None) -> None:
+    def __init__(self, ckpt: Path, shield_s: float | None = None, sample_tau: float | None = None,
+                 encoder_precision: str | None = None) -> None:
         """``sample_tau``: pick each action by sampling softmax(logits / τ) with a generator seeded by the episode's
-        seed at reset (reproducible per episode), instead of the argmax (None)."""
+        seed at reset (reproducible per episode), instead of the argmax (None). ``encoder_precision``: a student's
+        frozen encoder at this precision instead of the one its policy.json names (None)."""
         torch.set_num_threads(1)
         self.sample_tau = sample_tau
         self.rng = np.random.default_rng(0)
@@ -80,7 +82,8 @@ class PolicyDriver:
         self.desc = read_policy_json(ckpt)
         self.student = self.desc["kind"] == "student"
         self.encoder = (cached_student_encoder(self.desc["variant"], self.desc.get("encoder"),
-                                               precision=self.desc.get("encoder_precision", "fp32"))
+                                               precision=encoder_precision or self.desc.get("encoder_precision",
+                                                                                            "fp32"))
                         if self.student else None)
         self.head = self.desc.get("net", {}).get("head", "mlp")
         self.forecaster = (cached_student_forecaster(self.desc["variant"], self.head, self.desc.get("intention"))

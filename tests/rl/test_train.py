@@ -775,5 +775,6 @@ def test_an_int8_student_trains_records_its_precision_and_acts_with_the_int8_enc
     out = tmp_path / "checkpoints" / "policy" / "full"
     assert json.loads((out / "policy.json").read_text())["encoder_precision"] == "int8"
     assert isinstance(PolicyDriver(out).encoder, QuantizedBEVEncoder)
+    assert not isinstance(PolicyDriver(out, encoder_precision="fp32").encoder, QuantizedBEVEncoder)  # eval's override
     with pytest.raises(ConfigError, match="train.encoder_precision: expected one of"):
         _train_cfg(tmp_path, "full", encoder_precision="fp16")
