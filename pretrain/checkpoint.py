@@ -186,28 +186,21 @@ def encoder_from_json(desc: dict[str, Any], where: str = "encoder.json") -> BEVE
     return BEVEncoder(cfg, cameras)
 
 
-def load_encoder(ckpt: Path, frozen: bool = True, precision: str = "fp32") -> BEVEncoder:
-    """Loads the pretrained encoder of a checkpoint directory, ready for ``train``.
+def load_encoder(ckpt: Path, frozen: bool = True) -> BEVEncoder:
+    """Loads the pretrained encoder of a checkpoint directory, ready for ``train`` (its int8 version:
+    :func:`pretrain.quantize.load_frozen_encoder`).
 
     Args:
         ckpt: ``DATA_DIR/checkpoints/bev`` (or another pretrain output).
         frozen: eval mode and ``requires_grad=False`` on every parameter (the paper freezes it during RL).
-        precision: ``fp32``, or ``int8`` — its convolutions quantized with the calibration saved beside it
-            (:func:`pretrain.quantize.load_int8_encoder`; CPU inference only, always frozen).
 
     Raises:
-        InputMissingError: no or unfinished checkpoint (or no calibration for int8). CorruptArtifactError:
-            unreadable or mismatching files.
+        InputMissingError: no or unfinished checkpoint. CorruptArtifactError: unreadable or mismatching files.
     """
-    from pretrain.quantize import check_precision, load_int8_encoder  # lazy: quantize imports this module
-
-    check_precision(precision, "encoder precision")
     ckpt = Path(ckpt)
     desc = read_encoder_json(ckpt)
     encoder = encoder_from_json(desc, str(ckpt / ENCODER_JSON))
     load_safetensors(encoder, ckpt / ENCODER_WEIGHTS)
-    if precision == "int8":
-        return load_int8_encoder(ckpt, encoder)
     if frozen:
         encoder.eval()
         encoder.requires_grad_(False)

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
-from pretrain.checkpoint import read_weights, save_tensors
+from pretrain.checkpoint import load_encoder, read_weights, save_tensors
 from pretrain.model import BEVEncoder
 
 PRECISIONS = ("fp32", "int8")
@@ -247,6 +247,14 @@ def load_int8_encoder(ckpt: Path, encoder: BEVEncoder) -> QuantizedBEVEncoder:
     state = read_weights(path, hint="re-run `make pretrain` to write it again")
     q = QuantizedBEVEncoder(encoder)
     return q.load_calibration({k: v for k, v in state.items()}, example_window(encoder), where=str(path))
+
+
+def load_frozen_encoder(ckpt: Path, precision: str = "fp32") -> BEVEncoder:
+    """The frozen pretrained encoder of ``ckpt`` (:func:`pretrain.checkpoint.load_encoder`) at ``precision``:
+    ``fp32``, or ``int8`` — its convolutions quantized with the calibration saved beside it (CPU inference only)."""
+    check_precision(precision, "encoder precision")
+    encoder = load_encoder(Path(ckpt), frozen=True)
+    return load_int8_encoder(ckpt, encoder) if precision == "int8" else encoder
 
 
 def check_precision(value: str, where: str) -> str:

@@ -320,11 +320,11 @@ def load_student_encoder(variant: str, encoder_ckpt: Path | None, device: torch.
         return None
     if encoder_ckpt is None:
         raise ConfigError(f"variant {variant!r} needs a pretrained encoder checkpoint (encoder_ckpt)")
-    from pretrain.checkpoint import load_encoder  # lazy: torchvision (~3 s) only when an encoder is loaded
+    from pretrain.quantize import load_frozen_encoder  # lazy: torchvision (~3 s) only with an encoder
 
     if precision == "int8" and torch.device(device).type != "cpu":
         raise ConfigError(f"encoder precision int8 runs on the CPU only, got device {device} (use fp32 there)")
-    return load_encoder(Path(encoder_ckpt), frozen=True, precision=precision).to(device)
+    return load_frozen_encoder(Path(encoder_ckpt), precision).to(device)
 
 
 def load_student_heads(variant: str, head: str, map_cost: bool, encoder_ckpt: Path | str | None,

@@ -11,13 +11,14 @@ import pytest
 import torch
 
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
-from pretrain.checkpoint import load_encoder, save_tensors, write_encoder_checkpoint
+from pretrain.checkpoint import save_tensors, write_encoder_checkpoint
 from pretrain.model import BEVEncoder, BEVStream, PretextHeads
 from pretrain.quantize import (
     CALIBRATION_FILE,
     DenseFuse,
     QuantizedBEVEncoder,
     check_precision,
+    load_frozen_encoder,
     load_int8_encoder,
     quantize_encoder,
     save_calibration,
@@ -92,7 +93,7 @@ def test_calibration_round_trips_bit_identically(encoder, tmp_path: Path):
     save_calibration(ckpt, state, {"target_frames": "3"})
     again = load_int8_encoder(ckpt, encoder)
     x = windows(encoder, 1, seed=12)[0]
-    loaded = load_encoder(ckpt, precision="int8")  # what the students load
+    loaded = load_frozen_encoder(ckpt, "int8")  # what the students load
     assert isinstance(loaded, QuantizedBEVEncoder) and not any(p.requires_grad for p in loaded.parameters())
     with torch.no_grad():
         assert torch.equal(again(*x), q(*x)) and torch.equal(loaded(*x), q(*x))

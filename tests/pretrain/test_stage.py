@@ -15,6 +15,7 @@ from pipeline.core.stage import run_stage_ex
 from pipeline.verbs.pretrain import STAGE
 from pretrain.checkpoint import ENCODER_WEIGHTS, load_encoder, load_heads
 from pretrain.model import BEVStream
+from pretrain.quantize import load_frozen_encoder
 from pretrain.stage import PretrainConfig, checkpoint_dir
 
 REPO = "icrowdnav/tiny"
@@ -90,7 +91,7 @@ def test_loaded_encoder_is_frozen_and_streams(trained, tiny_dataset) -> None:
     s = stream.step(rgb, depth, torch.zeros(1, 3, dtype=torch.float64))
     assert s.shape == (1, c, x, y) and torch.isfinite(s).all()
     assert heads(s).shape == (1, 4, x, y)
-    q = load_encoder(out, precision="int8")  # the int8 version from the calibration the stage saved
+    q = load_frozen_encoder(out, "int8")  # the int8 version from the calibration the stage saved
     assert BEVStream(q).step(rgb, depth, torch.zeros(1, 3, dtype=torch.float64)).shape == (1, c, x, y)
 
 
