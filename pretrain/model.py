@@ -222,11 +222,14 @@ class BEVEncoder(nn.Module):
         """``(C, X, Y)`` of ``s_bev``."""
         return (self.cfg.bev_channels, *self.grid.shape)
 
+    def normalize(self, rgb: torch.Tensor) -> torch.Tensor:
+        """``M x 3 x H x W`` images (uint8 or float in [0, 1]) → the trunk's ImageNet-normalised input."""
+        x = rgb.float() / 255.0 if rgb.dtype == torch.uint8 else rgb
+        return (x - self.mean) / self.std
+
     def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
         """``M x 3 x H x W`` images (uint8 or float in [0, 1]) → ``M x C x h x w`` features at the lift pixels."""
-        x = rgb.float() / 255.0 if rgb.dtype == torch.uint8 else rgb
-        x = (x - self.mean) / self.std
-        f = self.neck(self.trunk(x))
+        f = self.neck(self.trunk(self.normalize(rgb)))
         if tuple(f.shape[-2:]) != tuple(self.geom.lift_hw):
             f = F.interpolate(f, size=tuple(self.geom.lift_hw), mode="bilinear", align_corners=False)
         return f

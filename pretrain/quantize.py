@@ -30,6 +30,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+with warnings.catch_warnings():  # torch >= 2.9 announces on import that FX quantization moves to torchao
+    warnings.simplefilter("ignore")
+    from torch.ao.quantization import get_default_qconfig_mapping
+    from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
+
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pretrain.checkpoint import load_encoder, read_weights, save_tensors
 from pretrain.model import BEVEncoder
@@ -97,24 +102,14 @@ class DenseFuse(nn.Module):
         return self.refine(torch.cat([up, newest], 1))
 
 
-def _fx():
-    with warnings.catch_warnings():  # torch >= 2.9 announces the move of FX quantization to torchao on import
-        warnings.simplefilter("ignore")
-        from torch.ao.quantization import get_default_qconfig_mapping
-        from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
-    return get_default_qconfig_mapping, prepare_fx, convert_fx
-
-
 def _prepare(module: nn.Module, example: tuple[torch.Tensor, ...]) -> nn.Module:
-    get_mapping, prepare_fx, _ = _fx()
     torch.backends.quantized.engine = BACKEND
-    with warnings.catch_warnings():
+    with warnings.catch_warnings():  # torch >= 2.9 warns that FX quantization moves to torchao
         warnings.simplefilter("ignore")
-        return prepare_fx(module.eval(), get_mapping(BACKEND), example)
+        return prepare_fx(module.eval(), get_default_qconfig_mapping(BACKEND), example)
 
 
 def _convert(prepared: nn.Module) -> nn.Module:
-    _, _, convert_fx = _fx()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return convert_fx(prepared)
@@ -136,8 +131,7 @@ class QuantizedBEVEncoder(BEVEncoder):
 
     # the two dense parts: observed (calibrating) or int8 (frozen); prepared lazily on the first call's shapes
     def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
-        x = rgb.float() / 255.0 if rgb.dtype == torch.uint8 else rgb
-        x = (x - self.mean) / self.std
+        x = self.normalize(rgb)
         if self._image_q is None:
             net = ImageNet(self)
             with torch.no_grad():

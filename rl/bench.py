@@ -468,11 +468,8 @@ def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encod
 
         names = [c.name for c in cams]
         win = enc.frames
-        rgb = torch.from_numpy(np.stack([obs[f"rgb_{n}"] for n in names])).permute(0, 3, 1, 2)
-        rgb = rgb.unsqueeze(0).unsqueeze(0).expand(1, win, *rgb.shape).contiguous()
-        depth = torch.from_numpy(np.stack([obs[f"depth_{n}"] for n in names]))
-        depth = depth.unsqueeze(0).unsqueeze(0).expand(1, win, *depth.shape).contiguous()
-        poses = torch.as_tensor(obs["odom"], dtype=torch.float64).view(1, 1, 3).expand(1, win, 3).contiguous()
+        rgb, depth, poses = (x.unsqueeze(1).expand(x.shape[0], win, *x.shape[1:]).contiguous()
+                             for x in _stream_inputs(obs, names))  # the newest frame repeated over the window
 
         @torch.no_grad()
         def recompute() -> None:

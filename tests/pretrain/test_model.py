@@ -17,14 +17,7 @@ from sim.cameras import CameraSpec
 
 W, H = 64, 48
 L = 6  # frames in the test sequences
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest; so is the `encoder` fixture
 
 
 def cameras() -> list[Camera]:
@@ -47,14 +40,6 @@ def randomise_norms(module: torch.nn.Module, gen: torch.Generator) -> None:
             m.running_var.copy_(0.5 + torch.rand(c, generator=gen))
             m.weight.data.copy_(0.5 + torch.rand(c, generator=gen))
             m.bias.data.copy_(0.1 * torch.randn(c, generator=gen))
-
-
-@pytest.fixture(scope="module", params=[1, 2], ids=["fuse_pool1", "fuse_pool2"])
-def encoder(request) -> BEVEncoder:
-    torch.manual_seed(0)
-    enc = BEVEncoder(tiny_config(fuse_pool=request.param), cameras())
-    randomise_norms(enc, torch.Generator().manual_seed(1))
-    return enc.eval()
 
 
 def sequence(b: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -23,23 +23,9 @@ from pretrain.quantize import (
     quantize_encoder,
     save_calibration,
 )
-from tests.pretrain.test_model import L, cameras, randomise_norms, sequence, tiny_config
+from tests.pretrain.test_model import L, cameras, sequence, tiny_config
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
-@pytest.fixture(scope="module", params=[1, 2], ids=["fuse_pool1", "fuse_pool2"])
-def encoder(request) -> BEVEncoder:
-    torch.manual_seed(0)
-    enc = BEVEncoder(tiny_config(fuse_pool=request.param), cameras())
-    randomise_norms(enc, torch.Generator().manual_seed(1))
-    return enc.eval()
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest; so is the `encoder` fixture
 
 
 def windows(enc: BEVEncoder, n: int, seed: int, b: int = 2):
