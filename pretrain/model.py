@@ -229,7 +229,8 @@ class BEVEncoder(nn.Module):
 
     def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
         """``M x 3 x H x W`` images (uint8 or float in [0, 1]) → ``M x C x h x w`` features at the lift pixels."""
-        f = self.neck(self.trunk(self.normalize(rgb)))
+        # float32 out: under bf16 autocast (pretrain.precision) the geometry that follows stays in float32
+        f = self.neck(self.trunk(self.normalize(rgb))).float()
         if tuple(f.shape[-2:]) != tuple(self.geom.lift_hw):
             f = F.interpolate(f, size=tuple(self.geom.lift_hw), mode="bilinear", align_corners=False)
         return f
@@ -299,9 +300,9 @@ class BEVEncoder(nn.Module):
         if self.cfg.decoder == "unet":
             s_bev = self.decoder(s_bev)
         if self.cfg.fuse_pool == 1:
-            return s_bev
+            return s_bev.float()
         up = F.interpolate(s_bev, size=tuple(self.grid.shape), mode="bilinear", align_corners=False)
-        return self.refine(torch.cat([up, newest], 1))
+        return self.refine(torch.cat([up.float(), newest], 1)).float()  # float32 out (see image_features)
 
     def forward(self, rgb: torch.Tensor, depth: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """Batch forward: ``B x T`` windows (full-resolution depth) → ``s_bev`` ``B x C x X x Y``."""

@@ -29,7 +29,7 @@ import torch
 from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, json_safe
 from pipeline.core.config import BaseStageConfig, check_run_name, config_hash
-from pipeline.core.device import device_counts, resolve_device
+from pipeline.core.device import device_counts, resolve_device, resolve_precision
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.checkpoint import METRICS_JSON, read_weights, write_encoder_checkpoint
 from pretrain.data import (
@@ -89,6 +89,10 @@ class PretrainConfig(BaseStageConfig):
     # (int8_calibration.safetensors, pretrain.quantize; train.encoder_precision int8 uses it); its validation IoU
     # is in metrics.json "int8". 0 = no int8 version
     int8_calibration_frames: int = 400
+    # the training's arithmetic: fp32, or bf16 (the encoder's convolutions under bfloat16 autocast; its geometry, the
+    # loss, the weights and the optimiser in float32), or auto = bf16 where the device computes bfloat16 natively
+    # (pipeline.core.device.resolve_precision); validation always in float32
+    precision: str = "fp32"
     max_ram_gb: float = 16.0  # refuse to load more frames than this (GB, estimated before reading)
     progress: bool = True  # progress bars
 
@@ -119,6 +123,7 @@ class PretrainConfig(BaseStageConfig):
         if self.encoder.backbone_weights and not Path(self.encoder.backbone_weights).is_file():
             raise ConfigError(f"pretrain.encoder.backbone_weights: no file {self.encoder.backbone_weights}")
         resolve_device(self.device, "pretrain.device")  # cuda without CUDA: one error, before anything is written
+        resolve_precision(self.precision, resolve_device(self.device, "pretrain.device"), "pretrain.precision")
 
 
 def dataset_dir(cfg: PretrainConfig) -> Path:
@@ -217,7 +222,8 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
                    weight_decay=cfg.weight_decay, warmup_frac=cfg.warmup_frac,
                    checkpoint_every_steps=cfg.checkpoint_every_steps, log_every_steps=cfg.log_every_steps,
                    seed=cfg.seed, config_hash=config_hash(cfg), pos_weight_cap=cfg.pos_weight_cap,
-                   loss_region=cfg.loss_region)
+                   loss_region=cfg.loss_region,
+                   precision=resolve_precision(cfg.precision, device, "pretrain.precision"))
     result = fit(encoder, heads, store, train_slices, val_slices, fov, fc, out, resume=True, progress=cfg.progress)
     history = result["history"]
     final = history[-1] if history else evaluate(encoder, heads, store, val_slices, fov,
@@ -272,7 +278,7 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
                         valid[0].cpu().numpy(), fov,
                         f"{what}validation episode {ep}, frame {t - start} — step {result['step']}")
     counts = {"steps": result["step"], "train_frames": n_train, "val_frames": int(len(val_idx)),
-              "episodes": n_eps, **device_counts(device)}
+              "episodes": n_eps, "precision": fc.precision, **device_counts(device)}
     for key, v in final.items():
         if key.startswith(("iou_", "val_loss")) and not (isinstance(v, float) and math.isnan(v)):
             counts[key] = round(float(v), 4)

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 
 from pipeline.core.artifacts import atomic_write_with
-from pipeline.core.device import cpu_state
+from pipeline.core.device import autocast, cpu_state
 from pipeline.core.errors import ConfigError, CorruptArtifactError
 from pretrain.data import FrameStore, make_batches, make_clips
 from pretrain.model import TARGETS, BEVEncoder, PretextHeads
@@ -60,6 +60,7 @@ class FitConfig:
     config_hash: str
     pos_weight_cap: float = 10.0  # upper bound of the per-target BCE positive weight (positive_weights)
     loss_region: str = "fov"  # the cells the loss reads: LOSS_REGIONS (validation IoU stays on the field of view)
+    precision: str = "fp32"  # the training forward pass: fp32 | bf16 (autocast; pipeline.core.device.autocast)
 
 
 # where the training loss reaches: the cameras' field of view, or the whole grid (beyond the view the labels are still
@@ -296,8 +297,9 @@ def fit(encoder: BEVEncoder, heads: PretextHeads, store: FrameStore, train_slice
                        unit="batch", disable=not progress)
             for bi in range(start, len(batches)):
                 t0 = time.perf_counter()
-                logits, labels, valid = forward_batch(encoder, heads, store, batches[bi])
-                losses = masked_bce(logits, labels, valid, mask_t, pos_weight_d)
+                with autocast(device, fc.precision):
+                    logits, labels, valid = forward_batch(encoder, heads, store, batches[bi])
+                losses = masked_bce(logits.float(), labels, valid, mask_t, pos_weight_d)
                 loss = losses.mean()
                 optim.zero_grad(set_to_none=True)
                 loss.backward()

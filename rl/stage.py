@@ -56,7 +56,7 @@ import torch
 from pipeline.core import layout
 from pipeline.core.artifacts import atomic_save_npz, atomic_write_json, atomic_write_text
 from pipeline.core.config import BaseStageConfig, dump_yaml
-from pipeline.core.device import device_counts, resolve_device, start_method
+from pipeline.core.device import device_counts, resolve_device, resolve_precision, start_method
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pipeline.core.executor import Executor, check_executor, check_ray_files
 from pretrain.checkpoint import read_encoder_json
@@ -180,6 +180,9 @@ class DaggerConfig:
     # the cloning set (every iteration's cached frames) in memory up to this size; larger, it is memory-mapped from
     # unlinked files beside the checkpoint (rl.dagger.pool_frames: the same arrays, the page cache holds what fits)
     pool_memory_gb: float = 8.0
+    # the cloning's arithmetic: fp32, or bf16 (the forward pass under bfloat16 autocast; weights, loss and optimiser in
+    # float32), or auto = bf16 where the device computes bfloat16 natively (pipeline.core.device.resolve_precision)
+    bc_precision: str = "fp32"
     scenes: list[str] = field(default_factory=lambda: ["hallway", "corner", "doorway", "cluttered_room", "open_crowd"])
     densities: list[float] = field(default_factory=lambda: [0.1, 0.2])
 
@@ -313,6 +316,7 @@ class TrainConfig(BaseStageConfig):
                               f"{it.val_fraction}")
 
         check_precision(self.encoder_precision, "train.encoder_precision")
+        resolve_precision(d.bc_precision, resolve_device(self.device, "train.device"), "train.dagger.bc_precision")
         if self.encoder_precision == "int8" and resolve_device(self.device, "train.device").type != "cpu":
             raise ConfigError(f"train.encoder_precision: int8 runs on the CPU only, got train.device {self.device!r} "
                               "(resolves to a GPU here); use --device cpu or encoder_precision fp32")
@@ -653,7 +657,8 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         del data, new
     # provenance paths, like policy.json's checkpoint references, relative to the checkpoint (rl.policy)
     produced = {"teacher": relative_to(teacher_dir, out), "dagger_iterations": d.iterations,
-                "dagger_frames": frames_total, "ppo_finetune_steps": 0}
+                "dagger_frames": frames_total, "ppo_finetune_steps": 0,
+                "bc_precision": resolve_precision(d.bc_precision, device, "train.dagger.bc_precision")}
     summary: dict[str, Any] = {"dagger": iters}
     produced["intention"] = (None if int_dir is None else "frozen" if int_dir == intention_dir(cfg)
                              else {"tuned": relative_to(int_dir, out), "epochs": cfg.intention_tune.epochs})
@@ -690,7 +695,8 @@ def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str
                      f", pinned at 0: {linear_fit['map_pinned']}" if "map_pinned" in linear_fit else "")
     hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, seed, progress=progress,
                            soft_tau=d.soft_tau if soft else 0.0, mirror=d.mirror, n_rot=n_rot,
-                           frozen=FITTED_PREFIXES if (linear_fit or inherited) else (), cache=cache)
+                           frozen=FITTED_PREFIXES if (linear_fit or inherited) else (), cache=cache,
+                           precision=resolve_precision(d.bc_precision, policy.device, "train.dagger.bc_precision"))
     return hist, linear_fit
 
 

@@ -13,10 +13,19 @@ every loader maps to the CPU (``map_location="cpu"``, safetensors); the caller m
 Worker processes that run a model on CUDA (DAgger rollouts with the students' frozen encoder, the fine-tuning
 envs) must not be forked from a process that has touched CUDA (PyTorch: "Cannot re-initialize CUDA in forked
 subprocess"): :func:`start_method` gives ``spawn`` for a CUDA device, ``fork`` otherwise.
+
+Training precision (the ``precision`` keys of the stages that train: :data:`TRAIN_PRECISIONS`): ``fp32``, or
+``bf16`` mixed precision — the forward pass under ``torch.autocast`` (:func:`autocast`: convolutions and matrix
+products in bfloat16, reductions, losses and the weights themselves in float32) — or ``auto``, which is ``bf16``
+where the device computes bfloat16 natively (a CPU with AVX512-BF16 or AMX, a CUDA GPU that supports it) and
+``fp32`` elsewhere (:func:`resolve_precision`). Without native support bfloat16 is emulated and slower than float32,
+so asking for ``bf16`` there is a :class:`ConfigError`. Like the device, the precision says how a result was
+computed: the resolved one is recorded in the stage's counts (``precision``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import re
 from typing import Any
 
@@ -25,6 +34,7 @@ import torch
 from pipeline.core.errors import ConfigError
 
 DEVICE_CHOICES = ("auto", "cpu", "cuda", "cuda:N")
+TRAIN_PRECISIONS = ("auto", "fp32", "bf16")
 _CUDA_N = re.compile(r"cuda:(\d+)")
 
 
@@ -102,3 +112,43 @@ def machine_facts() -> dict[str, Any]:
     return {"cpu_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
             **({"gpu": torch.cuda.get_device_name()} if torch.cuda.is_available() else {}),
             "torch": torch.__version__}
+
+
+def native_bf16(device: torch.device | str) -> bool:
+    """Whether ``device`` computes bfloat16 natively: a CPU with AVX512-BF16 or AMX tiles, a CUDA GPU whose
+    compute capability supports it (Ampere on)."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        return bool(torch.cuda.is_bf16_supported())
+    cpu = torch._C._cpu
+    return bool(cpu._is_avx512_bf16_supported() or cpu._is_amx_tile_supported())
+
+
+def resolve_precision(name: str, device: torch.device | str, key: str) -> str:
+    """The training precision (``fp32`` | ``bf16``) a ``precision`` config value names on ``device``.
+
+    Raises:
+        ConfigError: an unknown value, or ``bf16`` on a device without native bfloat16 (emulated: slower than
+            float32).
+    """
+    text = str(name).strip().lower()
+    if text not in TRAIN_PRECISIONS:
+        raise ConfigError(f"{key}: expected one of {', '.join(TRAIN_PRECISIONS)}, got {name!r}")
+    native = native_bf16(device)
+    if text == "auto":
+        return "bf16" if native else "fp32"
+    if text == "bf16" and not native:
+        raise ConfigError(f"{key}: expected fp32 or auto on {torch.device(device)}, got 'bf16': this device has no "
+                          "native bfloat16 (a CPU without AVX512-BF16 or AMX, or an older GPU), where it is emulated "
+                          "and slower than float32")
+    return text
+
+
+def autocast(device: torch.device | str, precision: str) -> contextlib.AbstractContextManager:
+    """The context of a training forward pass at ``precision`` (a resolved one: ``fp32`` | ``bf16``): bfloat16
+    autocast on ``device``'s type for ``bf16``, nothing for ``fp32``. Compute the loss outside it, in float32."""
+    if precision == "bf16":
+        return torch.autocast(torch.device(device).type, dtype=torch.bfloat16)
+    if precision != "fp32":
+        raise ValueError(f"autocast: expected a resolved precision fp32 | bf16, got {precision!r}")
+    return contextlib.nullcontext()

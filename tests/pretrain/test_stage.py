@@ -202,6 +202,8 @@ def test_config_errors() -> None:
         load_config(PretrainConfig, "pretrain", "smoke", overrides={"pos_weight_cap": "0.5"})
     with pytest.raises(ConfigError, match=r"pretrain.people_label: expected one of \['all', 'seen'\], got 'visible'"):
         load_config(PretrainConfig, "pretrain", "smoke", overrides={"people_label": "visible"})
+    with pytest.raises(ConfigError, match=r"pretrain.precision: expected one of auto, fp32, bf16, got 'fp16'"):
+        load_config(PretrainConfig, "pretrain", "smoke", overrides={"precision": "fp16"})
 
 
 def test_an_encoder_json_from_before_the_evidence_and_decoder_loads_as_trained(trained, tmp_path: Path) -> None:

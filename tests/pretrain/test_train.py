@@ -126,6 +126,42 @@ def test_grid_loss_reads_the_labels_outside_the_view(tiny_store, tmp_path: Path)
         loss_mask(fov, "world")
 
 
+def test_bf16_training_keeps_the_geometry_and_weights_in_float32_and_learns(tiny_store, tmp_path: Path) -> None:
+    """``precision="bf16"`` (``pretrain.precision``): under the autocast the encoder hands float32 to its geometry
+    (lift, warp) and returns a float32 ``s_bev`` close to the float32 forward's; 24 steps lower the validation loss
+    about as far as float32 does (0.91 → 0.41 both); the trained weights stay float32."""
+    from pipeline.core.device import autocast, native_bf16
+
+    if not native_bf16("cpu"):
+        pytest.skip("this CPU has no native bfloat16")
+    torch.set_num_threads(2)
+    store, fov, cams = tiny_store
+    sl = [store.episode_slices[1]]
+    enc, heads = _models(cams)
+    rgb = torch.from_numpy(store.rgb[sl[0][0]:sl[0][0] + enc.frames])[None]
+    depth = torch.from_numpy(store.depth[sl[0][0]:sl[0][0] + enc.frames])[None]
+    poses = torch.from_numpy(store.pose[sl[0][0]:sl[0][0] + enc.frames])[None]
+    with torch.no_grad():
+        ref = enc.fuse(enc.encode_frames(rgb[0], depth[0])[None], poses)
+        with autocast("cpu", "bf16"):
+            maps = enc.encode_frames(rgb[0], depth[0])
+            got = enc.fuse(maps[None], poses)
+    assert maps.dtype == torch.float32 and got.dtype == torch.float32
+    assert (got - ref).abs().mean() < 0.05 * ref.abs().mean()
+    pw = positive_weights(store, sl, fov)
+    losses = {}
+    for precision in ("fp32", "bf16"):
+        enc, heads = _models(cams)
+        before = evaluate(enc, heads, store, sl, fov, pw, 8, 3)["val_loss"]
+        res = fit(enc, heads, store, sl, sl, fov, _fit_config(epochs=24, clips_per_batch=4, lr=3e-3,
+                                                              precision=precision),
+                  tmp_path / precision, resume=False, progress=False)
+        losses[precision] = res["history"][-1]["val_loss"]
+        assert all(t.dtype == torch.float32 for t in [*enc.state_dict().values(), *heads.state_dict().values()]
+                   if t.is_floating_point())
+    assert losses["bf16"] < 0.6 * before and losses["bf16"] == pytest.approx(losses["fp32"], rel=0.1), losses
+
+
 def _weights(m: torch.nn.Module) -> dict[str, torch.Tensor]:
     return {k: v.clone() for k, v in m.state_dict().items()}
 

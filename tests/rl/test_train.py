@@ -665,6 +665,8 @@ def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
     with pytest.raises(ConfigError, match=r"train.dagger.linear_cost: expected one of \['teacher', 'fit', 'peds'\], "
                                           r"got 'goal'"):
         _train_cfg(tmp_path, "full", **{"dagger.linear_cost": "goal"})
+    with pytest.raises(ConfigError, match=r"train.dagger.bc_precision: expected one of auto, fp32, bf16, got 'half'"):
+        _train_cfg(tmp_path, "full", **{"dagger.bc_precision": "half"})
 
 
 def test_sampled_actions_follow_the_logits_and_repeat_per_episode_seed(teacher_dir):
@@ -778,3 +780,37 @@ def test_an_int8_student_trains_records_its_precision_and_acts_with_the_int8_enc
     assert not isinstance(PolicyDriver(out, encoder_precision="fp32").encoder, QuantizedBEVEncoder)  # eval's override
     with pytest.raises(ConfigError, match="train.encoder_precision: expected one of"):
         _train_cfg(tmp_path, "full", encoder_precision="fp16")
+
+
+def test_cloning_in_bf16_learns_like_fp32_and_leaves_float32_contiguous_weights():
+    """``behaviour_clone(precision="bf16")`` (``train.dagger.bc_precision``) runs the forward pass under bfloat16
+    autocast and the map CNN channels-last: on the same labels it lowers the loss about as far as float32 does, and
+    what it leaves — and saves — is the usual float32, contiguous policy."""
+    from pipeline.core.device import native_bf16
+    from rl.observe import StudentObserver, env_cameras
+    from sim.env import CrowdNavEnv
+
+    if not native_bf16("cpu"):
+        pytest.skip("this CPU has no native bfloat16")
+    env = CrowdNavEnv(config=replace(TINY_SIM, obs_mode="state"))
+    env.reset(seed=0)
+    space = StudentObserver("no_bev", env_cameras(env), None, TINY_SIM.detector.max_people).observation_space
+    space.seed(0)
+    obs = [space.sample() for _ in range(96)]
+    data = {k: np.stack([o[k] for o in obs]).astype(np.float32) for k in space.spaces}
+    # a label the inputs decide: the occupancy map's left half against its right half, and the goal's side
+    occ, half = data["occ"], data["occ"].shape[3] // 2
+    data["action"] = ((occ[..., :half].mean((1, 2, 3)) > occ[..., half:].mean((1, 2, 3))) * 10
+                      + (data["state"][:, 1] > 0) * 40).astype(np.int64)
+    out = {}
+    for precision in ("fp32", "bf16"):
+        torch.manual_seed(0)
+        policy = build_policy("student", "no_bev", space, {"bev_width": 8})
+        before = bc_loss(policy, data)
+        rows = behaviour_clone(policy, data, 4, 32, 2e-3, 0, progress=False, precision=precision)
+        out[precision] = (before, bc_loss(policy, data), rows)
+        assert all(t.dtype == torch.float32 and t.is_contiguous() for t in policy.state_dict().values()
+                   if t.is_floating_point())
+    (b32, a32, _), (b16, a16, rows) = out["fp32"], out["bf16"]
+    assert b16 == b32 and a16 < 0.5 * b16 and rows[-1]["bc_loss"] < rows[0]["bc_loss"]
+    assert a16 == pytest.approx(a32, rel=0.35, abs=0.1)

@@ -1,4 +1,5 @@
-"""pipeline.core.device: the ``device`` config key (auto | cpu | cuda | cuda:N), its errors, and device-free saving."""
+"""pipeline.core.device: the ``device`` config key (auto | cpu | cuda | cuda:N), its errors, device-free saving, and the
+training ``precision`` keys (auto | fp32 | bf16)."""
 
 from __future__ import annotations
 
@@ -7,8 +8,18 @@ from dataclasses import dataclass
 import pytest
 import torch
 
+from pipeline.core import device as device_mod
 from pipeline.core.config import BaseStageConfig, config_hash
-from pipeline.core.device import cpu_state, cuda_build, device_counts, resolve_device, start_method
+from pipeline.core.device import (
+    autocast,
+    cpu_state,
+    cuda_build,
+    device_counts,
+    native_bf16,
+    resolve_device,
+    resolve_precision,
+    start_method,
+)
 from pipeline.core.errors import ConfigError
 
 
@@ -104,3 +115,33 @@ def test_cpu_state_moves_cuda_tensors_to_the_host() -> None:
     assert out["w"].device.type == "cpu" and out["nested"][0].device.type == "cpu"
     assert state["w"].device.type == "cuda"  # the live state is untouched
     assert resolve_device("cuda", "k").type == "cuda" and device_counts(resolve_device("auto", "k"))["device"] == "cuda:0"
+
+
+def test_precision_auto_is_bf16_exactly_where_the_device_has_native_bf16(monkeypatch) -> None:
+    assert resolve_precision("auto", "cpu", "pretrain.precision") == ("bf16" if native_bf16("cpu") else "fp32")
+    assert resolve_precision(" FP32 ", "cpu", "pretrain.precision") == "fp32"
+    monkeypatch.setattr(device_mod, "native_bf16", lambda device: True)
+    assert resolve_precision("auto", "cpu", "k") == "bf16" and resolve_precision("bf16", "cpu", "k") == "bf16"
+    monkeypatch.setattr(device_mod, "native_bf16", lambda device: False)
+    assert resolve_precision("auto", "cpu", "k") == "fp32"
+    with pytest.raises(ConfigError, match=r"train\.dagger\.bc_precision: expected fp32 or auto on cpu, got 'bf16'"):
+        resolve_precision("bf16", "cpu", "train.dagger.bc_precision")
+
+
+@pytest.mark.parametrize("bad", ["fp16", "int8", "", "bfloat16"])
+def test_unknown_precisions_are_refused(bad) -> None:
+    with pytest.raises(ConfigError, match=rf"pretrain\.precision: expected one of auto, fp32, bf16, got '{bad}'"):
+        resolve_precision(bad, "cpu", "pretrain.precision")
+
+
+def test_autocast_computes_convolutions_in_bf16_and_nothing_at_fp32() -> None:
+    conv = torch.nn.Conv2d(2, 3, 3)
+    x = torch.randn(1, 2, 6, 6)
+    with autocast("cpu", "fp32"):
+        assert conv(x).dtype == torch.float32
+    with autocast("cpu", "bf16"):
+        y = conv(x)
+    assert y.dtype == torch.bfloat16 and conv.weight.dtype == torch.float32  # the weights stay float32
+    torch.testing.assert_close(y.float(), conv(x), rtol=0.05, atol=0.05)
+    with pytest.raises(ValueError, match="resolved precision"):
+        autocast("cpu", "auto")
