@@ -134,7 +134,7 @@ class EvalConfig(BaseStageConfig):
                 "per episode, instead of the argmax (none = argmax, as trained policies are normally evaluated)"})
     encoder_precision: str | None = field(default=None, metadata={
         "help": "the students' frozen encoder at this precision instead of the one each was trained with: fp32 | "
-                "int8 (its int8 version, pretrain.quantize; none = as trained)"})
+                "bf16 (bfloat16 autocast) | int8 (its int8 version), pretrain.quantize; none = as trained"})
     seed_base: int = field(default=20_000, metadata={"help": "episode seeds are seed_base + seed + k"})
     workers: int = 2
     executor: str = field(default="auto", metadata={"help": "where episodes run: auto (Ray when RAY_ADDRESS is set) "
@@ -171,7 +171,7 @@ class EvalConfig(BaseStageConfig):
             raise ConfigError("eval.scenes: expected at least one scene")
         check_shield_s(self.shield_s, "eval.shield_s", optional=True)
         if self.encoder_precision is not None:
-            check_precision(self.encoder_precision, "eval.encoder_precision")
+            check_precision(self.encoder_precision, "eval.encoder_precision", "cpu")  # the workers run on the CPU
         if self.sample_tau is not None and not (math.isfinite(self.sample_tau) and 0.01 <= self.sample_tau <= 100.0):
             raise ConfigError(f"eval.sample_tau: expected none (argmax) or a temperature in [0.01, 100], got "
                               f"{self.sample_tau!r}")

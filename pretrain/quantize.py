@@ -17,6 +17,12 @@ so a quantized encoder is rebuilt bit-identically from the float checkpoint and 
 
 The calibration is deterministic given the float weights and the calibration frames (histogram observers, no
 randomness), and so is the quantized encoder built from it.
+
+The third inference precision, ``bf16`` (:class:`BF16BEVEncoder`), needs no calibration: the same two dense parts
+run under bfloat16 autocast (the convolutions in bfloat16 on a CPU with AVX512-BF16 or AMX, or a GPU), the geometry
+and the output in float32 — the encoder :mod:`pretrain.train` runs with ``pretrain.precision bf16``. Its error
+against float32 is ≈ 0.3 % of ``s_bev``'s norm (int8: several times more), at ≈ 1.4× the float32 speed on one CPU
+thread (int8 ≈ 2×; docs/results.md, Performance).
 """
 
 from __future__ import annotations
@@ -35,11 +41,12 @@ with warnings.catch_warnings():  # torch >= 2.9 announces on import that FX quan
     from torch.ao.quantization import get_default_qconfig_mapping
     from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
 
+from pipeline.core.device import native_bf16
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pretrain.checkpoint import load_encoder, read_weights, save_tensors
 from pretrain.model import BEVEncoder
 
-PRECISIONS = ("fp32", "int8")
+PRECISIONS = ("fp32", "bf16", "int8")
 CALIBRATION_FILE = "int8_calibration.safetensors"
 BACKEND = "x86"
 
@@ -100,6 +107,26 @@ class DenseFuse(nn.Module):
             return s_bev
         up = F.interpolate(s_bev, size=self.grid_hw, mode="bilinear", align_corners=False)
         return self.refine(torch.cat([up, newest], 1))
+
+
+class BF16BEVEncoder(BEVEncoder):
+    """A :class:`BEVEncoder` whose image branch and dense fusion (the parts :class:`QuantizedBEVEncoder` runs in
+    int8) run under bfloat16 autocast on their inputs' device; lifting, splatting, warping and ``s_bev`` stay float32
+    (:meth:`BEVEncoder.image_features` and :meth:`BEVEncoder.fuse_aligned` return float32). Inference only; the
+    weights are the float encoder's, unchanged (``state_dict`` is the float encoder's)."""
+
+    def __init__(self, encoder: BEVEncoder) -> None:
+        super().__init__(encoder.cfg, encoder.cameras)
+        self.load_state_dict(encoder.state_dict())
+        self.eval().requires_grad_(False)
+
+    def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(rgb.device.type, dtype=torch.bfloat16):
+            return super().image_features(rgb)
+
+    def fuse_aligned(self, aligned: torch.Tensor, newest: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(aligned.device.type, dtype=torch.bfloat16):
+            return super().fuse_aligned(aligned, newest)
 
 
 def _prepare(module: nn.Module, example: tuple[torch.Tensor, ...]) -> nn.Module:
@@ -245,14 +272,27 @@ def load_int8_encoder(ckpt: Path, encoder: BEVEncoder) -> QuantizedBEVEncoder:
 
 def load_frozen_encoder(ckpt: Path, precision: str = "fp32") -> BEVEncoder:
     """The frozen pretrained encoder of ``ckpt`` (:func:`pretrain.checkpoint.load_encoder`) at ``precision``:
-    ``fp32``, or ``int8`` — its convolutions quantized with the calibration saved beside it (CPU inference only)."""
+    ``fp32``; ``bf16`` — its convolutions under bfloat16 autocast (:class:`BF16BEVEncoder`); or ``int8`` — its
+    convolutions quantized with the calibration saved beside it (CPU inference only)."""
     check_precision(precision, "encoder precision")
     encoder = load_encoder(Path(ckpt), frozen=True)
-    return load_int8_encoder(ckpt, encoder) if precision == "int8" else encoder
+    if precision == "int8":
+        return load_int8_encoder(ckpt, encoder)
+    return BF16BEVEncoder(encoder) if precision == "bf16" else encoder
 
 
-def check_precision(value: str, where: str) -> str:
-    """``value`` if it is one of :data:`PRECISIONS`, else a ConfigError naming ``where``."""
+def check_precision(value: str, where: str, device: torch.device | str | None = None) -> str:
+    """``value`` if it is one of :data:`PRECISIONS` (and, given the ``device`` the encoder will run on, one that
+    device runs: ``int8`` only on a CPU, ``bf16`` only where bfloat16 is native), else a ConfigError naming
+    ``where``."""
     if value not in PRECISIONS:
         raise ConfigError(f"{where}: expected one of {list(PRECISIONS)}, got {value!r}")
+    if device is not None:
+        device = torch.device(device)
+        if value == "int8" and device.type != "cpu":
+            raise ConfigError(f"{where}: int8 runs on the CPU only, got device {device}; use fp32 or bf16 there")
+        if value == "bf16" and not native_bf16(device):
+            raise ConfigError(f"{where}: expected fp32 or int8 on {device}, got 'bf16': this device has no native "
+                              "bfloat16 (a CPU without AVX512-BF16 or AMX, or an older GPU), where it is emulated and "
+                              "slower than float32")
     return value

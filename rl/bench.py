@@ -48,14 +48,14 @@ import numpy as np
 import torch
 
 from pipeline.core.config import load_config
-from pipeline.core.device import machine_facts, resolve_device
+from pipeline.core.device import machine_facts, native_bf16, resolve_device
 from pipeline.core.errors import reports_errors
 from pipeline.core.timing import time_call
 from pretrain.checkpoint import write_encoder_checkpoint
 from pretrain.geometry import cameras_from_dataset
 from pretrain.intention import ForecasterConfig, IntentionForecaster
 from pretrain.model import BEVEncoder, BEVStream, EncoderConfig, PretextHeads
-from pretrain.quantize import QuantizedBEVEncoder
+from pretrain.quantize import BF16BEVEncoder, QuantizedBEVEncoder
 from pretrain.stage import PretrainConfig
 from rl.dagger import pool_frames
 from rl.observe import BEV_POOL, StudentEnv, StudentObserver, env_cameras, observer_for_env, perception_params
@@ -506,15 +506,27 @@ def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encod
         def stream_lookahead_int8() -> None:
             act(look, look_q(obs))
 
+        # and with the encoder under bfloat16 autocast (pretrain.quantize.BF16BEVEncoder), where bf16 is native
+        look_b = observer_for_env(env, "full", BF16BEVEncoder(enc), head="lookahead") if native_bf16("cpu") else None
+        if look_b is not None:
+            look_b(obs)
+
         ms = 1000.0 * time_call(stream, seconds)
         ref = 1000.0 * time_call(recompute, seconds)
         ms_look = 1000.0 * time_call(stream_lookahead, seconds)
         ms_look_q = 1000.0 * time_call(stream_lookahead_int8, seconds)
         enc_ms = 1000.0 * time_call(lambda: look_obs.stream.step(*_stream_inputs(obs, names)), seconds / 2)
         enc_q_ms = 1000.0 * time_call(lambda: look_q.stream.step(*_stream_inputs(obs, names)), seconds / 2)
+        bf16 = {}
+        if look_b is not None:
+            ms_look_b = 1000.0 * time_call(lambda: act(look, look_b(obs)), seconds)
+            enc_b_ms = 1000.0 * time_call(lambda: look_b.stream.step(*_stream_inputs(obs, names)), seconds / 2)
+            bf16 = {"policy_inference_lookahead_bf16_ms": ms_look_b,
+                    "policy_inference_lookahead_bf16_speedup": ms_look / ms_look_b, "bev_stream_step_bf16_ms": enc_b_ms,
+                    "bev_stream_step_bf16_speedup": enc_ms / enc_b_ms}
     finally:
         torch.set_num_threads(threads)
-    return {"policy_inference_ms": ms, "policy_inference_hz": 1000.0 / ms, "policy_inference_recompute_ms": ref,
+    return {**bf16, "policy_inference_ms": ms, "policy_inference_hz": 1000.0 / ms, "policy_inference_recompute_ms": ref,
             "policy_inference_speedup_vs_recompute": ref / ms, "policy_inference_lookahead_ms": ms_look,
             "policy_inference_lookahead_hz": 1000.0 / ms_look, "policy_inference_lookahead_int8_ms": ms_look_q,
             "policy_inference_lookahead_int8_speedup": ms_look / ms_look_q, "bev_stream_step_ms": enc_ms,

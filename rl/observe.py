@@ -315,15 +315,18 @@ class StudentEnv(gym.Wrapper):
 def load_student_encoder(variant: str, encoder_ckpt: Path | None, device: torch.device | str = "cpu",
                          precision: str = "fp32") -> BEVEncoder | None:
     """The frozen encoder a variant needs on ``device`` (None for ``no_bev``, whose occupancy map needs no
-    network); ``precision`` ``int8``: its int8 version (:mod:`pretrain.quantize`, CPU only)."""
+    network); ``precision`` ``bf16`` | ``int8``: its bfloat16-autocast or int8 version (:mod:`pretrain.quantize`;
+    int8 on a CPU only, bf16 where bfloat16 is native)."""
     if "bev" not in variant_keys(variant):
         return None
     if encoder_ckpt is None:
         raise ConfigError(f"variant {variant!r} needs a pretrained encoder checkpoint (encoder_ckpt)")
-    from pretrain.quantize import load_frozen_encoder  # lazy: torchvision (~3 s) only with an encoder
+    from pretrain.quantize import (  # lazy: torchvision (~3 s), encoder only
+        check_precision,
+        load_frozen_encoder,
+    )
 
-    if precision == "int8" and torch.device(device).type != "cpu":
-        raise ConfigError(f"encoder precision int8 runs on the CPU only, got device {device} (use fp32 there)")
+    check_precision(precision, "encoder precision", device)
     return load_frozen_encoder(Path(encoder_ckpt), precision).to(device)
 
 

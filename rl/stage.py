@@ -227,8 +227,9 @@ class TrainConfig(BaseStageConfig):
 
     variant: str = "full"  # teacher | full | no_i2 | no_bev | a learned baseline: drl_vo | sarl_om | vint
     encoder: str = "bev"  # pretrained encoder: DATA_DIR/checkpoints/<encoder>/
-    # the students' frozen encoder in DAgger, fine-tuning, acceptance and eval: fp32 | int8 (its int8 version,
-    # calibrated by pretrain: ~2x faster on a CPU; CPU only; docs/results.md, Performance); saved in policy.json
+    # the students' frozen encoder in DAgger, fine-tuning, acceptance and eval: fp32 | bf16 (its convolutions under
+    # bfloat16 autocast: ~1.4x on a CPU with AVX512-BF16/AMX, or a GPU) | int8 (its int8 version, calibrated by
+    # pretrain: ~2x faster on a CPU; CPU only; docs/results.md, Performance); saved in policy.json
     encoder_precision: str = "fp32"
     # pretrained intention model DATA_DIR/checkpoints/<intention>/ (icrowdnav pretrain-intention): the lookahead head
     # of a variant with poses (full, no_bev) predicts the people it tracks with it; "" = constant velocity (the
@@ -315,11 +316,9 @@ class TrainConfig(BaseStageConfig):
                               f"0 < val_fraction < 1, got {it.lr}, {it.pose_dropout}, {it.head_aux_weight}, "
                               f"{it.val_fraction}")
 
-        check_precision(self.encoder_precision, "train.encoder_precision")
-        resolve_precision(d.bc_precision, resolve_device(self.device, "train.device"), "train.dagger.bc_precision")
-        if self.encoder_precision == "int8" and resolve_device(self.device, "train.device").type != "cpu":
-            raise ConfigError(f"train.encoder_precision: int8 runs on the CPU only, got train.device {self.device!r} "
-                              "(resolves to a GPU here); use --device cpu or encoder_precision fp32")
+        device = resolve_device(self.device, "train.device")
+        check_precision(self.encoder_precision, "train.encoder_precision", device)
+        resolve_precision(d.bc_precision, device, "train.dagger.bc_precision")
         if self.head not in STUDENT_HEADS:
             raise ConfigError(f"train.head: expected one of {list(STUDENT_HEADS)}, got {self.head!r}")
         if self.scorer_bound < 0:

@@ -10,11 +10,14 @@ from pathlib import Path
 import pytest
 import torch
 
+import pretrain.quantize as quantize
+from pipeline.core.device import native_bf16
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pretrain.checkpoint import save_tensors, write_encoder_checkpoint
 from pretrain.model import BEVEncoder, BEVStream, PretextHeads
 from pretrain.quantize import (
     CALIBRATION_FILE,
+    BF16BEVEncoder,
     DenseFuse,
     QuantizedBEVEncoder,
     check_precision,
@@ -112,10 +115,48 @@ def test_missing_or_mismatched_calibration_is_named(encoder, tmp_path: Path):
         load_int8_encoder(broken, encoder)
 
 
-def test_precision_values_are_checked():
+def test_precision_values_are_checked(monkeypatch):
     assert check_precision("int8", "train.encoder_precision") == "int8"
-    with pytest.raises(ConfigError, match="train.encoder_precision: expected one of \\['fp32', 'int8'\\], got 'fp16'"):
+    with pytest.raises(ConfigError, match="train.encoder_precision: expected one of \\['fp32', 'bf16', 'int8'\\], "
+                                          "got 'fp16'"):
         check_precision("fp16", "train.encoder_precision")
+    # given the device the encoder runs on: int8 on a CPU only, bf16 only where bfloat16 is native
+    assert check_precision("int8", "eval.encoder_precision", "cpu") == "int8"
+    with pytest.raises(ConfigError, match="eval.encoder_precision: int8 runs on the CPU only, got device cuda"):
+        check_precision("int8", "eval.encoder_precision", "cuda")
+    monkeypatch.setattr(quantize, "native_bf16", lambda device: False)
+    with pytest.raises(ConfigError, match="eval.encoder_precision: expected fp32 or int8 on cpu, got 'bf16'"):
+        check_precision("bf16", "eval.encoder_precision", "cpu")
+    assert check_precision("bf16", "eval.encoder_precision") == "bf16"  # no device named: the value alone
+    monkeypatch.setattr(quantize, "native_bf16", lambda device: True)
+    assert check_precision("bf16", "eval.encoder_precision", "cpu") == "bf16"
+
+
+@pytest.mark.skipif(not native_bf16("cpu"), reason="this CPU has no native bfloat16 (AVX512-BF16 or AMX)")
+def test_bf16_encoder_is_close_to_float_streams_and_returns_float32(encoder, tmp_path: Path):
+    b16 = BF16BEVEncoder(encoder)
+    assert not b16.training and not any(p.requires_grad for p in b16.parameters())
+    sd, ref = b16.state_dict(), encoder.state_dict()
+    assert sd.keys() == ref.keys() and all(torch.equal(sd[k], ref[k]) for k in sd)  # the float weights, unchanged
+    rgb, depth, poses = sequence(2, seed=21)
+    t = encoder.frames
+    with torch.no_grad():
+        batch_b, batch_f = b16(rgb[:, :t], depth[:, :t], poses[:, :t]), encoder(rgb[:, :t], depth[:, :t], poses[:, :t])
+        assert batch_b.dtype == torch.float32 and batch_b.shape == batch_f.shape
+        assert 0 < rel_err(batch_b, batch_f) < 0.03  # bfloat16 convolutions: close, not equal
+        stream = BEVStream(b16)
+        for k in range(L):
+            out = stream.step(rgb[:, k], depth[:, k], poses[:, k])
+        last = b16(rgb[:, L - t:], depth[:, L - t:], poses[:, L - t:])
+    assert out.dtype == torch.float32 and torch.allclose(out, last, atol=1e-4, rtol=1e-3)
+    ckpt = tmp_path / "bev"
+    ckpt.mkdir()
+    write_encoder_checkpoint(ckpt, encoder, PretextHeads(encoder.cfg.bev_channels), {})
+    (ckpt / "manifest.json").write_text("{}")
+    loaded = load_frozen_encoder(ckpt, "bf16")  # what the students load; no calibration file needed
+    assert isinstance(loaded, BF16BEVEncoder)
+    with torch.no_grad():
+        assert torch.equal(loaded(rgb[:, :t], depth[:, :t], poses[:, :t]), batch_b)
 
 
 def test_an_uncalibrated_encoder_cannot_be_converted(encoder):

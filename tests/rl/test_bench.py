@@ -114,8 +114,10 @@ def test_frame_pool_figures_against_the_concatenating_reference():
 
 
 def test_inference_benchmark_times_the_int8_encoder_against_the_float_one():
-    """measure_inference: the float student, its recompute reference and the int8 encoder's student, same run."""
+    """measure_inference: the float student, its recompute reference and the int8 encoder's student, same run (and
+    the bfloat16-autocast encoder's, on a CPU with native bfloat16)."""
     from pipeline.core.config import load_config
+    from pipeline.core.device import native_bf16
     from pretrain.stage import PretrainConfig
     from rl.bench import measure_inference
     from sim.env import CameraConfig
@@ -127,3 +129,7 @@ def test_inference_benchmark_times_the_int8_encoder_against_the_float_one():
                 "bev_stream_step_int8_ms"):
         assert math.isfinite(out[key]) and out[key] > 0, key
     assert out["bev_stream_step_int8_speedup"] == out["bev_stream_step_ms"] / out["bev_stream_step_int8_ms"]
+    bf16 = ("policy_inference_lookahead_bf16_ms", "bev_stream_step_bf16_ms")
+    assert all(k in out for k in bf16) == native_bf16("cpu")
+    for key in bf16 if native_bf16("cpu") else ():
+        assert math.isfinite(out[key]) and out[key] > 0, key

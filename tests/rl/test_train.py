@@ -763,8 +763,9 @@ def _tiny_bev_checkpoint(ck: Path, int8: bool) -> None:
 def test_an_int8_student_trains_records_its_precision_and_acts_with_the_int8_encoder(tmp_path, teacher_dir):
     """train.encoder_precision int8: DAgger and acceptance run the int8 encoder, policy.json says so, and the eval
     driver loads the same int8 encoder from it; without a calibration one error names the file, nothing written."""
+    from pipeline.core.device import native_bf16
     from pipeline.verbs.train import run
-    from pretrain.quantize import CALIBRATION_FILE, QuantizedBEVEncoder
+    from pretrain.quantize import CALIBRATION_FILE, BF16BEVEncoder, QuantizedBEVEncoder
 
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
     _tiny_bev_checkpoint(tmp_path / "checkpoints" / "bev", int8=False)
@@ -778,6 +779,8 @@ def test_an_int8_student_trains_records_its_precision_and_acts_with_the_int8_enc
     assert json.loads((out / "policy.json").read_text())["encoder_precision"] == "int8"
     assert isinstance(PolicyDriver(out).encoder, QuantizedBEVEncoder)
     assert not isinstance(PolicyDriver(out, encoder_precision="fp32").encoder, QuantizedBEVEncoder)  # eval's override
+    if native_bf16("cpu"):  # the bfloat16-autocast encoder needs no calibration file
+        assert isinstance(PolicyDriver(out, encoder_precision="bf16").encoder, BF16BEVEncoder)
     with pytest.raises(ConfigError, match="train.encoder_precision: expected one of"):
         _train_cfg(tmp_path, "full", encoder_precision="fp16")
 
