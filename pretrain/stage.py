@@ -162,6 +162,20 @@ def load_backbone_weights(encoder, path: str) -> None:
     log.info("pretrain: trunk initialised from %s", p)
 
 
+def calibration_clips(store, train_slices, history: int, cfg: PretrainConfig) -> tuple[list, int]:
+    """The int8 calibration's seeded whole clips of the training episodes (at least ``cfg.int8_calibration_frames``
+    target frames, fewer when the episodes hold fewer) and their target frame count."""
+    clips = make_clips(store, train_slices, cfg.clip_frames, history, np.random.default_rng([cfg.seed, 8]))
+    order = np.random.default_rng([cfg.seed, 9]).permutation(len(clips))
+    picked, n = [], 0
+    for i in order:
+        if n >= cfg.int8_calibration_frames:
+            break
+        picked.append(clips[int(i)])
+        n += len(clips[int(i)][1])
+    return picked, n
+
+
 def int8_version(encoder: BEVEncoder, heads: PretextHeads, store, train_slices, val_slices, fov, pos_weight,
                  cfg: PretrainConfig, out: Path) -> dict:
     """Calibrates the int8 version of the trained encoder (:mod:`pretrain.quantize`, CPU) on seeded whole clips of
@@ -171,14 +185,7 @@ def int8_version(encoder: BEVEncoder, heads: PretextHeads, store, train_slices, 
     heads_cpu = PretextHeads(cfg.encoder.bev_channels)
     heads_cpu.load_state_dict({k: v.cpu() for k, v in heads.state_dict().items()})
     heads_cpu.eval()
-    clips = make_clips(store, train_slices, cfg.clip_frames, encoder.frames, np.random.default_rng([cfg.seed, 8]))
-    order = np.random.default_rng([cfg.seed, 9]).permutation(len(clips))
-    picked, n = [], 0
-    for i in order:
-        if n >= cfg.int8_calibration_frames:
-            break
-        picked.append(clips[int(i)])
-        n += len(clips[int(i)][1])
+    picked, n = calibration_clips(store, train_slices, encoder.frames, cfg)
     with torch.no_grad():
         for batch in make_batches(picked, cfg.clips_per_batch, encoder.frames):
             forward_batch(q, heads_cpu, store, batch)  # the observers record every activation's range

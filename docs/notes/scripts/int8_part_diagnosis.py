@@ -9,11 +9,11 @@ import numpy as np, torch
 warnings.filterwarnings("ignore")
 from pipeline.core.config import load_config
 from pretrain.checkpoint import load_encoder, load_heads
-from pretrain.data import check_dataset, load_frames, make_batches, make_clips, split_episodes
+from pretrain.data import check_dataset, load_frames, make_batches, split_episodes
 from pretrain.geometry import check_grid_fits_cameras
 from pretrain.model import BEVEncoder
 from pretrain.quantize import QuantizedBEVEncoder
-from pretrain.stage import PretrainConfig, dataset_dir
+from pretrain.stage import PretrainConfig, calibration_clips, dataset_dir
 from pretrain.train import evaluate, forward_batch
 torch.set_num_threads(2)
 data = Path(sys.argv[1]); max_val = int(sys.argv[2]) if len(sys.argv) > 2 else 0
@@ -32,15 +32,9 @@ sl = store.episode_slices
 train_slices, val_slices = [sl[e] for e in train_eps], [sl[e] for e in val_eps]
 enc = load_encoder(ck, frozen=True); heads = load_heads(ck, enc).eval()
 pw = torch.as_tensor(metrics["pos_weight"])
-# the stage's calibration (pretrain.stage.int8_version), verbatim in effect
+# the stage's calibration (pretrain.stage.int8_version)
 q = QuantizedBEVEncoder(enc)
-clips = make_clips(store, train_slices, cfg.clip_frames, enc.frames, np.random.default_rng([cfg.seed, 8]))
-order = np.random.default_rng([cfg.seed, 9]).permutation(len(clips))
-picked, n = [], 0
-for i in order:
-    if n >= cfg.int8_calibration_frames:
-        break
-    picked.append(clips[int(i)]); n += len(clips[int(i)][1])
+picked, n = calibration_clips(store, train_slices, enc.frames, cfg)
 with torch.no_grad():
     for batch in make_batches(picked, cfg.clips_per_batch, enc.frames):
         forward_batch(q, heads, store, batch)
