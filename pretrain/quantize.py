@@ -109,16 +109,22 @@ class DenseFuse(nn.Module):
         return self.refine(torch.cat([up, newest], 1))
 
 
-class BF16BEVEncoder(BEVEncoder):
-    """A :class:`BEVEncoder` whose image branch and dense fusion (the parts :class:`QuantizedBEVEncoder` runs in
-    int8) run under bfloat16 autocast on their inputs' device; lifting, splatting, warping and ``s_bev`` stay float32
-    (:meth:`BEVEncoder.image_features` and :meth:`BEVEncoder.fuse_aligned` return float32). Inference only; the
-    weights are the float encoder's, unchanged (``state_dict`` is the float encoder's)."""
+class _FrozenCopy(BEVEncoder):
+    """A frozen copy of a float :class:`BEVEncoder` (same config, cameras and weights; ``eval()``, no gradients)
+    whose subclasses change how its dense parts compute; ``state_dict`` stays the float encoder's, so
+    :mod:`pretrain.checkpoint` treats it as the encoder it came from."""
 
     def __init__(self, encoder: BEVEncoder) -> None:
         super().__init__(encoder.cfg, encoder.cameras)
         self.load_state_dict(encoder.state_dict())
         self.eval().requires_grad_(False)
+
+
+class BF16BEVEncoder(_FrozenCopy):
+    """A :class:`BEVEncoder` whose image branch and dense fusion (the parts :class:`QuantizedBEVEncoder` runs in
+    int8) run under bfloat16 autocast on their inputs' device; lifting, splatting, warping and ``s_bev`` stay float32
+    (:meth:`BEVEncoder.image_features` and :meth:`BEVEncoder.fuse_aligned` return float32). Inference only; the
+    weights are the float encoder's, unchanged."""
 
     def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
         with torch.autocast(rgb.device.type, dtype=torch.bfloat16):
@@ -142,16 +148,13 @@ def _convert(prepared: nn.Module) -> nn.Module:
         return convert_fx(prepared)
 
 
-class QuantizedBEVEncoder(BEVEncoder):
+class QuantizedBEVEncoder(_FrozenCopy):
     """A :class:`BEVEncoder` whose image branch and dense fusion run in int8 (module docstring). Built from a float
     encoder; :meth:`calibrate` feeds it calibration frames (it computes the float results meanwhile), :meth:`freeze`
-    converts it. Used for inference only (``eval()``, no gradients); the float weights stay inside (``state_dict``
-    is the float encoder's), so :func:`pretrain.checkpoint` treats it as the encoder it came from."""
+    converts it. Used for inference only; the float weights stay inside."""
 
     def __init__(self, encoder: BEVEncoder) -> None:
-        super().__init__(encoder.cfg, encoder.cameras)
-        self.load_state_dict(encoder.state_dict())
-        self.eval().requires_grad_(False)
+        super().__init__(encoder)
         self._image_q: nn.Module | None = None
         self._dense_q: nn.Module | None = None
         self.frozen = False
@@ -270,15 +273,19 @@ def load_int8_encoder(ckpt: Path, encoder: BEVEncoder) -> QuantizedBEVEncoder:
     return q.load_calibration({k: v for k, v in state.items()}, example_window(encoder), where=str(path))
 
 
-def load_frozen_encoder(ckpt: Path, precision: str = "fp32") -> BEVEncoder:
-    """The frozen pretrained encoder of ``ckpt`` (:func:`pretrain.checkpoint.load_encoder`) at ``precision``:
-    ``fp32``; ``bf16`` — its convolutions under bfloat16 autocast (:class:`BF16BEVEncoder`); or ``int8`` — its
-    convolutions quantized with the calibration saved beside it (CPU inference only)."""
-    check_precision(precision, "encoder precision")
+def load_frozen_encoder(ckpt: Path, precision: str = "fp32", device: torch.device | str = "cpu") -> BEVEncoder:
+    """The frozen pretrained encoder of ``ckpt`` (:func:`pretrain.checkpoint.load_encoder`) at ``precision`` on
+    ``device``: ``fp32``; ``bf16`` — its convolutions under bfloat16 autocast (:class:`BF16BEVEncoder`); or ``int8``
+    — its convolutions quantized with the calibration saved beside it (CPU inference only).
+
+    Raises:
+        ConfigError: an unknown precision, or one ``device`` does not run (:func:`check_precision`).
+    """
+    check_precision(precision, "encoder precision", device)
     encoder = load_encoder(Path(ckpt), frozen=True)
     if precision == "int8":
         return load_int8_encoder(ckpt, encoder)
-    return BF16BEVEncoder(encoder) if precision == "bf16" else encoder
+    return (BF16BEVEncoder(encoder) if precision == "bf16" else encoder).to(device)
 
 
 def check_precision(value: str, where: str, device: torch.device | str | None = None) -> str:

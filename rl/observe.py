@@ -321,10 +321,9 @@ def load_student_encoder(variant: str, encoder_ckpt: Path | None, device: torch.
         return None
     if encoder_ckpt is None:
         raise ConfigError(f"variant {variant!r} needs a pretrained encoder checkpoint (encoder_ckpt)")
-    from pretrain.quantize import check_precision, load_frozen_encoder  # lazy: torchvision (~3 s)
+    from pretrain.quantize import load_frozen_encoder  # lazy: torchvision (~3 s)
 
-    check_precision(precision, "encoder precision", device)
-    return load_frozen_encoder(Path(encoder_ckpt), precision).to(device)
+    return load_frozen_encoder(Path(encoder_ckpt), precision, device)
 
 
 def load_student_heads(variant: str, head: str, map_cost: bool, encoder_ckpt: Path | str | None,

@@ -157,6 +157,8 @@ def test_bf16_encoder_is_close_to_float_streams_and_returns_float32(encoder, tmp
     assert isinstance(loaded, BF16BEVEncoder)
     with torch.no_grad():
         assert torch.equal(loaded(rgb[:, :t], depth[:, :t], poses[:, :t]), batch_b)
+    with pytest.raises(ConfigError, match="int8 runs on the CPU only"):  # checked before anything is loaded
+        load_frozen_encoder(tmp_path / "missing", "int8", "cuda")
 
 
 def test_an_uncalibrated_encoder_cannot_be_converted(encoder):
