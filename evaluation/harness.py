@@ -5,7 +5,8 @@ Every method of a run faces the same list of seeds, so the same start, goal, obs
 and goal (the benchmark's goal) and its ``seed`` the crowd (the trial); ``route`` makes the method follow the
 global planner's waypoints to the goal (the routing cells). A job returns its metrics row (every metric of
 :mod:`sim.metrics`, plus method / scene / density / seed / outcome) and, when asked, writes the episode's trace,
-a top-down trajectory figure, an mp4 (both cameras, the method's BEV input, top-down) and an MCAP log for Foxglove.
+a top-down trajectory figure, an mp4 (both cameras, the method's BEV input, top-down) and an MCAP log for Foxglove;
+it always writes what it cost (:mod:`evaluation.cost`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import cv2
 import gymnasium as gym
 import numpy as np
 
+from evaluation.cost import Clock, write_cost
 from evaluation.methods import MethodSpec
 from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError
@@ -118,7 +120,10 @@ def reset_options(job: Job) -> dict | None:
 def run_episode(job: Job) -> dict[str, Any]:
     """Runs ``job`` through the episode loop (:func:`sim.episode.episode_steps`); returns its metrics row (and
     writes what it was asked to)."""
+    loading = Clock()
     driver = cached_driver(job.method)
+    load_s = loading.read()[0]
+    clock = Clock()  # the episode's own cost (evaluation.cost): its world, every step's sensors and decision
     env = make_env(job)
     u = env.unwrapped
     frames: list[np.ndarray] = []
@@ -145,6 +150,7 @@ def run_episode(job: Job) -> dict[str, Any]:
         if writer is not None:
             writer.abort()
         raise
+    wall_s, cpu_s = clock.read()
     trace = u.trace(method=job.method.name)
     layout = u.layout
     time_limit_s = float(u.time_limit_s)
@@ -169,6 +175,8 @@ def run_episode(job: Job) -> dict[str, Any]:
     if job.video and frames:
         (job.out / "videos").mkdir(parents=True, exist_ok=True)
         write_video(frames, job.out / "videos" / f"{job.name}.mp4", fps=1.0 / job.sim.dt_s)
+    write_cost(job.out, job.name, method=job.method.name, steps=trace.n_steps, wall_s=wall_s, cpu_s=cpu_s,
+               load_s=load_s, rendered=job.video or job.mcap)
     write_row(job, row)
     return row
 

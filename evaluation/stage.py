@@ -31,7 +31,11 @@ nothing. Output ``DATA_DIR/eval/<run_name>/``::
     results.json, results.csv    per cell and method: N, mean, std, 95 % CI of every metric
     paired.json                  the full model against each method on the same seeds (McNemar / Wilcoxon, the
                                  detectable SR difference), per cell and pooled over the cells
-    report.md                    the paper's tables, paired tests, the expected ordering checked, long horizon
+    report.md                    the paper's tables, paired tests, the expected ordering checked, long horizon,
+                                 what the episodes cost (Compute)
+    cost.json                    per part (benchmark, routing, scenarios, no-cue twins, long horizon): its wall time
+                                 in this invocation and, per method, worker-seconds per episode and per env step
+                                 (evaluation.cost; cost/<episode>.json in each part's folder: one episode's timing)
     figures/sr_by_cell.png       SR with CIs; figures/<episode>.png trajectories (robot coloured by time)
     videos/<episode>.mp4         both cameras, depth, the method's BEV input, top-down
     mcap/<episode>.mcap          the same episodes as MCAP logs (open in Foxglove)
@@ -54,6 +58,7 @@ from typing import Any
 
 import numpy as np
 
+from evaluation.cost import Clock, cost_markdown, part_cost
 from evaluation.harness import Job, episode_name, run_jobs_cached
 from evaluation.methods import MethodSpec, available_methods, resolve_methods
 from evaluation.report import (
@@ -373,24 +378,30 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
     specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s, cfg.sample_tau, cfg.encoder_precision)
     labels = {m.name: m.label for m in specs}
     seeds = seeds_of(cfg)
-    rows = run_jobs_cached(benchmark_jobs(cfg, specs, out), out / "rows", cfg.workers, "eval: benchmark", cfg.progress,
-                           ex)
+    costs: dict[str, dict[str, Any]] = {}
+
+    def part(name: str, jobs: list, desc: str) -> list[dict[str, Any]]:  # one part's rows, and what it cost
+        ran = sum(not (out / "rows" / f"{j.name}.json").is_file() for j in jobs)
+        clock = Clock()
+        got = run_jobs_cached(jobs, out / "rows", cfg.workers, desc, cfg.progress, ex)
+        costs[name] = part_cost(jobs, clock.read()[0], ran)
+        return got
+
+    rows = part("benchmark", benchmark_jobs(cfg, specs, out), "eval: benchmark")
     routing_rows: list[dict[str, Any]] = []
     if cfg.routing_scenes:
-        routing_rows = run_jobs_cached(benchmark_jobs(cfg, specs, out / "routing", cfg.routing_scenes, route=True),
-                                       out / "rows", cfg.workers, "eval: routing", cfg.progress, ex)
+        routing_rows = part("routing", benchmark_jobs(cfg, specs, out / "routing", cfg.routing_scenes, route=True),
+                            "eval: routing")
         atomic_write_text(out / "routing" / "episodes.jsonl",
                           "".join(json.dumps(r) + "\n" for r in json_safe(routing_rows)))
     sc_rows: list[dict[str, Any]] = []
     if cfg.scenarios:
-        sc_rows = run_jobs_cached(scenario_jobs(cfg, specs, out / "scenarios"), out / "rows", cfg.workers,
-                                  "eval: scenarios", cfg.progress, ex)
+        sc_rows = part("scenarios", scenario_jobs(cfg, specs, out / "scenarios"), "eval: scenarios")
         atomic_write_text(out / "scenarios" / "episodes.jsonl",
                           "".join(json.dumps(r) + "\n" for r in json_safe(sc_rows)))
     tw_rows: list[dict[str, Any]] = []
     if cfg.cue_twins:
-        twins = run_jobs_cached(cue_twin_jobs(cfg, specs, out / "scenarios" / "nocue"), out / "rows", cfg.workers,
-                                "eval: no-cue twins", cfg.progress, ex)
+        twins = part("no-cue twins", cue_twin_jobs(cfg, specs, out / "scenarios" / "nocue"), "eval: no-cue twins")
         tw_rows = cue_twin_rows(sc_rows, twins, out / "scenarios", out / "scenarios" / "nocue")
         _plot_cue_twins(tw_rows, labels, out / "scenarios")
         atomic_write_text(out / "scenarios" / "cue_twins.jsonl",
@@ -406,7 +417,7 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
                     extra={"graph_path_m": float(np.sum(np.hypot(*np.diff(
                         np.vstack([p["start"], p["waypoints"]]), axis=0).T)))})
                 for p in plans for m in specs]
-        lh_rows = run_jobs_cached(jobs, out / "rows", cfg.workers, "eval: long horizon", cfg.progress, ex)
+        lh_rows = part("long horizon", jobs, "eval: long horizon")
         _plot_long_horizon(plans, lh_rows, out / "long_horizon", labels)
         for p in plans:
             lh_seeds.setdefault(p["map"], []).append(p["seed"])
@@ -444,8 +455,10 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
                  if cfg.encoder_precision is not None else ""))
     refs = [m.name for m in specs if m.reference]
     budgets = {m.name: training_budget(m.checkpoint) for m in specs if m.checkpoint is not None}
+    atomic_write_json(out / "cost.json", json_safe({"workers": cfg.workers, "parts": costs}))
     atomic_write_text(out / "report.md", report_markdown(rows, labels, header, lh_rows, refs, budgets,
-                                                         routing_rows, cfg.paired_with, sc_rows, tw_rows))
+                                                         routing_rows, cfg.paired_with, sc_rows, tw_rows)
+                      + "\n".join(["", *cost_markdown(costs, labels, cfg.workers)]))
     counts: dict[str, Any] = {"episodes": len(rows), "routing_episodes": len(routing_rows),
                               "scenario_episodes": len(sc_rows), "cue_twin_episodes": len(tw_rows),
                               "long_horizon_episodes": len(lh_rows)}

@@ -222,6 +222,16 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
     assert "The cue alone" in (out / "report.md").read_text()
     assert (out / "scenarios" / "figures" / "cue_twin_head_on.png").is_file()
     assert (out / "scenarios" / "figures" / "cue_timing.png").is_file()  # when each method answered, every trial
+    # what each part cost: every episode timed, its steps those of its row
+    cost = json.loads((out / "cost.json").read_text())
+    assert set(cost["parts"]) == {"benchmark", "routing", "scenarios", "no-cue twins", "long horizon"}
+    bench = cost["parts"]["benchmark"]
+    assert bench["ran"] == 2 and bench["wall_s"] > 0
+    assert bench["methods"]["expert"]["timed"] == 2 and bench["methods"]["expert"]["steps"] == sum(
+        r["steps"] for r in rows)
+    assert bench["methods"]["expert"]["wall_ms_per_step"] > 0
+    assert "## Compute" in (out / "report.md").read_text()
+    assert not any("wall" in k or "cpu" in k for k in rows[0])  # timings stay out of the deterministic rows
     # a killed run: the manifest never came and one episode's row is missing; --resume runs only that episode
     (out / "manifest.json").unlink()
     rows = sorted((out / "rows").glob("office_lobby_*.json"))
@@ -236,6 +246,8 @@ def test_results_json_is_written_by_a_tiny_run(tmp_path):
     run(replace(cfg, resume=True))
     assert rows[0].stat().st_mtime_ns == kept and rows[1].is_file() and (out / "manifest.json").is_file()
     res2 = json.loads((out / "results.json").read_text())
+    resumed = json.loads((out / "cost.json").read_text())["parts"]["benchmark"]
+    assert resumed["ran"] == 1 and resumed["methods"]["expert"]["timed"] == 2  # the kept episode's timing stays
     assert res2["office_lobby@0.1"]["expert"]["success"] == res["office_lobby@0.1"]["expert"]["success"]
 
 
