@@ -15,8 +15,9 @@ more than one), and pooled over all cells: SR of each, the exact McNemar test, t
 time in private zones (TPZ); pooled over the pairs, each failure outcome the two runs' rows both carry (collision,
 pedestrian and obstacle collision, timeout: the exact McNemar test on who alone failed that way) and the mean jerk
 of each. A run of several methods (an eval run of ``--methods '[a, b]'``) is compared on one of them:
-``--methods <first run's>,<second run's>`` (the same run may then be given twice). Prints Markdown; ``--json``
-writes the numbers.
+``--methods <first run's>,<second run's>`` (the same run may then be given twice). Two eval runs whose episodes were
+timed (:mod:`evaluation.cost`) are also compared on what their paired episodes cost per env step — e.g. a student
+with its encoder in fp32 and in int8, both runs started together. Prints Markdown; ``--json`` writes the numbers.
 
 A comparison replicated over independent trainings (e.g. ``full`` against ``w/o BEV`` in two chains trained with
 different seeds, each evaluated on the same benchmark seeds) adds each further pair of runs with ``--also A B``
@@ -35,6 +36,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from evaluation.cost import episode_costs, paired_cost
 from evaluation.report import matched, paired, paired_pooled
 from evaluation.stats import mcnemar_exact
 from pipeline.core.artifacts import atomic_write_json, json_safe
@@ -240,6 +242,13 @@ def markdown(res: dict[str, Any]) -> str:
                   for k, o in res["outcomes"].items()]
     for k, (ma, mb) in res["means"].items():
         lines += ["", f"Mean of {k} over the pairs: {a} {ma:.2f}, {b} {mb:.2f}."]
+    c = res.get("cost")
+    if c:
+        lines += ["", f"Compute over the {c['pairs']} episodes both runs timed (evaluation.cost; one worker's wall "
+                  f"per env step): {a} {c['wall_ms_per_step'][0]:.1f} ms, {b} {c['wall_ms_per_step'][1]:.1f} ms, "
+                  f"{a} / {b} = {c['wall_ratio']:.2f} (median per episode {c['median_episode_ratio']:.2f}); CPU "
+                  f"{c['cpu_ms_per_step'][0]:.1f} vs {c['cpu_ms_per_step'][1]:.1f} ms per step "
+                  f"({c['cpu_ratio']:.2f}). Runs timed on one machine at one time compare; others need not."]
     return "\n".join(lines) + "\n"
 
 
@@ -268,10 +277,13 @@ def main(argv: list[str] | None = None) -> int:
     for (ra, rb), pair in zip(pairs[1:], args.also, strict=True):
         if not {pair_key(r) for r in ra} & {pair_key(r) for r in rb}:
             raise InputMissingError(f"--also {pair[0]} {pair[1]}: the two runs share no (scene, density, seed)")
+    first = pairs[0]
     if len(pairs) > 1:  # replicates: each pair's cells tagged with its number, so pairs match within it
         pairs = [[replicate(rows, k) for rows in pair] for k, pair in enumerate(pairs, 1)]
     a, b = ([r for pair in pairs for r in pair[i]] for i in (0, 1))
     res = compare(a, b, labels)
+    if args.a.is_dir() and args.b.is_dir():  # two timed eval runs: what their episodes cost, pair by pair
+        res["cost"] = paired_cost(*(episode_costs(run, rows) for run, rows in zip((args.a, args.b), first, strict=True)))
     if args.json:
         atomic_write_json(args.json, json_safe(res))
     print(markdown(res), end="")

@@ -37,6 +37,11 @@ class Clock:
         return time.perf_counter() - self.wall0, time.process_time() - self.cpu0
 
 
+def episode_name(tag: str, scene: str, density: float, seed: int, method: str) -> str:
+    """An episode's file stem (row, trace, figure, video, cost): ``<tag><scene>_d<density>_s<seed>_<method>``."""
+    return f"{tag}{Path(scene).stem}_d{float(density):g}_s{seed}_{method}"
+
+
 def cost_path(out: Path, name: str) -> Path:
     return Path(out) / COST_DIR / f"{name}.json"
 
@@ -121,3 +126,41 @@ def part_cost(jobs: Sequence[Any], wall_s: float, ran: int) -> dict[str, Any]:
     :func:`summarize` of its jobs' cost files (``jobs``: :class:`evaluation.harness.Job`)."""
     return {"wall_s": round(float(wall_s), 2), "ran": int(ran),
             "methods": summarize(read_costs(cost_path(j.out, j.name) for j in jobs))}
+
+
+def episode_costs(run: Path, rows: Sequence[dict[str, Any]]) -> dict[tuple[str, float, int], dict[str, Any]]:
+    """The cost records of an eval run's benchmark ``rows`` (keyed by scene, density, seed), read from
+    ``<run>/cost/``; rendered episodes and rows without a file left out (empty for a run that holds none)."""
+    folder = Path(run) / COST_DIR
+    if not folder.is_dir():
+        return {}
+    out = {}
+    for r in rows:
+        rec = read_costs([folder / f"{episode_name('', r['scene'], r['density'], r['seed'], r['method'])}.json"])
+        if rec and not rec[0].get("rendered") and rec[0]["steps"] > 0:
+            out[(r["scene"], float(r["density"]), int(r["seed"]))] = rec[0]
+    return out
+
+
+def paired_cost(a: dict[tuple, dict[str, Any]], b: dict[tuple, dict[str, Any]]) -> dict[str, Any] | None:
+    """Two runs' costs (:func:`episode_costs`) over the episodes both timed: ms per env step of each (wall and CPU,
+    summed over the pairs), their ratio ``a / b``, and the median of the per-episode ratios of wall ms per step (an
+    episode's own length divides out). None when no episode was timed in both."""
+    common = sorted(a.keys() & b.keys())
+    if not common:
+        return None
+
+    def per_step(recs: list[dict[str, Any]], key: str) -> float:
+        return 1e3 * sum(float(r[key]) for r in recs) / sum(int(r["steps"]) for r in recs)
+
+    ra, rb = [a[k] for k in common], [b[k] for k in common]
+    ratios = sorted((float(x["wall_s"]) / x["steps"]) / (float(y["wall_s"]) / y["steps"])
+                    for x, y in zip(ra, rb, strict=True) if float(y["wall_s"]) > 0)
+    mid = len(ratios) // 2
+    median = ratios[mid] if len(ratios) % 2 else 0.5 * (ratios[mid - 1] + ratios[mid])
+    out = {"pairs": len(common), "median_episode_ratio": median}
+    for key in ("wall_s", "cpu_s"):
+        ma, mb = per_step(ra, key), per_step(rb, key)
+        out[key.replace("_s", "_ms_per_step")] = [ma, mb]
+        out[key.replace("_s", "_ratio")] = ma / mb if mb > 0 else None
+    return out

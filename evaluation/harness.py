@@ -21,7 +21,7 @@ import cv2
 import gymnasium as gym
 import numpy as np
 
-from evaluation.cost import Clock, write_cost
+from evaluation.cost import Clock, episode_name, write_cost
 from evaluation.methods import MethodSpec
 from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError
@@ -66,11 +66,6 @@ class Job:
     @property
     def name(self) -> str:
         return episode_name(self.tag, self.scene, self.density, self.seed, self.method.name)
-
-
-def episode_name(tag: str, scene: str, density: float, seed: int, method: str) -> str:
-    """An episode's file stem (trace, figure, row): ``<tag><scene>_d<density>_s<seed>_<method>``."""
-    return f"{tag}{Path(scene).stem}_d{float(density):g}_s{seed}_{method}"
 
 
 _DRIVERS: dict[str, Any] = {}

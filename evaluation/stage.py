@@ -58,8 +58,8 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.cost import Clock, cost_markdown, part_cost
-from evaluation.harness import Job, episode_name, run_jobs_cached
+from evaluation.cost import Clock, cost_markdown, episode_name, part_cost
+from evaluation.harness import Job, run_jobs_cached
 from evaluation.methods import MethodSpec, available_methods, resolve_methods
 from evaluation.report import (
     paired,

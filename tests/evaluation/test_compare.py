@@ -159,3 +159,28 @@ def test_cells_are_also_pooled_per_density_and_per_scene(tmp_path, capsys):
     per_cell = compare.compare(rows([1] * 10, "warehouse", 0.1) + rows([1] * 10, "office_lobby", 0.1),
                                rows([0] * 10, "warehouse", 0.1) + rows([1] * 10, "office_lobby", 0.1), ("full", "no_bev"))
     assert per_cell["pooled_by"] == {}  # scenes of one cell each: the per-cell table already says it
+
+
+def test_two_timed_eval_runs_are_compared_on_what_their_paired_episodes_cost(tmp_path, capsys):
+    from evaluation.cost import write_cost
+
+    for run, ms in (("fp32", 60.0), ("int8", 40.0)):
+        d = tmp_path / run
+        d.mkdir()
+        rows = [{**r, "method": "full"} for r in _rows([1] * 6)]
+        _write(d / "episodes.jsonl", rows)
+        for k, r in enumerate(rows):
+            steps = 50 + 10 * k  # episodes of different lengths: the per-step cost divides them out
+            write_cost(d, f"office_lobby_d0.1_s{r['seed']}_full", method="full", steps=steps, wall_s=ms * steps / 1e3,
+                       cpu_s=0.9 * ms * steps / 1e3, load_s=0.0, rendered=k == 5)  # the rendered one left out
+    assert compare.main([str(tmp_path / "fp32"), str(tmp_path / "int8"), "--labels", "fp32,int8",
+                         "--json", str(tmp_path / "c.json")]) == 0
+    cost = json.loads((tmp_path / "c.json").read_text())["cost"]
+    assert cost["pairs"] == 5 and cost["wall_ms_per_step"] == pytest.approx([60.0, 40.0])
+    assert cost["wall_ratio"] == pytest.approx(1.5) and cost["median_episode_ratio"] == pytest.approx(1.5)
+    assert cost["cpu_ratio"] == pytest.approx(1.5)
+    assert "fp32 60.0 ms, int8 40.0 ms, fp32 / int8 = 1.50" in capsys.readouterr().out
+    # an untimed run (rows files only): no cost comparison, the rest as before
+    assert compare.main([str(tmp_path / "fp32" / "episodes.jsonl"), str(tmp_path / "int8"), "--json",
+                         str(tmp_path / "d.json")]) == 0
+    assert "cost" not in json.loads((tmp_path / "d.json").read_text())
