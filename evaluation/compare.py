@@ -243,7 +243,7 @@ def markdown(res: dict[str, Any]) -> str:
     for k, (ma, mb) in res["means"].items():
         lines += ["", f"Mean of {k} over the pairs: {a} {ma:.2f}, {b} {mb:.2f}."]
     c = res.get("cost")
-    if c:
+    if c and c["wall_ratio"] and c["cpu_ratio"] and c["median_episode_ratio"]:
         lines += ["", f"Compute over the {c['pairs']} episodes both runs timed (evaluation.cost; one worker's wall "
                   f"per env step): {a} {c['wall_ms_per_step'][0]:.1f} ms, {b} {c['wall_ms_per_step'][1]:.1f} ms, "
                   f"{a} / {b} = {c['wall_ratio']:.2f} (median per episode {c['median_episode_ratio']:.2f}); CPU "
@@ -283,7 +283,8 @@ def main(argv: list[str] | None = None) -> int:
     a, b = ([r for pair in pairs for r in pair[i]] for i in (0, 1))
     res = compare(a, b, labels)
     if args.a.is_dir() and args.b.is_dir():  # two timed eval runs: what their episodes cost, pair by pair
-        res["cost"] = paired_cost(*(episode_costs(run, rows) for run, rows in zip((args.a, args.b), first, strict=True)))
+        res["cost"] = paired_cost(*(episode_costs(run, rows)
+                                    for run, rows in zip((args.a, args.b), first, strict=True)))
     if args.json:
         atomic_write_json(args.json, json_safe(res))
     print(markdown(res), end="")

@@ -16,6 +16,7 @@ episode / workers) before starting it, and what ``docs/results.md`` quotes as ea
 from __future__ import annotations
 
 import json
+import statistics
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -100,8 +101,8 @@ def cost_markdown(parts: dict[str, dict[str, Any]], labels: dict[str, str], work
     if not any(p["methods"] for p in parts.values()):
         return []
     lines = ["## Compute (this machine)\n",
-             f"What the episodes cost, one worker each ({workers} in parallel): *worker-s / episode* is one worker's wall "
-             "time for an episode (building its world, every step's sensors and decision), *ms / step* the same per "
+             f"What the episodes cost, one worker each ({workers} in parallel): *worker-s / episode* is one "
+             "worker's wall time for an episode (building its world, every step's sensors and decision), *ms / step* the same per "
              "env step, *CPU* its process's CPU time over that wall; loading weights (once per worker) and writing "
              "traces, figures and videos are not in them, and episodes with a video or a log are left out. A run of "
              "E episodes of a method takes ≈ E × worker-s / episode ÷ workers. *Part wall*: this invocation's wall "
@@ -154,11 +155,9 @@ def paired_cost(a: dict[tuple, dict[str, Any]], b: dict[tuple, dict[str, Any]]) 
         return 1e3 * sum(float(r[key]) for r in recs) / sum(int(r["steps"]) for r in recs)
 
     ra, rb = [a[k] for k in common], [b[k] for k in common]
-    ratios = sorted((float(x["wall_s"]) / x["steps"]) / (float(y["wall_s"]) / y["steps"])
-                    for x, y in zip(ra, rb, strict=True) if float(y["wall_s"]) > 0)
-    mid = len(ratios) // 2
-    median = ratios[mid] if len(ratios) % 2 else 0.5 * (ratios[mid - 1] + ratios[mid])
-    out = {"pairs": len(common), "median_episode_ratio": median}
+    ratios = [(float(x["wall_s"]) / x["steps"]) / (float(y["wall_s"]) / y["steps"])
+              for x, y in zip(ra, rb, strict=True) if float(y["wall_s"]) > 0]
+    out = {"pairs": len(common), "median_episode_ratio": statistics.median(ratios) if ratios else None}
     for key in ("wall_s", "cpu_s"):
         ma, mb = per_step(ra, key), per_step(rb, key)
         out[key.replace("_s", "_ms_per_step")] = [ma, mb]

@@ -204,12 +204,17 @@ def _heat(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.flipud(img))  # row 0 = far / top
 
 
+def pending(jobs: list[Job], cache: Path) -> list[Job]:
+    """The ``jobs`` without a finished row in ``cache`` (what :func:`run_jobs_cached` will run)."""
+    return [j for j in jobs if not (cache / f"{j.name}.json").is_file()]
+
+
 def run_jobs_cached(jobs: list[Job], cache: Path, workers: int, desc: str, progress: bool = True,
                     executor: Executor | None = None) -> list[dict[str, Any]]:
     """:func:`run_jobs` that keeps each finished row in ``cache`` and runs only the jobs without one (a killed run
     continues where it stopped); rows in job order."""
     jobs = [replace(j, row_cache=cache) for j in jobs]
-    todo = [j for j in jobs if not (cache / f"{j.name}.json").is_file()]
+    todo = pending(jobs, cache)
     if len(todo) < len(jobs):
         log.info("%s: %d of %d episodes already done (%s)", desc, len(jobs) - len(todo), len(jobs), cache)
     run_jobs(todo, workers, desc, progress, executor)

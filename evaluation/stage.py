@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 
 from evaluation.cost import Clock, cost_markdown, episode_name, part_cost
-from evaluation.harness import Job, run_jobs_cached
+from evaluation.harness import Job, pending, run_jobs_cached
 from evaluation.methods import MethodSpec, available_methods, resolve_methods
 from evaluation.report import (
     paired,
@@ -381,7 +381,7 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
     costs: dict[str, dict[str, Any]] = {}
 
     def part(name: str, jobs: list, desc: str) -> list[dict[str, Any]]:  # one part's rows, and what it cost
-        ran = sum(not (out / "rows" / f"{j.name}.json").is_file() for j in jobs)
+        ran = len(pending(jobs, out / "rows"))
         clock = Clock()
         got = run_jobs_cached(jobs, out / "rows", cfg.workers, desc, cfg.progress, ex)
         costs[name] = part_cost(jobs, clock.read()[0], ran)
