@@ -77,7 +77,7 @@ from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_s
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
 from pipeline.core.executor import Executor, check_executor, check_ray_files
-from pretrain.quantize import check_precision
+from pretrain.quantize import check_precision, resolve_encoder_precision
 from rl.lookahead import check_shield_s
 from rl.policy import check_checkpoint_weights
 from sim.env import CrowdNavEnv, SimConfig
@@ -139,7 +139,8 @@ class EvalConfig(BaseStageConfig):
                 "per episode, instead of the argmax (none = argmax, as trained policies are normally evaluated)"})
     encoder_precision: str | None = field(default=None, metadata={
         "help": "the students' frozen encoder at this precision instead of the one each was trained with: fp32 | "
-                "bf16 (bfloat16 autocast) | int8 (its int8 version), pretrain.quantize; none = as trained"})
+                "bf16 (bfloat16 autocast) | int8 (its int8 version) | auto (bf16 where this machine's CPU has native "
+                "bfloat16, else fp32), pretrain.quantize; none = as trained"})
     seed_base: int = field(default=20_000, metadata={"help": "episode seeds are seed_base + seed + k"})
     workers: int = 2
     executor: str = field(default="auto", metadata={"help": "where episodes run: auto (Ray when RAY_ADDRESS is set) "
@@ -374,8 +375,17 @@ def body(cfg: EvalConfig, out: Path) -> dict[str, Any]:
         return _body(cfg, out, ex)
 
 
+def encoder_precision_of(cfg: EvalConfig) -> str | None:
+    """The students' encoder precision this run forces (None: each as trained), ``auto`` resolved once here, on the
+    machine the stage runs on (every episode of the run then uses the same one, wherever it runs)."""
+    if cfg.encoder_precision is None:
+        return None
+    return resolve_encoder_precision(cfg.encoder_precision, "eval.encoder_precision", "cpu")
+
+
 def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
-    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s, cfg.sample_tau, cfg.encoder_precision)
+    precision = encoder_precision_of(cfg)
+    specs = resolve_methods(cfg.methods, Path(cfg.data_dir), cfg.shield_s, cfg.sample_tau, precision)
     labels = {m.name: m.label for m in specs}
     seeds = seeds_of(cfg)
     costs: dict[str, dict[str, Any]] = {}
@@ -451,8 +461,9 @@ def _body(cfg: EvalConfig, out: Path, ex: Executor) -> dict[str, Any]:
               + _capped_text(cfg, specs)
               + (f" The saved policies sample their actions (softmax of the logits / {cfg.sample_tau:g}, seeded per "
                  "episode) instead of taking the argmax." if cfg.sample_tau is not None else "")
-              + (f" The students' frozen encoder runs in {cfg.encoder_precision} whatever they were trained with."
-                 if cfg.encoder_precision is not None else ""))
+              + (f" The students' frozen encoder runs in {precision}"
+                 + (" (`auto` on this machine)" if cfg.encoder_precision == "auto" else "")
+                 + " whatever they were trained with." if precision is not None else ""))
     refs = [m.name for m in specs if m.reference]
     budgets = {m.name: training_budget(m.checkpoint) for m in specs if m.checkpoint is not None}
     atomic_write_json(out / "cost.json", json_safe({"workers": cfg.workers, "parts": costs}))

@@ -46,7 +46,7 @@ from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissing
 from pretrain.checkpoint import load_encoder, read_weights, save_tensors
 from pretrain.model import BEVEncoder
 
-PRECISIONS = ("fp32", "bf16", "int8")
+PRECISIONS = ("auto", "fp32", "bf16", "int8")  # auto: bf16 where the device has native bfloat16, else fp32
 CALIBRATION_FILE = "int8_calibration.safetensors"
 BACKEND = "x86"
 
@@ -275,17 +275,29 @@ def load_int8_encoder(ckpt: Path, encoder: BEVEncoder) -> QuantizedBEVEncoder:
 
 def load_frozen_encoder(ckpt: Path, precision: str = "fp32", device: torch.device | str = "cpu") -> BEVEncoder:
     """The frozen pretrained encoder of ``ckpt`` (:func:`pretrain.checkpoint.load_encoder`) at ``precision`` on
-    ``device``: ``fp32``; ``bf16`` — its convolutions under bfloat16 autocast (:class:`BF16BEVEncoder`); or ``int8``
-    — its convolutions quantized with the calibration saved beside it (CPU inference only).
+    ``device``: ``fp32``; ``bf16`` — its convolutions under bfloat16 autocast (:class:`BF16BEVEncoder`); ``int8``
+    — its convolutions quantized with the calibration saved beside it (CPU inference only); or ``auto`` — bf16 where
+    ``device`` has native bfloat16, else fp32 (:func:`resolve_encoder_precision`).
 
     Raises:
         ConfigError: an unknown precision, or one ``device`` does not run (:func:`check_precision`).
     """
-    check_precision(precision, "encoder precision", device)
+    precision = resolve_encoder_precision(precision, "encoder precision", device)
     encoder = load_encoder(Path(ckpt), frozen=True)
     if precision == "int8":
         return load_int8_encoder(ckpt, encoder)
     return (BF16BEVEncoder(encoder) if precision == "bf16" else encoder).to(device)
+
+
+def resolve_encoder_precision(value: str, where: str, device: torch.device | str) -> str:
+    """The concrete precision (``fp32`` | ``bf16`` | ``int8``) that ``value`` names for an encoder on ``device``:
+    ``auto`` is ``bf16`` where ``device`` computes bfloat16 natively (:func:`pipeline.core.device.native_bf16`: a CPU
+    with AVX512-BF16 or AMX, an Ampere-or-later GPU), else ``fp32``; any other value as :func:`check_precision`
+    accepts it (a ConfigError naming ``where`` otherwise)."""
+    check_precision(value, where, device)
+    if value == "auto":
+        return "bf16" if native_bf16(device) else "fp32"
+    return value
 
 
 def check_precision(value: str, where: str, device: torch.device | str | None = None) -> str:
@@ -299,7 +311,7 @@ def check_precision(value: str, where: str, device: torch.device | str | None = 
         if value == "int8" and device.type != "cpu":
             raise ConfigError(f"{where}: int8 runs on the CPU only, got device {device}; use fp32 or bf16 there")
         if value == "bf16" and not native_bf16(device):
-            raise ConfigError(f"{where}: expected fp32 or int8 on {device}, got 'bf16': this device has no native "
+            raise ConfigError(f"{where}: expected fp32, int8 or auto on {device}, got 'bf16': this device has no native "
                               "bfloat16 (a CPU without AVX512-BF16 or AMX, or an older GPU), where it is emulated and "
                               "slower than float32")
     return value

@@ -68,7 +68,7 @@ from pretrain.intention import (
     finetune_forecaster,
     load_forecaster,
 )
-from pretrain.quantize import CALIBRATION_FILE, check_precision
+from pretrain.quantize import CALIBRATION_FILE, check_precision, resolve_encoder_precision
 from rl.baselines import BASELINES, baseline_module
 from rl.baselines.common import curve_points
 from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
@@ -229,7 +229,8 @@ class TrainConfig(BaseStageConfig):
     encoder: str = "bev"  # pretrained encoder: DATA_DIR/checkpoints/<encoder>/
     # the students' frozen encoder in DAgger, fine-tuning, acceptance and eval: fp32 | bf16 (its convolutions under
     # bfloat16 autocast: ~1.4x on a CPU with AVX512-BF16/AMX, or a GPU) | int8 (its int8 version, calibrated by
-    # pretrain: ~2x faster on a CPU; CPU only; docs/results.md, Performance); saved in policy.json
+    # pretrain: ~2x faster on a CPU; CPU only; docs/results.md, Performance) | auto (bf16 where the device has native
+    # bfloat16, else fp32); saved in policy.json as the precision it resolved to
     encoder_precision: str = "fp32"
     # pretrained intention model DATA_DIR/checkpoints/<intention>/ (icrowdnav pretrain-intention): the lookahead head
     # of a variant with poses (full, no_bev) predicts the people it tracks with it; "" = constant velocity (the
@@ -574,7 +575,9 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     space = observer.observation_space
     net = student_net(cfg, observer.grid)
     extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir),
-             **({"encoder_precision": cfg.encoder_precision} if enc_dir else {})}
+             **({"encoder_precision": resolve_encoder_precision(cfg.encoder_precision, "train.encoder_precision",
+                                                                 resolve_device(cfg.device, "train.device"))}
+                if enc_dir else {})}
     pairs = [(s, float(x)) for s in d.scenes for x in d.densities]
     n_rot = cfg.sim.robot.n_rotations  # yaw rates of the action grid (mirroring reverses them)
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)

@@ -117,6 +117,18 @@ def test_unknown_method_and_missing_checkpoint_are_clear_errors(tmp_path):
     assert expert.encoder_precision is None
 
 
+def test_auto_encoder_precision_resolves_once_on_this_machine(monkeypatch):
+    import pretrain.quantize as quantize
+    from evaluation.stage import EvalConfig, encoder_precision_of
+
+    assert encoder_precision_of(EvalConfig()) is None  # none: every student as trained
+    monkeypatch.setattr(quantize, "native_bf16", lambda device: True)
+    assert encoder_precision_of(EvalConfig(encoder_precision="auto")) == "bf16"
+    monkeypatch.setattr(quantize, "native_bf16", lambda device: False)
+    assert encoder_precision_of(EvalConfig(encoder_precision="auto")) == "fp32"
+    assert encoder_precision_of(EvalConfig(encoder_precision="int8")) == "int8"
+
+
 @pytest.mark.parametrize("args,match", [
     (["--methods", "[expert, nosuch]"], "unknown method 'nosuch'"),
     (["--methods", "[full]"], "no finished policy checkpoint"),
@@ -133,7 +145,7 @@ def test_unknown_method_and_missing_checkpoint_are_clear_errors(tmp_path):
     (["--method_episodes", "{{dwa: 2.5}}"], "method_episodes"),
     (["--method_episodes", "{{nosuch: 1}}"], "eval.method_episodes: expected method names of"),
     (["--sample_tau", "0"], "eval.sample_tau: expected none (argmax) or a temperature in [0.01, 100], got 0.0"),
-    (["--encoder_precision", "fp16"], "eval.encoder_precision: expected one of ['fp32', 'bf16', 'int8'], got 'fp16'"),
+    (["--encoder_precision", "fp16"], "eval.encoder_precision: expected one of ['auto', 'fp32', 'bf16', 'int8'], got 'fp16'"),
 ])
 def test_eval_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, match):
     """Through the CLI entry point in this process (``python -m pipeline`` itself is tested in test_cli)."""

@@ -24,6 +24,7 @@ from pretrain.quantize import (
     load_frozen_encoder,
     load_int8_encoder,
     quantize_encoder,
+    resolve_encoder_precision,
     save_calibration,
 )
 from tests.pretrain.test_model import L, cameras, sequence, tiny_config
@@ -117,7 +118,7 @@ def test_missing_or_mismatched_calibration_is_named(encoder, tmp_path: Path):
 
 def test_precision_values_are_checked(monkeypatch):
     assert check_precision("int8", "train.encoder_precision") == "int8"
-    with pytest.raises(ConfigError, match="train.encoder_precision: expected one of \\['fp32', 'bf16', 'int8'\\], "
+    with pytest.raises(ConfigError, match="train.encoder_precision: expected one of \\['auto', 'fp32', 'bf16', 'int8'\\], "
                                           "got 'fp16'"):
         check_precision("fp16", "train.encoder_precision")
     # given the device the encoder runs on: int8 on a CPU only, bf16 only where bfloat16 is native
@@ -125,11 +126,28 @@ def test_precision_values_are_checked(monkeypatch):
     with pytest.raises(ConfigError, match="eval.encoder_precision: int8 runs on the CPU only, got device cuda"):
         check_precision("int8", "eval.encoder_precision", "cuda")
     monkeypatch.setattr(quantize, "native_bf16", lambda device: False)
-    with pytest.raises(ConfigError, match="eval.encoder_precision: expected fp32 or int8 on cpu, got 'bf16'"):
+    with pytest.raises(ConfigError, match="eval.encoder_precision: expected fp32, int8 or auto on cpu, got 'bf16'"):
         check_precision("bf16", "eval.encoder_precision", "cpu")
     assert check_precision("bf16", "eval.encoder_precision") == "bf16"  # no device named: the value alone
+    assert resolve_encoder_precision("auto", "eval.encoder_precision", "cpu") == "fp32"  # auto: fp32 without it
     monkeypatch.setattr(quantize, "native_bf16", lambda device: True)
     assert check_precision("bf16", "eval.encoder_precision", "cpu") == "bf16"
+    assert resolve_encoder_precision("auto", "eval.encoder_precision", "cpu") == "bf16"  # ... bf16 with it
+    for value in ("fp32", "int8", "bf16"):  # a concrete value is its own resolution
+        assert resolve_encoder_precision(value, "eval.encoder_precision", "cpu") == value
+    with pytest.raises(ConfigError, match="eval.encoder_precision: int8 runs on the CPU only"):
+        resolve_encoder_precision("int8", "eval.encoder_precision", "cuda")
+
+
+def test_auto_precision_loads_the_encoder_it_resolves_to(encoder, tmp_path: Path, monkeypatch):
+    ckpt = tmp_path / "bev"
+    ckpt.mkdir()
+    write_encoder_checkpoint(ckpt, encoder, PretextHeads(encoder.cfg.bev_channels), {})
+    (ckpt / "manifest.json").write_text("{}")  # a finished output (unlisted files unverified)
+    monkeypatch.setattr(quantize, "native_bf16", lambda device: False)
+    assert type(load_frozen_encoder(ckpt, "auto")) is BEVEncoder
+    monkeypatch.setattr(quantize, "native_bf16", lambda device: True)
+    assert isinstance(load_frozen_encoder(ckpt, "auto"), BF16BEVEncoder)
 
 
 @pytest.mark.skipif(not native_bf16("cpu"), reason="this CPU has no native bfloat16 (AVX512-BF16 or AMX)")
