@@ -86,6 +86,8 @@ def make_env(job: Job) -> gym.Env:
     over = job.method.env_overrides()
     if rendered:
         over["obs_mode"] = "visual"
+    if job.mcap:
+        over["detect_poses"] = True  # the episode's log holds the detections (recorder.schema)
     where = {"scenario": job.scenario} if job.scenario else {"scene": job.scene, "scenario": ""}
     cfg = replace(job.sim, **where, density=job.density, info_level="full" if job.mcap else "basic", **over)
     env: gym.Env = CrowdNavEnv(config=cfg, render_mode="rgb_array" if job.video else None)

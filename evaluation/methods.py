@@ -64,9 +64,10 @@ class MethodSpec:
     shield_s: float | None = None  # kind == policy: the lookahead head's obstacle shield instead of the saved one
     sample_tau: float | None = None  # kind == policy: sample softmax(logits / τ) per step instead of the argmax
     encoder_precision: str | None = None  # kind == policy (students): the frozen encoder's precision, not the saved
+    poses: bool = True  # visual: whether the driver reads the detected poses (False: the env skips its detector)
 
     def env_overrides(self) -> dict[str, Any]:
-        return {"obs_mode": self.obs_mode, "action_type": self.action_type}
+        return {"obs_mode": self.obs_mode, "action_type": self.action_type, "detect_poses": self.poses}
 
     def driver(self) -> Driver:
         return _DRIVER_FACTORIES[self.kind](self)
@@ -86,6 +87,7 @@ _BUILTIN: dict[str, tuple[str, str, str, bool]] = {
     "no_bev": ("w/o BEV", "policy", "visual", False),
     "dwa": ("DWA", "dwa", "visual", False),
 }
+_NO_POSES = {"dwa"}  # built-in methods whose driver reads no detected poses (DWA: the depth images only)
 _REGISTERED: dict[str, Callable[[Path], MethodSpec]] = {}
 METHOD_NAMES = tuple(_BUILTIN)
 
@@ -126,8 +128,9 @@ def spec_from_checkpoint(ckpt: Path, name: str | None = None) -> MethodSpec:
     name = name or Path(ckpt).name
     env = checkpoint_env(Path(ckpt))
     if desc["kind"] == "baseline":
-        return MethodSpec(name, BASELINES[desc["variant"]].label, "baseline", env["obs_mode"], False, Path(ckpt),
-                          env["action_type"])
+        info = BASELINES[desc["variant"]]
+        return MethodSpec(name, info.label, "baseline", env["obs_mode"], False, Path(ckpt), env["action_type"],
+                          poses=info.poses)
     return MethodSpec(name, name, "policy", env["obs_mode"], checkpoint=Path(ckpt), action_type=env["action_type"])
 
 
@@ -148,7 +151,7 @@ def resolve_methods(names: list[str], data_dir: Path, shield_s: float | None = N
         if name in BASELINES:
             info = BASELINES[name]
             out.append(MethodSpec(name, info.label, "baseline", info.obs_mode, False, _checkpoint(data_dir, name),
-                                  info.action_type))
+                                  info.action_type, poses=info.poses))
             continue
         if name not in _BUILTIN:
             raise ConfigError(f"eval.methods: unknown method {name!r}; known: {available_methods()}")
@@ -159,7 +162,7 @@ def resolve_methods(names: list[str], data_dir: Path, shield_s: float | None = N
         out.append(MethodSpec(name, label, kind, obs_mode, ref, ckpt,
                               "discrete" if kind == "policy" else "continuous",
                               shield_s if kind == "policy" else None, sample_tau if kind == "policy" else None,
-                              encoder_precision if kind == "policy" else None))
+                              encoder_precision if kind == "policy" else None, name not in _NO_POSES))
     if len({m.name for m in out}) != len(out):
         raise ConfigError(f"eval.methods: duplicate names in {names}")
     return out

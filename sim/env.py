@@ -15,7 +15,8 @@ Observations (``obs_mode``):
 
 * ``visual`` (the paper's policy input): ``rgb_left``/``rgb_right`` (H x W x 3 uint8), ``depth_left``/
   ``depth_right`` (H x W float32, z-depth in m, 0 = invalid), ``poses`` (6 x 17 x 3 float32, detected COCO-17
-  joints in the robot frame, m), ``pose_mask`` (6 x 17 uint8), ``state`` and ``odom``;
+  joints in the robot frame, m), ``pose_mask`` (6 x 17 uint8) — both only with ``detect_poses`` (the default) —,
+  ``state`` and ``odom``;
 * ``state``: ``state`` and ``odom`` only (no rendering; the fastest mode);
 * ``privileged`` (for the teacher): ``state``, ``odom``, ``peds`` (K x 6: x, y, vx, vy in the robot frame,
   radius, present — nearest first), ``scan`` (a range scan of the static map, m) and ``subgoal`` (the point
@@ -121,6 +122,8 @@ class SimConfig:
     #                               twice the time (0: the limit is max_episode_s alone; the benchmark uses 5)
     goal_radius_m: float = 0.3  # success when the robot centre is this close to the goal (paper: ρ_robot)
     obs_mode: Literal["visual", "state", "privileged"] = "visual"  # what observations hold (module doc)
+    detect_poses: bool = True  # visual: run the pose detector (poses, pose_mask); False: neither key and no detector
+    #                            (for drivers that read only the images: DWA, ViNT-style; ≈ 3 ms of a step saved)
     action_type: Literal["continuous", "discrete"] = "continuous"  # Box([-1, 1]²) or the 5 × 21 grid
     privileged_peds: int = 10  # pedestrians in the privileged observation
     scan_rays: int = 72  # rays of the static-map range scan (360°)
@@ -214,6 +217,7 @@ class CrowdNavEnv(gym.Env):
         else:
             self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.layout: SceneLayout | None = None
+        self.last_detections = None  # the pose detector's latest output (visual obs with detect_poses; recorder)
 
     # ------------------------------------------------------------------------------------------------ spaces
     def _make_obs_space(self) -> spaces.Dict:
@@ -229,8 +233,9 @@ class CrowdNavEnv(gym.Env):
             for name in CAMERA_NAMES:
                 d[f"rgb_{name}"] = spaces.Box(0, 255, (h, w, 3), np.uint8)
                 d[f"depth_{name}"] = spaces.Box(0.0, np.float32(c.camera.max_depth_m), (h, w), np.float32)
-            d["poses"] = spaces.Box(-big, big, (k, 17, 3), np.float32)
-            d["pose_mask"] = spaces.Box(0, 1, (k, 17), np.uint8)
+            if c.detect_poses:
+                d["poses"] = spaces.Box(-big, big, (k, 17, 3), np.float32)
+                d["pose_mask"] = spaces.Box(0, 1, (k, 17), np.uint8)
         elif c.obs_mode == "privileged":
             d["peds"] = spaces.Box(-big, big, (c.privileged_peds, 6), np.float32)
             d["scan"] = spaces.Box(0.0, np.float32(c.scan_range_m), (c.scan_rays,), np.float32)
@@ -424,10 +429,11 @@ class CrowdNavEnv(gym.Env):
                 obs[f"rgb_{spec.name}"] = rgb
                 obs[f"depth_{spec.name}"] = depth
                 frames.append(CameraFrame(spec, T, spec.T_base_cam, rgb, depth))
-            det = self.detector.detect(frames, {"keypoints_world": self.keypoints_world()}, self.det_rng)
-            self.last_detections = det
-            obs["poses"] = det.poses.astype(np.float32)
-            obs["pose_mask"] = det.joint_mask.astype(np.uint8)
+            if c.detect_poses:
+                det = self.detector.detect(frames, {"keypoints_world": self.keypoints_world()}, self.det_rng)
+                self.last_detections = det
+                obs["poses"] = det.poses.astype(np.float32)
+                obs["pose_mask"] = det.joint_mask.astype(np.uint8)
         elif c.obs_mode == "privileged":
             obs["peds"] = self.privileged_peds()
             obs["scan"] = self.static_scan().astype(np.float32)

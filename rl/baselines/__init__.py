@@ -20,13 +20,15 @@ class BaselineInfo:
     obs_mode: str  # the env obs mode its driver needs at evaluation: privileged (no rendering) | visual
     action_type: str  # the env action space its driver returns actions in: continuous | discrete
     cite: str  # the original paper
+    poses: bool = True  # visual: whether its driver reads the detected poses (False: evaluation skips the detector)
 
 
 BASELINES: dict[str, BaselineInfo] = {
     "drl_vo": BaselineInfo("DRL-VO", "privileged", "continuous", "Xie & Dames, T-RO 2023"),
     "sarl_om": BaselineInfo("SARL*-OM", "privileged", "discrete",
                             "Chen et al. ICRA 2019 + Liu et al. IROS 2020 + Samsani & Muhammad RA-L 2021"),
-    "vint": BaselineInfo("ViNT-style (trained on our data)", "visual", "continuous", "Shah et al. CoRL 2023"),
+    "vint": BaselineInfo("ViNT-style (trained on our data)", "visual", "continuous", "Shah et al. CoRL 2023",
+                         poses=False),  # the two RGB images only
 }
 
 

@@ -65,6 +65,25 @@ def test_one_episode_writes_trace_figure_and_a_readable_mcap(tmp_path):
     assert "/robot/state" in topics and n == row["steps"] + 1
 
 
+def test_methods_that_read_no_poses_skip_the_detector_and_drive_the_same(tmp_path):
+    """DWA (depth) and ViNT-style (RGB) read no detected poses: their envs run no pose detector — the observation
+    has no poses — and the episode is the one the detector's env gives, row for row; an episode logged to MCAP
+    keeps the detector (the log holds the detections)."""
+    from rl.baselines import BASELINES
+
+    (dwa,) = resolve_methods(["dwa"], tmp_path)
+    assert not dwa.poses and not BASELINES["vint"].poses and BASELINES["drl_vo"].poses
+    job = Job(dwa, TINY, "office_lobby", 0.2, 11, tmp_path / "a")
+    env = make_env(job)
+    obs, _ = env.reset(seed=11, options=reset_options(job))
+    assert "poses" not in obs and "pose_mask" not in obs and "depth_left" in obs
+    assert set(obs) == set(env.observation_space.spaces)
+    env.close()
+    assert make_env(replace(job, mcap=True)).unwrapped.cfg.detect_poses
+    with_detector = run_episode(replace(job, method=replace(dwa, poses=True), out=tmp_path / "b"))
+    assert run_episode(job) == with_detector and with_detector["steps"] > 0
+
+
 def test_rendered_episode_of_a_privileged_method_gives_the_same_row_and_a_video(tmp_path):
     """The expert keeps its privileged world when the episode is rendered for a video and a log (its driver has
     no BEV panel: the video goes without it), and drives exactly as without rendering."""

@@ -27,6 +27,7 @@ def state_env(scene="office_lobby", density=0.1, **kw) -> CrowdNavEnv:
 
 
 MODES = [pytest.param(dict(obs_mode="visual", config=SMALL_CAM), id="visual"),
+         pytest.param(dict(obs_mode="visual", config=SMALL_CAM, detect_poses=False), id="visual-no-poses"),
          pytest.param(dict(obs_mode="privileged"), id="privileged"),
          pytest.param(dict(obs_mode="state"), id="state")]
 
@@ -76,7 +77,7 @@ def run_episode(env, seed, actions, images=False):
         rewards.append(r)
         if images:
             imgs.append({k: obs[k].copy() for k in ("rgb_left", "rgb_right", "depth_left", "depth_right",
-                                                   "poses", "pose_mask")})
+                                                   "poses", "pose_mask") if k in obs})
         if term or trunc:
             break
     return np.array(poses), np.array(peds), imgs, rewards
@@ -103,6 +104,20 @@ def test_same_seed_same_trajectory_and_images_other_seed_differs():
     assert a[2][0]["rgb_left"].tobytes() != other[2][0]["rgb_left"].tobytes()
     env_a.close()
     env_b.close()
+
+
+def test_visual_mode_without_the_detector_gives_the_same_images_and_no_poses():
+    actions = [np.array([0.6, 0.1 * k - 0.5], np.float32) for k in range(12)]
+    a = run_episode(CrowdNavEnv(scene="office_lobby", density=0.2, obs_mode="visual", config=SMALL_CAM), 4, actions,
+                    images=True)
+    env = CrowdNavEnv(scene="office_lobby", density=0.2, obs_mode="visual", config=SMALL_CAM, detect_poses=False)
+    b = run_episode(env, 4, actions, images=True)
+    assert env.last_detections is None and "poses" not in env.observation_space.spaces
+    np.testing.assert_array_equal(a[0], b[0])
+    for fa, fb in zip(a[2], b[2], strict=True):
+        assert set(fa) - set(fb) == {"poses", "pose_mask"}
+        for k in fb:
+            assert fa[k].tobytes() == fb[k].tobytes(), k
 
 
 def test_state_mode_is_deterministic_and_matches_visual_mode_dynamics():
