@@ -286,10 +286,13 @@ def bev_stats(data: dict[str, np.ndarray], max_frames: int = 2000) -> tuple[torc
     return torch.from_numpy(sub.mean((0, 2, 3))), torch.from_numpy(sub.std((0, 2, 3)))
 
 
-def export_iteration(iter_dir: Path, repo_id: str, progress: bool = True) -> dict[str, Any]:
-    """The iteration's MCAP logs → ``iter_dir/dataset`` (a validated LeRobot dataset with ``action.teacher``)."""
+def export_iteration(iter_dir: Path, repo_id: str, progress: bool = True, shards: int = 1,
+                     executor: Executor | None = None, **kwargs: Any) -> dict[str, Any]:
+    """The iteration's MCAP logs → ``iter_dir/dataset`` (a validated LeRobot dataset with ``action.teacher``), in
+    ``shards`` parallel blocks on ``executor`` merged by lerobot as ``make record``'s export does (fewer for a small
+    iteration: :data:`recorder.export.MIN_SHARD_FRAMES`; ``kwargs``: :func:`recorder.export.export_dataset`'s)."""
     return export_run(Path(iter_dir) / "raw", Path(iter_dir) / "dataset", repo_id, overwrite=True,
-                      progress=progress)
+                      progress=progress, shards=shards, executor=executor, **kwargs)
 
 
 def write_done(iter_dir: Path, info: dict[str, Any]) -> None:

@@ -615,7 +615,8 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                  "intention": str(int_dir) if int_dir else None}
                 for e in range(d.episodes_per_iter)]
         rows = run_iteration(it, jobs, cfg.workers, cfg.progress, Executor.of(cfg))
-        counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress)
+        counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress, cfg.workers,
+                                  Executor.of(cfg))
         # the intention model on this student's rollouts so far, from the pretrained weights every time
         tuned = _tune_intention(cfg, out, k, device) if tune else None
         if tuned and "skipped" not in tuned:

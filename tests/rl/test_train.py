@@ -175,8 +175,10 @@ def test_dagger_iteration_writes_a_loadable_dataset_and_lowers_bc_loss(tmp_path,
     assert not list((it / "raw").glob("*.partial"))
     assert [r["student_steps"] for r in rows] == [0, 0]  # beta = 1: the teacher drove
     assert sorted(p.name for p in (it / "raw").glob("*.mcap")) == ["hallway_d0.1_s1.mcap", "hallway_d0.1_s2.mcap"]
-    counts = export_iteration(it, "icrowdnav/dagger_test", progress=False)
+    # in two shards merged by lerobot, as train exports an iteration of default size (min_shard_frames: tiny here)
+    counts = export_iteration(it, "icrowdnav/dagger_test", progress=False, shards=2, min_shard_frames=1)
     ds = LeRobotDataset("icrowdnav/dagger_test", root=it / "dataset")
+    assert counts["shards"] == 2
     assert ds.meta.total_episodes == 2 and ds.meta.total_frames == counts["frames"]
     assert "action.teacher" in ds.features
     data = load_features([it])
