@@ -311,7 +311,7 @@ def check_precision(value: str, where: str, device: torch.device | str | None = 
         if value == "int8" and device.type != "cpu":
             raise ConfigError(f"{where}: int8 runs on the CPU only, got device {device}; use fp32 or bf16 there")
         if value == "bf16" and not native_bf16(device):
-            raise ConfigError(f"{where}: expected fp32, int8 or auto on {device}, got 'bf16': this device has no native "
-                              "bfloat16 (a CPU without AVX512-BF16 or AMX, or an older GPU), where it is emulated and "
+            raise ConfigError(f"{where}: expected fp32, int8 or auto on {device}, got 'bf16': this device has no "
+                              "native bfloat16 (a CPU without AVX512-BF16 or AMX, or an older GPU), where it is emulated and "
                               "slower than float32")
     return value

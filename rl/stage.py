@@ -574,14 +574,13 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                                 map_heads=load_student_heads(cfg.variant, cfg.head, cfg.map_cost, enc_dir, encoder))
     space = observer.observation_space
     net = student_net(cfg, observer.grid)
+    device = resolve_device(cfg.device, "train.device")
     extra = {"encoder": str(enc_dir) if enc_dir else None, "teacher": str(teacher_dir),
              **({"encoder_precision": resolve_encoder_precision(cfg.encoder_precision, "train.encoder_precision",
-                                                                 resolve_device(cfg.device, "train.device"))}
-                if enc_dir else {})}
+                                                                 device)} if enc_dir else {})}
     pairs = [(s, float(x)) for s in d.scenes for x in d.densities]
     n_rot = cfg.sim.robot.n_rotations  # yaw rates of the action grid (mirroring reverses them)
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
-    device = resolve_device(cfg.device, "train.device")
     torch.manual_seed(cfg.seed)
     # the obstacle shield (net["shield_s"]) filters the saved policy's actions — DAgger rollouts, acceptance, eval,
     # PPO — but is not part of the distribution cloned from the teacher: a teacher action the student's perceived
@@ -614,9 +613,9 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                  "map_cost": cfg.map_cost, "encoder_precision": cfg.encoder_precision,
                  "intention": str(int_dir) if int_dir else None}
                 for e in range(d.episodes_per_iter)]
-        rows = run_iteration(it, jobs, cfg.workers, cfg.progress, Executor.of(cfg))
-        counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress, cfg.workers,
-                                  Executor.of(cfg))
+        ex = Executor.of(cfg)
+        rows = run_iteration(it, jobs, cfg.workers, cfg.progress, ex)
+        counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress, cfg.workers, ex)
         # the intention model on this student's rollouts so far, from the pretrained weights every time
         tuned = _tune_intention(cfg, out, k, device) if tune else None
         if tuned and "skipped" not in tuned:
