@@ -11,6 +11,12 @@ the profile's cameras).
 * ``bev_stream_ms_per_step_fuse_pool2`` / ``bev_stream_speedup_fuse_pool2`` — the same streaming step with the
   temporal model and decoder on the 2 x 2 pooled grid (``encoder.fuse_pool: 2``), timed in alternation with the
   profile's encoder on the same frames (only when the profile's encoder fuses at full resolution).
+* ``bev_stream_ms_per_step_nchw_trunk`` / ``bev_stream_speedup_channels_last`` — the streaming step with the image
+  trunk on NCHW tensors (:class:`NCHWTrunkEncoder`, the layout before the trunk ran channels-last), timed in
+  alternation with the profile's encoder on the same frames and weights, outputs compared first;
+  ``trunk_train_ms_nchw`` / ``trunk_train_ms_channels_last`` / ``trunk_train_speedup_channels_last`` — forward +
+  backward of the trunk and neck on a pretraining batch's images (``clips_per_batch`` x ``clip_frames`` frames of
+  every camera), every thread, alternating.
 * ``pretrain_step_ms_<device>`` — one optimisation step of :func:`pretrain.train.fit` (forward, masked BCE,
   backward, AdamW; the profile's ``clips_per_batch`` x ``clip_frames``) on a synthetic frame store of the cameras'
   size, every thread the machine has, median of the steps after the first two (:func:`measure_fit_step`); with a
@@ -25,6 +31,7 @@ the weights); the frames come from the bench scene rendered at the profile's cam
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -58,6 +65,41 @@ from pretrain.intention import (
 from pretrain.model import LEGACY_ENCODER, BEVEncoder, BEVStream, EncoderConfig, PretextHeads
 from pretrain.stage import PretrainConfig
 from pretrain.train import FitConfig, fit
+
+
+class NCHWTrunkEncoder(BEVEncoder):
+    """The reference of ``bev_stream_speedup_channels_last``: :class:`BEVEncoder` with its image trunk on NCHW
+    tensors (the same weights and arithmetic; only the memory layout the convolutions and the stem's max-pool see)."""
+
+    def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
+        f = self.neck(self.trunk(self.normalize(rgb))).float()
+        if tuple(f.shape[-2:]) != tuple(self.geom.lift_hw):
+            f = torch.nn.functional.interpolate(f, size=tuple(self.geom.lift_hw), mode="bilinear",
+                                                align_corners=False)
+        return f
+
+
+def measure_trunk_layout(encoder: BEVEncoder, images: int, seed: int = 0, rounds: int = 3) -> dict[str, float]:
+    """Forward + backward of ``encoder``'s trunk and neck on ``images`` random frames of its cameras' size, the input
+    channels-last (what :meth:`BEVEncoder.image_features` does) vs NCHW, alternating ``rounds`` times (the fastest
+    of two steps each), with the threads the caller set; on a copy of the trunk (``encoder`` is left untouched)."""
+    c = encoder.cameras[0]
+    g = torch.Generator().manual_seed(seed)
+    x0 = torch.rand(images, 3, c.height, c.width, generator=g)
+    net = copy.deepcopy(torch.nn.Sequential(encoder.trunk, encoder.neck)).train()  # the caller's stays as it is
+    times: dict[str, list[float]] = {"nchw": [], "channels_last": []}
+
+    def step(x: torch.Tensor) -> float:
+        t = time.perf_counter()
+        net(x).sum().backward()
+        return time.perf_counter() - t
+
+    for _ in range(rounds):
+        for layout, x in (("nchw", x0), ("channels_last", x0.contiguous(memory_format=torch.channels_last))):
+            times[layout].append(min(step(x), step(x)))
+    out = {f"trunk_train_ms_{k}": 1000.0 * float(np.median(v)) for k, v in times.items()}
+    out["trunk_train_speedup_channels_last"] = out["trunk_train_ms_nchw"] / out["trunk_train_ms_channels_last"]
+    return out
 
 
 def _ms(fn, seconds: float) -> float:
@@ -135,15 +177,32 @@ def measure_bev(sim_cfg: Any, scene: str, density: float, seed: int, encoder_cfg
                     pooled_ms.append(_ms(lambda: pooled.step(*window[-1]), seconds / 6))
                 out["bev_stream_ms_per_step_fuse_pool2"] = float(np.median(pooled_ms))
                 out["bev_stream_speedup_fuse_pool2"] = float(np.median(full_ms) / np.median(pooled_ms))
+            ref = NCHWTrunkEncoder(encoder_cfg, cameras).eval()
+            ref.load_state_dict(enc.state_dict())
+            nchw = BEVStream(ref)
+            for w in window:
+                s_ref = nchw.step(*w)
+            if not torch.allclose(s, s_ref, atol=1e-4, rtol=1e-4):
+                raise RuntimeError("the NCHW-trunk reference disagrees with the channels-last encoder")
+            cl_ms, nchw_ms = [], []
+            for _ in range(3):  # alternating, as above
+                cl_ms.append(_ms(lambda: stream.step(*window[-1]), seconds / 6))
+                nchw_ms.append(_ms(lambda: nchw.step(*window[-1]), seconds / 6))
+            out["bev_stream_ms_per_step_nchw_trunk"] = float(np.median(nchw_ms))
+            out["bev_stream_speedup_channels_last"] = float(np.median(nchw_ms) / np.median(cl_ms))
         out["bev_stream_speedup_vs_recompute"] = out["bev_recompute_ms_per_step"] / out["bev_stream_ms_per_step"]
         out["bev_stream_hz"] = 1000.0 / out["bev_stream_ms_per_step"]
         out["bev_grid_cells"] = float(np.prod(enc.grid.shape))
         out["bev_channels"] = float(encoder_cfg.bev_channels)
     finally:
         torch.set_num_threads(prev)
+    out.update(measure_trunk_layout(enc, FIT_BATCH_IMAGES_PER_CAMERA * len(cameras), seed))  # every thread
     devices = ["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"]
     out.update(measure_fit_steps(cameras, encoder_cfg, devices, steps=6))  # every thread: training's setting
     return out
+
+
+FIT_BATCH_IMAGES_PER_CAMERA = 4 * 8  # measure_fit_step's default clips_per_batch x clip_frames
 
 
 def measure_fit_step(cameras: list[Camera], encoder_cfg: Any, device: str, *, steps: int = 12, clips_per_batch: int = 4,

@@ -1,4 +1,5 @@
-"""The pretraining step benchmark (``pretrain.bench.measure_fit_steps``; figures, no timing assertions)."""
+"""The pretraining step benchmark (``pretrain.bench.measure_fit_steps``) and the trunk-layout pair
+(``measure_trunk_layout``); figures, no timing assertions."""
 
 from __future__ import annotations
 
@@ -7,9 +8,9 @@ import math
 
 import pytest
 
-from pretrain.bench import main, measure_fit_steps
+from pretrain.bench import main, measure_fit_steps, measure_trunk_layout
 from pretrain.geometry import cameras_from_dataset
-from pretrain.model import EncoderConfig
+from pretrain.model import BEVEncoder, EncoderConfig
 from tests.pretrain.test_train import ENC
 
 
@@ -61,3 +62,17 @@ def test_intention_fit_figures_from_a_samples_file(tmp_path) -> None:
     assert out["intention_epochs"] == 1 and 0 < out["intention_train_samples"] < 60
     assert out["intention_fit_s_cpu"] > 0 and math.isfinite(out["intention_val_fde_last_m_cpu"])
     assert "intention_fit_speedup_cuda_vs_cpu" not in out  # one device: no ratio
+
+
+def test_trunk_layout_figures_leave_the_encoder_as_they_found_it(tiny_dataset) -> None:
+    import torch
+
+    enc = BEVEncoder(EncoderConfig(**ENC), cameras_from_dataset(tiny_dataset.root)).eval()
+    before = {k: v.clone() for k, v in enc.state_dict().items()}
+    out = measure_trunk_layout(enc, images=2, rounds=1)
+    assert set(out) == {"trunk_train_ms_nchw", "trunk_train_ms_channels_last", "trunk_train_speedup_channels_last"}
+    assert all(math.isfinite(v) and v > 0 for v in out.values())
+    assert out["trunk_train_speedup_channels_last"] == out["trunk_train_ms_nchw"] / out["trunk_train_ms_channels_last"]
+    # measured on a copy: the encoder's weights, BatchNorm statistics, gradients and mode are untouched
+    assert not enc.training and all(p.grad is None for p in enc.parameters())
+    assert all(torch.equal(v, before[k]) for k, v in enc.state_dict().items())

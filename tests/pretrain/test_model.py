@@ -118,6 +118,28 @@ def test_streaming_equals_batch(encoder):
     assert (alone - outs[-1]).abs().max() > 1e-2
 
 
+def test_image_trunk_runs_channels_last_with_the_nchw_result(encoder):
+    """image_features feeds the trunk channels-last (faster on the CPU) and returns contiguous features equal to the
+    NCHW trunk's (pretrain.bench.NCHWTrunkEncoder, same weights), in eval and in training mode."""
+    from pretrain.bench import NCHWTrunkEncoder
+
+    ref = NCHWTrunkEncoder(encoder.cfg, encoder.cameras).eval()
+    ref.load_state_dict(encoder.state_dict())
+    seen = []
+    hook = encoder.trunk[0].register_forward_pre_hook(lambda m, a: seen.append(a[0].is_contiguous(
+        memory_format=torch.channels_last)))
+    rgb = sequence(1, seed=3)[0][0, 0]
+    try:
+        with torch.no_grad():
+            out = encoder.image_features(rgb)
+            expected = ref.image_features(rgb)
+    finally:
+        hook.remove()
+    assert seen == [True] and out.is_contiguous()
+    assert out.abs().sum() > 0
+    torch.testing.assert_close(out, expected, rtol=1e-5, atol=1e-5)
+
+
 def test_streaming_equals_batch_for_a_batch_of_streams(encoder):
     """B = 2 independent streams in one step call give the same as the batch forward of each window."""
     rgb, depth, poses = sequence(2, seed=1)
