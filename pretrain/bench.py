@@ -16,7 +16,8 @@ the profile's cameras).
   alternation with the profile's encoder on the same frames and weights, outputs compared first;
   ``trunk_train_ms_nchw`` / ``trunk_train_ms_channels_last`` / ``trunk_train_speedup_channels_last`` — forward +
   backward of the trunk and neck on a pretraining batch's images (``clips_per_batch`` x ``clip_frames`` frames of
-  every camera), every thread, alternating.
+  every camera), every thread, alternating: the layout's gain that training does not take (it keeps NCHW,
+  docs/notes/2026-12-channels-last-trunk.md).
 * ``pretrain_step_ms_<device>`` — one optimisation step of :func:`pretrain.train.fit` (forward, masked BCE,
   backward, AdamW; the profile's ``clips_per_batch`` x ``clip_frames``) on a synthetic frame store of the cameras'
   size, every thread the machine has, median of the steps after the first two (:func:`measure_fit_step`); with a
@@ -69,7 +70,8 @@ from pretrain.train import FitConfig, fit
 
 class NCHWTrunkEncoder(BEVEncoder):
     """The reference of ``bev_stream_speedup_channels_last``: :class:`BEVEncoder` with its image trunk on NCHW
-    tensors (the same weights and arithmetic; only the memory layout the convolutions and the stem's max-pool see)."""
+    tensors in eval mode too (the same weights and arithmetic; only the memory layout the convolutions and the
+    stem's max-pool see)."""
 
     def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
         f = self.neck(self.trunk(self.normalize(rgb))).float()

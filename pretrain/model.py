@@ -229,11 +229,15 @@ class BEVEncoder(nn.Module):
 
     def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
         """``M x 3 x H x W`` images (uint8 or float in [0, 1]) → ``M x C x h x w`` features at the lift pixels."""
-        # channels-last through the trunk: this torch's CPU max-pool (the stem's) is ≈ 15x slower on NCHW (5.5 vs
-        # 0.35 ms at 2 x 64 x 60 x 80, one thread) and mkldnn convolves channels-last without reordering — the
-        # encoder's streaming step 1.12-1.18x, the trunk's training step 1.17-1.27x (docs/results.md, Performance).
+        x = self.normalize(rgb)
+        if not self.training:
+            # inference channels-last through the trunk: this torch's CPU max-pool (the stem's) is ≈ 15x slower on
+            # NCHW (5.5 vs 0.35 ms at 2 x 64 x 60 x 80, one thread) and mkldnn convolves channels-last without
+            # reordering — the streaming step 1.14x (docs/results.md, Performance). Training keeps NCHW: the one
+            # pretraining run with channels-last left an encoder whose int8 version lost its static map
+            # (docs/notes/2026-12-channels-last-trunk.md)
+            x = x.contiguous(memory_format=torch.channels_last)
         # float32 and contiguous out: under bf16 autocast (pretrain.precision) the geometry that follows stays float32
-        x = self.normalize(rgb).contiguous(memory_format=torch.channels_last)
         f = self.neck(self.trunk(x)).float().contiguous()
         if tuple(f.shape[-2:]) != tuple(self.geom.lift_hw):
             f = F.interpolate(f, size=tuple(self.geom.lift_hw), mode="bilinear", align_corners=False)

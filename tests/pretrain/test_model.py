@@ -4,6 +4,7 @@ config validation (tiny 64 x 48 cameras, an 8-channel 20 x 32 grid, eval mode). 
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -119,8 +120,8 @@ def test_streaming_equals_batch(encoder):
 
 
 def test_image_trunk_runs_channels_last_with_the_nchw_result(encoder):
-    """image_features feeds the trunk channels-last (faster on the CPU) and returns contiguous features equal to the
-    NCHW trunk's (pretrain.bench.NCHWTrunkEncoder, same weights), in eval and in training mode."""
+    """In eval mode image_features feeds the trunk channels-last (faster on the CPU) and returns contiguous features
+    equal to the NCHW trunk's (pretrain.bench.NCHWTrunkEncoder, same weights); training mode keeps NCHW."""
     from pretrain.bench import NCHWTrunkEncoder
 
     ref = NCHWTrunkEncoder(encoder.cfg, encoder.cameras).eval()
@@ -138,6 +139,12 @@ def test_image_trunk_runs_channels_last_with_the_nchw_result(encoder):
     assert seen == [True] and out.is_contiguous()
     assert out.abs().sum() > 0
     torch.testing.assert_close(out, expected, rtol=1e-5, atol=1e-5)
+    seen.clear()
+    training = copy.deepcopy(encoder).train()  # a copy: training mode moves the shared fixture's BatchNorm statistics
+    training.trunk[0].register_forward_pre_hook(lambda m, a: seen.append(a[0].is_contiguous()))
+    with torch.no_grad():
+        training.image_features(rgb)
+    assert seen == [True]  # NCHW-contiguous in training
 
 
 def test_streaming_equals_batch_for_a_batch_of_streams(encoder):

@@ -1,10 +1,11 @@
-"""Same-run A/B of the image trunk's memory layout (docs/results.md, Performance): BEVEncoder.image_features feeds
-the trunk channels-last; pretrain.bench.NCHWTrunkEncoder is the NCHW reference with the same weights.
+"""Same-run A/B of the image trunk's memory layout (docs/results.md, Performance; docs/notes/2026-12-channels-last-
+trunk.md): BEVEncoder.image_features feeds the trunk channels-last in eval mode; pretrain.bench.NCHWTrunkEncoder is
+the NCHW reference with the same weights.
 
 1. the students' streaming step (BEVStream.step, one stream, one thread, random frames, default encoder) in fp32
    and under the bf16 autocast (pretrain.quantize.BF16BEVEncoder), 3 alternating rounds of 16 steps (median);
-2. the default pretraining step (pretrain.bench.measure_fit_step, every thread, synthetic frames) with either body
-   of image_features, 3 alternating rounds of 4 steps.
+2. the default pretraining step (pretrain.bench.measure_fit_step, every thread, synthetic frames) with the trunk
+   NCHW (what training does) or channels-last (the layout training does not take), 3 alternating rounds of 4 steps.
 
 Run from the repository root: .venv/bin/python docs/notes/scripts/channels_last_ab.py"""
 import json
@@ -69,9 +70,19 @@ for rnd in range(3):
     print("stream round", rnd, {k: round(v[-1], 1) for k, v in stream.items()}, flush=True)
 torch.set_num_threads(threads)
 cl_body = M.BEVEncoder.image_features
+
+
+def channels_last_in_training(self, rgb):
+    x = self.normalize(rgb).contiguous(memory_format=torch.channels_last)
+    f = self.neck(self.trunk(x)).float().contiguous()
+    if tuple(f.shape[-2:]) != tuple(self.geom.lift_hw):
+        f = torch.nn.functional.interpolate(f, size=tuple(self.geom.lift_hw), mode="bilinear", align_corners=False)
+    return f
+
+
 fit = {"channels_last": [], "nchw": []}
 for rnd in range(3):
-    for k, body in (("nchw", NCHWTrunkEncoder.image_features), ("channels_last", cl_body)):
+    for k, body in (("nchw", NCHWTrunkEncoder.image_features), ("channels_last", channels_last_in_training)):
         M.BEVEncoder.image_features = body
         fit[k].append(measure_fit_step(cams, enc_cfg, "cpu", steps=4))
     print("fit round", rnd, {k: round(v[-1]) for k, v in fit.items()}, flush=True)
