@@ -28,6 +28,8 @@ thread (int8 ≈ 2×; docs/results.md, Performance).
 from __future__ import annotations
 
 import copy
+import json
+import math
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
@@ -43,12 +45,16 @@ with warnings.catch_warnings():  # torch >= 2.9 announces on import that FX quan
 
 from pipeline.core.device import native_bf16
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
-from pretrain.checkpoint import load_encoder, read_weights, save_tensors
+from pretrain.checkpoint import METRICS_JSON, load_encoder, read_weights, save_tensors
 from pretrain.model import BEVEncoder
 
 PRECISIONS = ("auto", "fp32", "bf16", "int8")  # auto: bf16 where the device has native bfloat16, else fp32
 CALIBRATION_FILE = "int8_calibration.safetensors"
 BACKEND = "x86"
+# the validation IoU (any pretext target, absolute) an int8 version may lose against its float encoder and still be
+# used: the int8 versions that worked lost <= 0.005, the two that failed 0.21 of the static map (docs/notes/
+# 2026-12-int8-encoder.md); `make pretrain` scores both on the validation frames and writes them to metrics.json
+INT8_MAX_IOU_DROP = 0.05
 
 
 class ImageNet(nn.Module):
@@ -257,10 +263,51 @@ def save_calibration(ckpt: Path, state: dict[str, torch.Tensor], meta: dict[str,
     return path
 
 
-def load_int8_encoder(ckpt: Path, encoder: BEVEncoder) -> QuantizedBEVEncoder:
-    """The int8 version of ``encoder`` (loaded from ``ckpt``) from the calibration saved beside it.
+def int8_iou_losses(metrics: dict) -> dict[str, tuple[float, float]]:
+    """The pretext targets whose int8 validation IoU in a pretraining's ``metrics`` (``metrics.json``: ``final`` the
+    float encoder's, ``int8`` its int8 version's) is more than :data:`INT8_MAX_IOU_DROP` below the float one's:
+    ``iou_<target>`` → ``(float, int8)``. Empty when the int8 version keeps the maps, or was not scored."""
+    final, int8 = metrics.get("final") or {}, metrics.get("int8") or {}
+    out = {}
+    for k, f in final.items():
+        q = int8.get(k)
+        if not k.startswith("iou_") or not isinstance(f, (int, float)) or not isinstance(q, (int, float)):
+            continue
+        if math.isfinite(f) and (not math.isfinite(q) or f - q > INT8_MAX_IOU_DROP):
+            out[k] = (float(f), float(q))
+    return out
+
+
+def check_int8_version(ckpt: Path) -> None:
+    """Refuses an int8 version that its pretraining's validation showed to lose the maps (:func:`int8_iou_losses`
+    on ``<ckpt>/metrics.json``; a checkpoint without that file or its ``int8`` scores passes unchecked).
 
     Raises:
+        ConfigError: naming the file, the field, the float and the int8 IoU and the allowed loss.
+        CorruptArtifactError: ``metrics.json`` is not JSON.
+    """
+    path = Path(ckpt) / METRICS_JSON
+    if not path.is_file():
+        return
+    try:
+        metrics = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise CorruptArtifactError(f"{path}: not readable JSON ({e}); re-run `make pretrain`") from e
+    losses = int8_iou_losses(metrics if isinstance(metrics, dict) else {})
+    if losses:
+        k, (f, q) = max(losses.items(), key=lambda kv: kv[1][0] - kv[1][1])
+        raise ConfigError(f"encoder_precision int8: the int8 version of {ckpt} loses the pretext maps on its "
+                          f"validation frames ({path}: int8.{k} {q:.3f} against final.{k} {f:.3f}, expected a "
+                          f"loss <= {INT8_MAX_IOU_DROP}); use encoder_precision fp32, bf16 or auto with this "
+                          "encoder")
+
+
+def load_int8_encoder(ckpt: Path, encoder: BEVEncoder) -> QuantizedBEVEncoder:
+    """The int8 version of ``encoder`` (loaded from ``ckpt``) from the calibration saved beside it, if its
+    pretraining's validation did not show it to lose the maps (:func:`check_int8_version`).
+
+    Raises:
+        ConfigError: the int8 version loses more than :data:`INT8_MAX_IOU_DROP` of validation IoU.
         InputMissingError: ``ckpt`` has no calibration (a checkpoint of code before int8 inference: re-run
             ``make pretrain``). CorruptArtifactError: unreadable, not matching its manifest, or another architecture.
     """
@@ -268,6 +315,7 @@ def load_int8_encoder(ckpt: Path, encoder: BEVEncoder) -> QuantizedBEVEncoder:
     if not path.is_file():
         raise InputMissingError(f"no int8 calibration {path} for encoder_precision int8: the BEV checkpoint predates "
                                 "int8 inference (re-run `make pretrain`), or use encoder_precision fp32")
+    check_int8_version(ckpt)
     state = read_weights(path, hint="re-run `make pretrain` to write it again")
     q = QuantizedBEVEncoder(encoder)
     return q.load_calibration({k: v for k, v in state.items()}, example_window(encoder), where=str(path))

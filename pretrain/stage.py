@@ -46,7 +46,7 @@ from pretrain.evaluate import CAL_THRESHOLDS, calibrate, episode_counts, turning
 from pretrain.figures import plot_curves, plot_fov, plot_sample
 from pretrain.geometry import check_grid_fits_cameras
 from pretrain.model import TARGETS, BEVEncoder, EncoderConfig, PretextHeads
-from pretrain.quantize import QuantizedBEVEncoder, save_calibration
+from pretrain.quantize import INT8_MAX_IOU_DROP, QuantizedBEVEncoder, int8_iou_losses, save_calibration
 from pretrain.train import LOSS_REGIONS, FitConfig, evaluate, fit, forward_batch
 
 log = logging.getLogger("icrowdnav")
@@ -199,6 +199,19 @@ def int8_version(encoder: BEVEncoder, heads: PretextHeads, store, train_slices, 
     return {"calibration_target_frames": n, "calibration_clips": len(picked), **metrics}
 
 
+def int8_verdict(final: dict, int8: dict | None) -> bool | None:
+    """Whether the int8 version keeps the float encoder's maps on the validation frames (None: no int8 version);
+    a warning names what it loses (encoder_precision int8 then refuses it: :func:`pretrain.quantize.check_int8_version`)."""
+    if int8 is None:
+        return None
+    losses = int8_iou_losses({"final": final, "int8": int8})
+    if losses:
+        log.warning("pretrain: the int8 version loses %s (float -> int8, allowed loss %.2f): encoder_precision int8 "
+                    "will refuse this encoder; fp32 / bf16 / auto are unaffected",
+                    ", ".join(f"{k} {f:.3f} -> {q:.3f}" for k, (f, q) in losses.items()), INT8_MAX_IOU_DROP)
+    return not losses
+
+
 def body(cfg: PretrainConfig, out: Path) -> dict:
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
     device = resolve_device(cfg.device, "pretrain.device")
@@ -251,7 +264,7 @@ def body(cfg: PretrainConfig, out: Path) -> dict:
     int8 = (int8_version(encoder, heads, store, train_slices, val_slices, fov, result["pos_weight"], cfg, out)
             if cfg.int8_calibration_frames else None)
     atomic_write_json(out / METRICS_JSON, {
-        "int8": int8,
+        "int8": int8, "int8_usable": int8_verdict(final, int8),
         "final": final, "history": history, "targets": list(TARGETS), "iou": "dataset-level IoU at p > 0.5 over "
         "validation frames, cells in the cameras' field of view only", "pos_weight": result["pos_weight"],
         "decision": decision, "thresholds": decision["best_threshold"],

@@ -4,6 +4,7 @@ calibrations are named (tiny cameras and grid of test_model, eval mode)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -13,7 +14,7 @@ import torch
 import pretrain.quantize as quantize
 from pipeline.core.device import native_bf16
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
-from pretrain.checkpoint import save_tensors, write_encoder_checkpoint
+from pretrain.checkpoint import METRICS_JSON, save_tensors, write_encoder_checkpoint
 from pretrain.model import BEVEncoder, BEVStream, PretextHeads
 from pretrain.quantize import (
     CALIBRATION_FILE,
@@ -21,6 +22,7 @@ from pretrain.quantize import (
     DenseFuse,
     QuantizedBEVEncoder,
     check_precision,
+    int8_iou_losses,
     load_frozen_encoder,
     load_int8_encoder,
     quantize_encoder,
@@ -114,6 +116,28 @@ def test_missing_or_mismatched_calibration_is_named(encoder, tmp_path: Path):
     save_tensors({k: v for k, v in list(state.items())[1:]}, broken / CALIBRATION_FILE)
     with pytest.raises(CorruptArtifactError, match=str(broken / CALIBRATION_FILE)):
         load_int8_encoder(broken, encoder)
+
+
+def test_an_int8_version_that_loses_the_maps_is_refused_by_name(encoder, tmp_path: Path):
+    ckpt = tmp_path / "bev"
+    ckpt.mkdir()
+    q = QuantizedBEVEncoder(encoder)
+    q.calibrate(windows(encoder, 1, seed=15))
+    save_calibration(ckpt, q.calibration_state(), {})
+    final = {"loss": 0.3, "iou_static": 0.926, "iou_ped_t": 0.49, "iou_ped_t+1.0s": 0.006}
+    good = {"iou_static": 0.921, "iou_ped_t": 0.489, "iou_ped_t+1.0s": 0.0}
+    bad = {**good, "iou_static": 0.718}
+    assert int8_iou_losses({"final": final, "int8": good}) == {}
+    assert int8_iou_losses({"final": final, "int8": bad}) == {"iou_static": (0.926, 0.718)}
+    assert int8_iou_losses({"final": final, "int8": None}) == {}  # no int8 version scored: nothing to judge
+    (ckpt / METRICS_JSON).write_text(json.dumps({"final": final, "int8": good}))
+    assert isinstance(load_int8_encoder(ckpt, encoder), QuantizedBEVEncoder)
+    (ckpt / METRICS_JSON).write_text(json.dumps({"final": final, "int8": bad}))
+    with pytest.raises(ConfigError, match=r"metrics.json: int8.iou_static 0.718 against final.iou_static 0.926"):
+        load_int8_encoder(ckpt, encoder)
+    (ckpt / METRICS_JSON).write_text("{not json")
+    with pytest.raises(CorruptArtifactError, match=str(ckpt / METRICS_JSON)):
+        load_int8_encoder(ckpt, encoder)
 
 
 def test_precision_values_are_checked(monkeypatch):

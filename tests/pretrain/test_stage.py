@@ -16,7 +16,7 @@ from pipeline.verbs.pretrain import STAGE
 from pretrain.checkpoint import ENCODER_WEIGHTS, load_encoder, load_heads
 from pretrain.model import BEVStream
 from pretrain.quantize import load_frozen_encoder
-from pretrain.stage import PretrainConfig, checkpoint_dir
+from pretrain.stage import PretrainConfig, checkpoint_dir, int8_verdict
 
 REPO = "icrowdnav/tiny"
 ROOT = Path(__file__).resolve().parents[2]
@@ -60,6 +60,7 @@ def test_stage_writes_the_documented_tree(trained) -> None:
         assert f"iou_{t}" in metrics["final"]
     int8 = metrics["int8"]  # the int8 version's calibration and its validation metrics (pretrain.quantize)
     assert int8["calibration_target_frames"] > 0 and int8["calibration_clips"] > 0
+    assert isinstance(metrics["int8_usable"], bool)  # whether encoder_precision int8 will take it
     assert set(metrics["final"]) <= set(int8) | {"epoch", "step"}
     dec = metrics["decision"]  # the calibrated decision rule (pretrain.evaluate.calibrate)
     assert metrics["thresholds"] == dec["best_threshold"] and len(dec["best_threshold"]) == 4
@@ -281,3 +282,11 @@ def test_evaluate_checkpoint_sweeps_thresholds(trained, tiny_dataset, tmp_path: 
     ratios = [(r["cells"] + res_out["rates"][t]["cells"]) / r["cells"] for t, r in res["rates"].items()]
     assert ratios[0] > 1.0 and ratios == pytest.approx([ratios[0]] * len(ratios))
     assert main([str(out), "--episodes", "7"]) == 2
+
+
+def test_the_pretraining_verdict_on_its_int8_version():
+    final = {"iou_static": 0.926, "iou_ped_t": 0.49}
+    assert int8_verdict(final, None) is None
+    assert int8_verdict(final, {"iou_static": 0.92, "iou_ped_t": 0.48}) is True
+    assert int8_verdict(final, {"iou_static": 0.70, "iou_ped_t": 0.48}) is False
+    assert int8_verdict(final, {"iou_static": float("nan"), "iou_ped_t": 0.48}) is False
