@@ -33,7 +33,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import torch
@@ -78,16 +78,22 @@ class MethodSpec:
         return with_privileges(env, self.obs_mode)
 
 
-_BUILTIN: dict[str, tuple[str, str, str, bool]] = {
-    # name: (label, kind, obs_mode, reference)
-    "expert": ("Privileged expert (reference)", "expert", "privileged", True),
-    "teacher": ("Privileged teacher (reference)", "policy", "privileged", True),
-    "full": ("iCrowdNav (full)", "policy", "visual", False),
-    "no_i2": ("w/o I²", "policy", "visual", False),
-    "no_bev": ("w/o BEV", "policy", "visual", False),
-    "dwa": ("DWA", "dwa", "visual", False),
+class _Builtin(NamedTuple):
+    label: str
+    kind: str  # expert | policy | dwa
+    obs_mode: str  # privileged | visual
+    reference: bool  # an upper reference (privileged information), not a competitor
+    poses: bool = True  # whether its driver reads detected poses (DWA: the depth images only)
+
+
+_BUILTIN: dict[str, _Builtin] = {
+    "expert": _Builtin("Privileged expert (reference)", "expert", "privileged", True),
+    "teacher": _Builtin("Privileged teacher (reference)", "policy", "privileged", True),
+    "full": _Builtin("iCrowdNav (full)", "policy", "visual", False),
+    "no_i2": _Builtin("w/o I²", "policy", "visual", False),
+    "no_bev": _Builtin("w/o BEV", "policy", "visual", False),
+    "dwa": _Builtin("DWA", "dwa", "visual", False, poses=False),
 }
-_NO_POSES = {"dwa"}  # built-in methods whose driver reads no detected poses (DWA: the depth images only)
 _REGISTERED: dict[str, Callable[[Path], MethodSpec]] = {}
 METHOD_NAMES = tuple(_BUILTIN)
 
@@ -96,7 +102,7 @@ def method_label(name: str) -> tuple[str, bool]:
     """The label of a method name and whether it is an upper reference, without its checkpoint (a built-in, a learned
     baseline; any other name is its own label, a competitor)."""
     if name in _BUILTIN:
-        return _BUILTIN[name][0], _BUILTIN[name][3]
+        return _BUILTIN[name].label, _BUILTIN[name].reference
     if name in BASELINES:
         return BASELINES[name].label, False
     return name, False
@@ -155,14 +161,12 @@ def resolve_methods(names: list[str], data_dir: Path, shield_s: float | None = N
             continue
         if name not in _BUILTIN:
             raise ConfigError(f"eval.methods: unknown method {name!r}; known: {available_methods()}")
-        label, kind, obs_mode, ref = _BUILTIN[name]
-        ckpt = None
-        if kind == "policy":
-            ckpt = _checkpoint(data_dir, name)
-        out.append(MethodSpec(name, label, kind, obs_mode, ref, ckpt,
-                              "discrete" if kind == "policy" else "continuous",
-                              shield_s if kind == "policy" else None, sample_tau if kind == "policy" else None,
-                              encoder_precision if kind == "policy" else None, name not in _NO_POSES))
+        b = _BUILTIN[name]
+        policy = b.kind == "policy"
+        out.append(MethodSpec(name, b.label, b.kind, b.obs_mode, b.reference,
+                              _checkpoint(data_dir, name) if policy else None, "discrete" if policy else "continuous",
+                              shield_s if policy else None, sample_tau if policy else None,
+                              encoder_precision if policy else None, b.poses))
     if len({m.name for m in out}) != len(out):
         raise ConfigError(f"eval.methods: duplicate names in {names}")
     return out
