@@ -1,7 +1,8 @@
 """Which part of the int8 encoder loses the static map: the image branch (trunk + neck) or the dense fusion
 (temporal model + decoder + refinement)? Rebuilds `make pretrain`'s int8 version of a data dir's BEV checkpoint
 exactly as the stage does (the same seeded calibration clips), then scores on the validation episodes the float
-encoder, the full int8 version, and the two hybrids (one part int8, the other float).
+encoder, the full int8 version, and the two hybrids (one part int8, the other float); then, with the image branch
+float, the dense fusion in int8 but for one of its modules kept float (each calibrated on the same clips).
 .venv/bin/python docs/notes/scripts/int8_part_diagnosis.py DATA_DIR [MAX_VAL_EPISODES]"""
 import sys, types, json, warnings
 from pathlib import Path
@@ -48,4 +49,28 @@ for name, e in (("fp32", enc), ("int8", q), ("int8 image only", img_only), ("int
     m = evaluate(e, heads, store, val_slices, fov, pw, cfg.clip_frames, cfg.clips_per_batch)
     out[name] = {k: round(float(v), 4) for k, v in m.items() if k.startswith("iou_")}
     print(name, out[name], flush=True)
+import pretrain.quantize as quantize
+from torch.ao.quantization import get_default_qconfig_mapping
+from torch.ao.quantization.quantize_fx import prepare_fx
+def prepare_keeping(names):
+    def prep(module, example):
+        mapping = get_default_qconfig_mapping(quantize.BACKEND)
+        for nm in names:
+            mapping = mapping.set_module_name(nm, None)
+        torch.backends.quantized.engine = quantize.BACKEND
+        return prepare_fx(module.eval(), mapping, example)
+    return prep
+dense_parts = {"temporal blocks": ["blocks"], "skip + norm": ["skip", "norm"], "decoder": ["decoder"],
+               "refinement": ["refine"]}
+for label, names in dense_parts.items():
+    quantize._prepare = prepare_keeping(names)
+    v = QuantizedBEVEncoder(enc)
+    with torch.no_grad():
+        for batch in make_batches(picked, cfg.clips_per_batch, enc.frames):
+            forward_batch(v, heads, store, batch)
+    v.freeze()
+    v.image_features = types.MethodType(BEVEncoder.image_features, v)
+    m = evaluate(v, heads, store, val_slices, fov, pw, cfg.clip_frames, cfg.clips_per_batch)
+    out[f"int8 dense, {label} float"] = {k: round(float(x), 4) for k, x in m.items() if k.startswith("iou_")}
+    print(f"int8 dense, {label} float", out[f"int8 dense, {label} float"], flush=True)
 print(json.dumps(out))
