@@ -30,16 +30,19 @@ eps = sorted(set(train_eps) | set(val_eps))
 store = load_frames(root, meta.cameras, cfg.encoder.grid, cfg.encoder.lift_stride_px, cfg.future_s, episodes=eps,
                     max_gb=cfg.max_ram_gb, progress=False, people_label=cfg.people_label)
 sl = store.episode_slices
-train_slices, val_slices = [sl[e] for e in train_eps], [sl[e] for e in val_eps]
+pos = {e: i for i, e in enumerate(eps)}  # the store's slices follow `eps`
+train_slices, val_slices = [sl[pos[e]] for e in train_eps], [sl[pos[e]] for e in val_eps]
 enc = load_encoder(ck, frozen=True); heads = load_heads(ck, enc).eval()
 pw = torch.as_tensor(metrics["pos_weight"])
 # the stage's calibration (pretrain.stage.int8_version)
-q = QuantizedBEVEncoder(enc)
 picked, n = calibration_clips(store, train_slices, enc.frames, cfg)
-with torch.no_grad():
-    for batch in make_batches(picked, cfg.clips_per_batch, enc.frames):
-        forward_batch(q, heads, store, batch)
-q.freeze()
+def calibrated():
+    v = QuantizedBEVEncoder(enc)
+    with torch.no_grad():
+        for batch in make_batches(picked, cfg.clips_per_batch, enc.frames):
+            forward_batch(v, heads, store, batch)
+    return v.freeze()
+q = calibrated()
 img_only = QuantizedBEVEncoder(enc); img_only._image_q, img_only._dense_q, img_only.frozen = q._image_q, q._dense_q, True
 img_only.fuse_aligned = types.MethodType(BEVEncoder.fuse_aligned, img_only)
 dense_only = QuantizedBEVEncoder(enc); dense_only._image_q, dense_only._dense_q, dense_only.frozen = q._image_q, q._dense_q, True
@@ -64,11 +67,7 @@ dense_parts = {"temporal blocks": ["blocks"], "skip + norm": ["skip", "norm"], "
                "refinement": ["refine"]}
 for label, names in dense_parts.items():
     quantize._prepare = prepare_keeping(names)
-    v = QuantizedBEVEncoder(enc)
-    with torch.no_grad():
-        for batch in make_batches(picked, cfg.clips_per_batch, enc.frames):
-            forward_batch(v, heads, store, batch)
-    v.freeze()
+    v = calibrated()
     v.image_features = types.MethodType(BEVEncoder.image_features, v)
     m = evaluate(v, heads, store, val_slices, fov, pw, cfg.clip_frames, cfg.clips_per_batch)
     out[f"int8 dense, {label} float"] = {k: round(float(x), 4) for k, x in m.items() if k.startswith("iou_")}
