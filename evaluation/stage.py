@@ -54,7 +54,7 @@ import logging
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -103,6 +103,7 @@ class LongHorizonConfig:
 @dataclass
 class EvalConfig(BaseStageConfig):
     """Config of the ``eval`` stage."""
+    PLACEMENT_FIELDS: ClassVar[tuple[str, ...]] = ("workers",)  # every episode seeded by itself: the same rows
 
     run_name: str = field(default="benchmark", metadata={"help": "output folder under DATA_DIR/eval/"})
     methods: list[str] = field(default_factory=lambda: ["expert", "teacher", "full", "no_i2", "no_bev", "dwa",

@@ -59,7 +59,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -518,6 +518,7 @@ def plot_turn(path: Path, s: dict[str, np.ndarray], i: int, preds: dict[str, np.
 @dataclass
 class IntentionConfig(BaseStageConfig):
     """Config of the ``pretrain-intention`` stage."""
+    PLACEMENT_FIELDS: ClassVar[tuple[str, ...]] = ("threads",)  # how many cores, as device says where
 
     repo_id: str = "icrowdnav/expert"  # dataset: DATA_DIR/datasets/<repo_id>/
     name: str = "intention"  # output: DATA_DIR/checkpoints/<name>/

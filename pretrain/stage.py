@@ -22,6 +22,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -55,6 +56,7 @@ log = logging.getLogger("icrowdnav")
 @dataclass
 class PretrainConfig(BaseStageConfig):
     """Config of the ``pretrain`` stage."""
+    PLACEMENT_FIELDS: ClassVar[tuple[str, ...]] = ("threads",)  # how many cores, as device says where
 
     repo_id: str = "icrowdnav/expert"  # dataset to train on: DATA_DIR/datasets/<repo_id>/
     name: str = "bev"  # output: DATA_DIR/checkpoints/<name>/

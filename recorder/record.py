@@ -33,6 +33,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import ClassVar
 
 from tqdm import tqdm
 
@@ -60,6 +61,7 @@ class Interrupted(StoppedError):
 @dataclass
 class RecordConfig(BaseStageConfig):
     """Config of the ``record`` stage."""
+    PLACEMENT_FIELDS: ClassVar[tuple[str, ...]] = ("workers",)  # every episode seeded by itself: the same MCAP bytes
 
     run_name: str = field(default="expert", metadata={"help": "output folder name under DATA_DIR/raw/"})
     scenes: list[str] = field(default_factory=lambda: scenes_of_split("train"),

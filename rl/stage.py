@@ -48,7 +48,7 @@ import os
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -224,6 +224,9 @@ class AcceptanceConfig:
 @dataclass
 class TrainConfig(BaseStageConfig):
     """Config of the ``train`` stage (one variant per run)."""
+    # how many cores, as device says where; not `workers`: SARL*-OM's RL rollouts reach its replay memory in an
+    # order that depends on it
+    PLACEMENT_FIELDS: ClassVar[tuple[str, ...]] = ("threads",)
 
     variant: str = "full"  # teacher | full | no_i2 | no_bev | a learned baseline: drl_vo | sarl_om | vint
     encoder: str = "bev"  # pretrained encoder: DATA_DIR/checkpoints/<encoder>/

@@ -28,7 +28,7 @@ import multiprocessing as mp
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 from tqdm import tqdm
 
@@ -48,6 +48,7 @@ log = logging.getLogger("icrowdnav")
 @dataclass
 class RolloutConfig(BaseStageConfig):
     """Config of the ``rollout`` stage."""
+    PLACEMENT_FIELDS: ClassVar[tuple[str, ...]] = ("workers",)  # every episode seeded by itself
 
     run_name: str = field(default="expert", metadata={"help": "output folder name under DATA_DIR/rollouts/"})
     scenes: list[str] = field(default_factory=lambda: ["office_lobby"],

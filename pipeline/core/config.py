@@ -84,6 +84,10 @@ COMMON_SECTION = "common"
 CLI_SOURCE = "command line"
 HASH_EXCLUDED_FIELDS: frozenset[str] = frozenset({"overwrite", "resume", "data_dir", "profile", "device", "executor",
                                                   "ray_address", "ray_files"})
+#: The class attribute in which a stage config names its own fields that say how fast or how parallel it runs,
+#: not what it makes (``workers`` where every episode is seeded by itself; torch ``threads``): they are left out
+#: of its config hash, so a run resumed or repeated with another worker or thread count keeps its output.
+PLACEMENT_FIELDS_ATTR = "PLACEMENT_FIELDS"
 
 _TRUE_WORDS = frozenset({"true", "1", "yes", "y", "on"})
 _FALSE_WORDS = frozenset({"false", "0", "no", "n", "off"})
@@ -877,6 +881,17 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return draccus.encode(cfg)
 
 
+def hash_excluded_fields(cfg: Any) -> frozenset[str]:
+    """The top-level fields of ``cfg`` left out of its config hash: :data:`HASH_EXCLUDED_FIELDS` and the fields its
+    class names in ``PLACEMENT_FIELDS`` (:data:`PLACEMENT_FIELDS_ATTR`)."""
+    own = frozenset(getattr(type(cfg), PLACEMENT_FIELDS_ATTR, ()))
+    names = {f.name for f in dataclasses.fields(cfg)}
+    if not own <= names:
+        raise TypeError(f"{type(cfg).__name__}.{PLACEMENT_FIELDS_ATTR} names fields it does not have: "
+                        f"{sorted(own - names)}")
+    return HASH_EXCLUDED_FIELDS | own
+
+
 def config_hash(cfg: Any) -> str:
     """Returns the sha256 hex of the canonical JSON of ``to_dict(cfg)``.
 
@@ -885,12 +900,14 @@ def config_hash(cfg: Any) -> str:
     (a name; the values it set are in the hash), ``device`` (where it is computed, :mod:`pipeline.core.device`:
     a run resumes on another device; the counts of the manifest record the one used) and ``executor`` /
     ``ray_address`` / ``ray_files`` (where its jobs run and how their files travel, :mod:`pipeline.core.executor`:
-    the same results either way) are left out.
+    the same results either way) are left out, and so are the fields a stage config names in ``PLACEMENT_FIELDS``
+    (how many processes or threads compute it: :func:`hash_excluded_fields`).
 
     Args:
         cfg: A config dataclass instance.
     """
-    data = {k: v for k, v in to_dict(cfg).items() if k not in HASH_EXCLUDED_FIELDS}
+    excluded = hash_excluded_fields(cfg)
+    data = {k: v for k, v in to_dict(cfg).items() if k not in excluded}
     canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
     return hashlib.sha256(canonical.encode("utf-8")).hexdigest()
 

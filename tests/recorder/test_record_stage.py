@@ -198,6 +198,16 @@ def test_second_identical_run_is_up_to_date_and_does_no_work(tiny_rec, capsys):
     assert snapshot(data) == before
 
 
+def test_another_worker_count_over_a_finished_run_is_up_to_date(tiny_rec, capsys):
+    """Every episode is seeded by itself (a 2-worker run writes the 1-worker run's bytes, the SIGTERM test below), so
+    ``workers`` is out of the config hash: rerunning or resuming with another count keeps the output."""
+    data, argv, _ = tiny_rec
+    before = snapshot(data)
+    rc, stdout, _ = run_cli(capsys, [*argv, "--workers", "2"])
+    assert rc == 0 and "record: up to date" in stdout
+    assert snapshot(data) == before
+
+
 def test_changed_config_over_a_finished_run_is_refused(tiny_rec, capsys):
     data, argv, _ = tiny_rec
     before = snapshot(data)

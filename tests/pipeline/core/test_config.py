@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import pytest
 import yaml
@@ -19,6 +19,7 @@ from pipeline.core.config import (
     describe_fields,
     dump_yaml,
     from_dict,
+    hash_excluded_fields,
     load_config,
     parse_overrides,
     profiles_dir,
@@ -321,6 +322,52 @@ def test_to_dict_hash_and_yaml_round_trip(tmp_path: Path) -> None:
     loaded = yaml.safe_load(path.read_text())
     assert from_dict(ToyConfig, loaded, str(path)) == cfg
     assert [p.name for p in path.parent.iterdir()] == ["config.yaml"]  # no temp file left
+
+
+@dataclass
+class PlacedConfig(ToyConfig):
+    PLACEMENT_FIELDS: ClassVar[tuple[str, ...]] = ("workers",)
+    workers: int = 2
+
+
+def test_the_fields_a_stage_names_as_placement_are_out_of_its_hash() -> None:
+    """``workers`` says how parallel a run is, not what it makes: another count keeps the hash (a run resumed on a
+    bigger machine keeps its output); every other field still changes it; a name that is not a field is a bug."""
+    cfg = PlacedConfig()
+    assert "workers" in hash_excluded_fields(cfg) and "workers" not in hash_excluded_fields(ToyConfig())
+    assert config_hash(apply_dict(cfg, {"workers": 7}, "t")) == config_hash(cfg)
+    assert config_hash(apply_dict(cfg, {"episodes": 5}, "t")) != config_hash(cfg)
+    assert "workers" in to_dict(cfg) and "PLACEMENT_FIELDS" not in to_dict(cfg)  # still recorded, not a field
+
+    @dataclass
+    class Misnamed(ToyConfig):
+        PLACEMENT_FIELDS: ClassVar[tuple[str, ...]] = ("wokers",)
+
+    with pytest.raises(TypeError, match=r"Misnamed\.PLACEMENT_FIELDS .*\['wokers'\]"):
+        config_hash(Misnamed())
+
+
+def test_each_stage_leaves_out_only_what_does_not_change_its_output() -> None:
+    """Episode-seeded stages drop ``workers``; the torch stages drop ``threads``; ``train`` keeps ``workers``
+    (SARL*-OM's replay memory fills in an order that depends on it) and ``export`` keeps it (it is the shard
+    count)."""
+    from evaluation.stage import EvalConfig
+    from pretrain.intention import IntentionConfig
+    from pretrain.stage import PretrainConfig
+    from recorder.export_stage import ExportConfig
+    from recorder.record import RecordConfig
+    from rl.stage import TrainConfig
+    from sim.rollout import RolloutConfig
+
+    base = hash_excluded_fields(BaseStageConfig())
+    own = {c.__name__: hash_excluded_fields(c()) - base for c in (RecordConfig, RolloutConfig, EvalConfig,
+                                                                 ExportConfig, IntentionConfig, PretrainConfig,
+                                                                 TrainConfig)}
+    assert own == {"RecordConfig": {"workers"}, "RolloutConfig": {"workers"}, "EvalConfig": {"workers"},
+                   "ExportConfig": set(), "IntentionConfig": {"threads"}, "PretrainConfig": {"threads"},
+                   "TrainConfig": {"threads"}}
+    assert config_hash(TrainConfig(workers=1)) != config_hash(TrainConfig(workers=2))
+    assert config_hash(TrainConfig(threads=1)) == config_hash(TrainConfig(threads=2))
 
 
 def test_describe_fields() -> None:
