@@ -80,4 +80,4 @@ timings: install
 	$(PY) -m pipeline timings $(DATA_DIR)
 
 lint: install
-	$(VENV)/bin/ruff check pipeline sim recorder pretrain rl evaluation tests
+	$(VENV)/bin/ruff check pipeline sim recorder pretrain rl evaluation tests docs/notes/scripts

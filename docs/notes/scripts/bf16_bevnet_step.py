@@ -2,8 +2,13 @@
 batch 128) in fp32 / bf16 autocast, contiguous / channels-last.
 Run from the repository root: .venv/bin/python docs/notes/scripts/bf16_bevnet_step.py THREADS
 (docs/notes/2026-12-bf16-training.md)"""
-import time, torch, sys
+import sys
+import time
+
+import torch
+
 from rl.networks import BEVNet
+
 torch.set_num_threads(int(sys.argv[1]) if len(sys.argv) > 1 else 1)
 torch.manual_seed(0)
 net = BEVNet(32, 32, 256)

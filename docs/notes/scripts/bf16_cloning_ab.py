@@ -3,12 +3,23 @@ encoder), every 2nd episode of iteration 3 held out (unseen by the start); each 
 fitted linear and map cost frozen, as rl.stage.distill does) and are scored on the held-out frames.
 Run from the repository root: .venv/bin/python docs/notes/scripts/bf16_cloning_ab.py DATA_DIR
 (docs/notes/2026-12-bf16-training.md)"""
-import sys, time, json
+import sys
+import time
 from pathlib import Path
-import numpy as np, torch
+
+import numpy as np
+import torch
+
 from rl.dagger import feature_files, pool_frames
 from rl.policy import load_policy
-from rl.teacher import (FITTED_PREFIXES, bc_loss, behaviour_clone, lookahead_feature_cache, policy_logits_values)
+from rl.teacher import (
+    FITTED_PREFIXES,
+    bc_loss,
+    behaviour_clone,
+    lookahead_feature_cache,
+    policy_logits_values,
+)
+
 torch.set_num_threads(2)
 root = Path(sys.argv[1] if len(sys.argv) > 1 else "data") / "checkpoints/policy/full/dagger"
 files = feature_files([root / f"iter_{k}" for k in range(4)])

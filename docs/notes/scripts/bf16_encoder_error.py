@@ -2,20 +2,25 @@
 relative error of s_bev on 20 frames of a drive (office lobby 0.2, seed 777), and the streaming step's time on one
 thread (three alternating rounds).
 .venv/bin/python docs/notes/scripts/bf16_encoder_error.py DATA_DIR   (DATA_DIR/checkpoints/bev: a trained encoder)"""
-import sys, warnings
+import sys
+import warnings
 from dataclasses import replace
 from pathlib import Path
-import numpy as np, torch
+
+import numpy as np
+import torch
+
 warnings.filterwarnings("ignore")
 torch.set_num_threads(1)
+from evaluation.stage import EvalConfig
 from pipeline.core.config import load_config
 from pipeline.core.timing import time_call
-from evaluation.stage import EvalConfig
 from pretrain.model import BEVStream
 from pretrain.quantize import BF16BEVEncoder
 from rl.bench import _stream_inputs
 from rl.observe import env_cameras, load_student_encoder
 from sim.env import CrowdNavEnv
+
 sim = load_config(EvalConfig, "eval", "default", {}).sim
 env = CrowdNavEnv(config=replace(sim, scene="office_lobby", density=0.2, obs_mode="visual"))
 obs, _ = env.reset(seed=777)

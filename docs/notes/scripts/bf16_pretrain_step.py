@@ -2,15 +2,21 @@
 random init, 6 timed steps after one warm-up; losses printed to show the same descent).
 Run from the repository root: .venv/bin/python docs/notes/scripts/bf16_pretrain_step.py THREADS [DATASET]
 (docs/notes/2026-12-bf16-training.md)"""
-import sys, time
-import numpy as np, torch
-from pretrain.data import check_dataset, load_frames, make_clips, make_batches
-from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
-from pretrain.train import forward_batch, masked_bce, positive_weights, loss_mask
+import sys
+import time
+
+import numpy as np
+import torch
+
+from pretrain.data import check_dataset, load_frames, make_batches, make_clips
 from pretrain.geometry import check_grid_fits_cameras
+from pretrain.model import BEVEncoder, EncoderConfig, PretextHeads
+from pretrain.train import forward_batch, loss_mask, masked_bce, positive_weights
+
 torch.set_num_threads(int(sys.argv[1]))
 root = sys.argv[2] if len(sys.argv) > 2 else 'data/datasets/icrowdnav/expert'
 from pathlib import Path
+
 meta = check_dataset(Path(root))
 ec = EncoderConfig(fuse_pool=2)
 fov = check_grid_fits_cameras(ec.grid, meta.cameras, "x")
@@ -24,6 +30,8 @@ heads0 = PretextHeads(ec.bev_channels)
 clips = make_clips(store, sl, 8, enc0.frames, np.random.default_rng(0))
 batches = make_batches(clips, 4, enc0.frames)
 import copy
+
+
 def run(bf16, cl, n=6):
     torch.manual_seed(0)
     enc, heads = copy.deepcopy(enc0), copy.deepcopy(heads0)

@@ -4,16 +4,23 @@ The fp32 student drives; at every step the int8 copy and a control copy (the sam
 observer: must agree always) — each with its own observer, fed the same observations — also choose.
 .venv/bin/python docs/notes/scripts/int8_agreement.py DATA_DIR METHOD|CHECKPOINT_DIR SEED_BASE EPISODES_PER_CELL DENSITY
 """
-import sys, time, json, warnings
+import json
+import sys
+import time
+import warnings
 from pathlib import Path
-import numpy as np, torch
+
+import numpy as np
+import torch
+
 warnings.filterwarnings("ignore")
-from pipeline.core.config import load_config
-from evaluation.methods import MethodSpec, resolve_methods
 from evaluation.harness import Job, make_env, reset_options
+from evaluation.methods import MethodSpec, resolve_methods
 from evaluation.stage import EvalConfig
+from pipeline.core.config import load_config
 from rl.driver import PolicyDriver
 from rl.policy import action_logits
+
 torch.set_num_threads(1)
 data, method, seed_base, n, dens = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), float(sys.argv[5])
 cfg = load_config(EvalConfig, "eval", "default", {"data_dir": data})

@@ -1,15 +1,19 @@
 """The pretrain stage's int8 calibration (pretrain.stage.int8_version) for an existing BEV checkpoint of older code.
 .venv/bin/python docs/notes/scripts/int8_calibrate_existing.py DATA_DIR (writes DATA_DIR/checkpoints/bev/int8_calibration.safetensors,
 which that older manifest does not list: for experiments; `make pretrain` writes and lists it)"""
-import sys, json, warnings
-from pathlib import Path
-import numpy as np, torch
+import json
+import sys
+import warnings
+
+import torch
+
 warnings.filterwarnings("ignore")
 from pipeline.core.config import load_config
-from pretrain.stage import PretrainConfig, dataset_dir, checkpoint_dir, int8_version
+from pretrain.checkpoint import load_encoder, load_heads
 from pretrain.data import check_dataset, load_frames, split_episodes
 from pretrain.geometry import check_grid_fits_cameras
-from pretrain.checkpoint import load_encoder, load_heads
+from pretrain.stage import PretrainConfig, checkpoint_dir, dataset_dir, int8_version
+
 torch.set_num_threads(2)
 cfg = load_config(PretrainConfig, "pretrain", "default", {"data_dir": sys.argv[1], "progress": "false"})
 root = dataset_dir(cfg); meta = check_dataset(root); out = checkpoint_dir(cfg)

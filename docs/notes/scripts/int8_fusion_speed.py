@@ -1,10 +1,19 @@
 """The dense fusion (temporal model + decoder + refinement, default sizes, one thread): eager vs per-pair 2-D convolutions vs int8.
 Run from the repository root: .venv/bin/python docs/notes/scripts/int8_fusion_speed.py (docs/notes/2026-12-int8-encoder.md)"""
-import time, copy, torch, torch.nn as nn, torch.nn.functional as F, warnings
+import copy
+import time
+import warnings
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
 warnings.filterwarnings("ignore")
-from pretrain.model import BEVEncoder, EncoderConfig, TemporalModel, BEVDecoder, _conv_bn
 from torch.ao.quantization import get_default_qconfig_mapping
-from torch.ao.quantization.quantize_fx import prepare_fx, convert_fx
+from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
+
+from pretrain.model import BEVDecoder, TemporalModel, _conv_bn
+
 torch.set_num_threads(1); torch.manual_seed(0)
 C, T = 32, 5
 class Temporal2d(nn.Module):

@@ -1,16 +1,22 @@
 """Float vs int8 validation IoU of a BEV training state (mid-training weights), with two activation qconfigs.
 .venv/bin/python docs/notes/scripts/int8_map_fidelity.py DATA_DIR STATE_PT VAL_EPISODES"""
-import sys, json, warnings, copy
+import json
+import sys
+import warnings
 from pathlib import Path
-import numpy as np, torch
+
+import numpy as np
+import torch
+
 warnings.filterwarnings("ignore")
+import pretrain.quantize as Q
 from pipeline.core.config import load_config
-from pretrain.stage import PretrainConfig, dataset_dir
-from pretrain.data import check_dataset, load_frames, split_episodes, make_clips, make_batches
+from pretrain.data import check_dataset, load_frames, make_batches, make_clips, split_episodes
 from pretrain.geometry import check_grid_fits_cameras
 from pretrain.model import BEVEncoder, PretextHeads
+from pretrain.stage import PretrainConfig, dataset_dir
 from pretrain.train import evaluate, forward_batch, load_state
-import pretrain.quantize as Q
+
 torch.set_num_threads(1)
 cfg = load_config(PretrainConfig, "pretrain", "default", {"data_dir": sys.argv[1], "progress": "false"})
 root = dataset_dir(cfg); meta = check_dataset(root)
@@ -40,6 +46,7 @@ for i in order:
 orig = Q._prepare
 from torch.ao.quantization import get_default_qconfig_mapping
 from torch.ao.quantization.quantize_fx import prepare_fx
+
 for name in ("x86", "onednn"):
     def prep(module, example, name=name):
         torch.backends.quantized.engine = "x86"

@@ -4,9 +4,14 @@ exactly as the stage does (the same seeded calibration clips), then scores on th
 encoder, the full int8 version, and the two hybrids (one part int8, the other float); then, with the image branch
 float, the dense fusion in int8 but for one of its modules kept float (each calibrated on the same clips).
 .venv/bin/python docs/notes/scripts/int8_part_diagnosis.py DATA_DIR [MAX_VAL_EPISODES]"""
-import sys, types, json, warnings
+import json
+import sys
+import types
+import warnings
 from pathlib import Path
-import numpy as np, torch
+
+import torch
+
 warnings.filterwarnings("ignore")
 from pipeline.core.config import load_config
 from pretrain.checkpoint import load_encoder, load_heads
@@ -16,6 +21,7 @@ from pretrain.model import BEVEncoder
 from pretrain.quantize import QuantizedBEVEncoder
 from pretrain.stage import PretrainConfig, calibration_clips, dataset_dir
 from pretrain.train import evaluate, forward_batch
+
 torch.set_num_threads(2)
 data = Path(sys.argv[1]); max_val = int(sys.argv[2]) if len(sys.argv) > 2 else 0
 cfg = load_config(PretrainConfig, "pretrain", "default", {"data_dir": str(data)})
@@ -52,9 +58,12 @@ for name, e in (("fp32", enc), ("int8", q), ("int8 image only", img_only), ("int
     m = evaluate(e, heads, store, val_slices, fov, pw, cfg.clip_frames, cfg.clips_per_batch)
     out[name] = {k: round(float(v), 4) for k, v in m.items() if k.startswith("iou_")}
     print(name, out[name], flush=True)
-import pretrain.quantize as quantize
 from torch.ao.quantization import get_default_qconfig_mapping
 from torch.ao.quantization.quantize_fx import prepare_fx
+
+import pretrain.quantize as quantize
+
+
 def prepare_keeping(names):
     def prep(module, example):
         mapping = get_default_qconfig_mapping(quantize.BACKEND)

@@ -1,14 +1,21 @@
 """Wall time per step of a method's benchmark episodes, split by part (no profiler): env.step (sim+render+detect),
 observer (encoder, perception), policy. .venv/bin/python docs/notes/scripts/int8_step_parts.py DATA METHOD SCENE DENSITY SEED N"""
-import sys, time
+import sys
+import time
 from pathlib import Path
+
 import torch
-from pipeline.core.config import load_config
+
+import pretrain.model as M
+import rl.driver as D
+import rl.observe as O
+import sim.env as E
+from evaluation.harness import Job, cached_driver, make_env, reset_options
 from evaluation.methods import resolve_methods
-from evaluation.harness import Job, make_env, cached_driver, reset_options
 from evaluation.stage import EvalConfig
+from pipeline.core.config import load_config
 from sim.episode import episode_steps
-import rl.observe as O, rl.driver as D, sim.env as E, pretrain.model as M
+
 torch.set_num_threads(1)
 data, method, scene, dens, seed, n = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4]), int(sys.argv[5]), int(sys.argv[6])
 cfg = load_config(EvalConfig, "eval", "default", {"data_dir": data})

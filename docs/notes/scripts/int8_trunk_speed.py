@@ -1,8 +1,13 @@
 """The float rewrites and int8 of the ResNet trunk (2 x 160 x 120, one thread, random weights): speed and output change.
 Run from the repository root: .venv/bin/python docs/notes/scripts/int8_trunk_speed.py (docs/notes/2026-12-int8-encoder.md)"""
-import time, copy, torch, torch.nn as nn
-import torch.nn.functional as F
+import copy
+import time
+
+import torch
+import torch.nn as nn
+
 from pretrain.model import _resnet18_trunk
+
 torch.set_num_threads(1)
 torch.manual_seed(0)
 m = _resnet18_trunk(2).eval()
@@ -28,6 +33,7 @@ xc = x.contiguous(memory_format=torch.channels_last)
 t2, y2 = bench(mc, xc)
 print(f"channels_last eager: {t2:.2f} ms x{t0/t2:.2f} max|d|={(y2-y0).abs().max():.2e}")
 from torch.fx.experimental.optimization import fuse
+
 mf = fuse(copy.deepcopy(m))
 t3, y3 = bench(mf, x)
 print(f"fx fuse conv-bn: {t3:.2f} ms x{t0/t3:.2f} max|d|={(y3-y0).abs().max():.2e}")
@@ -36,7 +42,7 @@ t4, y4 = bench(mfc, xc)
 print(f"fx fuse + channels_last: {t4:.2f} ms x{t0/t4:.2f} max|d|={(y4-y0).abs().max():.2e}")
 try:
     from torch.ao.quantization import get_default_qconfig_mapping
-    from torch.ao.quantization.quantize_fx import prepare_fx, convert_fx
+    from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
     qm = prepare_fx(copy.deepcopy(m), get_default_qconfig_mapping("x86"), (x,))
     with torch.no_grad():
         for _ in range(8): qm(torch.randn(2, 3, 120, 160))
