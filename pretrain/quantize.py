@@ -141,11 +141,12 @@ class BF16BEVEncoder(_FrozenCopy):
             return super().fuse_aligned(aligned, newest)
 
 
-def _prepare(module: nn.Module, example: tuple[torch.Tensor, ...]) -> nn.Module:
+def _prepare(module: nn.Module, example: tuple[torch.Tensor, ...], mapping=None) -> nn.Module:
+    """FX-prepares ``module`` for calibration with ``mapping`` (a ``QConfigMapping``; default: the backend's)."""
     torch.backends.quantized.engine = BACKEND
     with warnings.catch_warnings():  # torch >= 2.9 warns that FX quantization moves to torchao
         warnings.simplefilter("ignore")
-        return prepare_fx(module.eval(), get_default_qconfig_mapping(BACKEND), example)
+        return prepare_fx(module.eval(), get_default_qconfig_mapping(BACKEND) if mapping is None else mapping, example)
 
 
 def _convert(prepared: nn.Module) -> nn.Module:

@@ -66,7 +66,7 @@ import typing
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, ClassVar, Literal, TypeVar
 
 import draccus
 import yaml
@@ -84,10 +84,6 @@ COMMON_SECTION = "common"
 CLI_SOURCE = "command line"
 HASH_EXCLUDED_FIELDS: frozenset[str] = frozenset({"overwrite", "resume", "data_dir", "profile", "device", "executor",
                                                   "ray_address", "ray_files"})
-#: The class attribute in which a stage config names its own fields that say how fast or how parallel it runs,
-#: not what it makes (``workers`` where every episode is seeded by itself; torch ``threads``): they are left out
-#: of its config hash, so a run resumed or repeated with another worker or thread count keeps its output.
-PLACEMENT_FIELDS_ATTR = "PLACEMENT_FIELDS"
 
 _TRUE_WORDS = frozenset({"true", "1", "yes", "y", "on"})
 _FALSE_WORDS = frozenset({"false", "0", "no", "n", "off"})
@@ -97,6 +93,11 @@ _NONE_WORDS = frozenset({"none", "null", "~"})
 @dataclass
 class BaseStageConfig:
     """Fields every stage has. Stage configs subclass this."""
+
+    #: A stage config's own fields that say how parallel it runs, not what it makes (``workers`` where every
+    #: episode is seeded by itself; torch ``threads``): left out of its config hash (:func:`hash_excluded_fields`),
+    #: so a run resumed or repeated with another worker or thread count keeps its output.
+    PLACEMENT_FIELDS: ClassVar[tuple[str, ...]] = ()
 
     data_dir: Path = field(
         default=Path("data"), metadata={"help": "root directory of all pipeline inputs and outputs"}
@@ -883,12 +884,11 @@ def to_dict(cfg: Any) -> dict[str, Any]:
 
 def hash_excluded_fields(cfg: Any) -> frozenset[str]:
     """The top-level fields of ``cfg`` left out of its config hash: :data:`HASH_EXCLUDED_FIELDS` and the fields its
-    class names in ``PLACEMENT_FIELDS`` (:data:`PLACEMENT_FIELDS_ATTR`)."""
-    own = frozenset(getattr(type(cfg), PLACEMENT_FIELDS_ATTR, ()))
+    class names in ``PLACEMENT_FIELDS`` (:class:`BaseStageConfig`)."""
+    own = frozenset(getattr(type(cfg), "PLACEMENT_FIELDS", ()))
     names = {f.name for f in dataclasses.fields(cfg)}
     if not own <= names:
-        raise TypeError(f"{type(cfg).__name__}.{PLACEMENT_FIELDS_ATTR} names fields it does not have: "
-                        f"{sorted(own - names)}")
+        raise TypeError(f"{type(cfg).__name__}.PLACEMENT_FIELDS names fields it does not have: {sorted(own - names)}")
     return HASH_EXCLUDED_FIELDS | own
 
 

@@ -59,19 +59,18 @@ for name, e in (("fp32", enc), ("int8", q), ("int8 image only", img_only), ("int
     out[name] = {k: round(float(v), 4) for k, v in m.items() if k.startswith("iou_")}
     print(name, out[name], flush=True)
 from torch.ao.quantization import get_default_qconfig_mapping
-from torch.ao.quantization.quantize_fx import prepare_fx
 
 import pretrain.quantize as quantize
 
+stage_prepare = quantize._prepare
+
 
 def prepare_keeping(names):
-    def prep(module, example):
-        mapping = get_default_qconfig_mapping(quantize.BACKEND)
-        for nm in names:
-            mapping = mapping.set_module_name(nm, None)
-        torch.backends.quantized.engine = quantize.BACKEND
-        return prepare_fx(module.eval(), mapping, example)
-    return prep
+    """The stage's preparation with the modules ``names`` left float."""
+    mapping = get_default_qconfig_mapping(quantize.BACKEND)
+    for nm in names:
+        mapping = mapping.set_module_name(nm, None)
+    return lambda module, example: stage_prepare(module, example, mapping)
 dense_parts = {"temporal blocks": ["blocks"], "skip + norm": ["skip", "norm"], "decoder": ["decoder"],
                "refinement": ["refine"]}
 for label, names in dense_parts.items():
