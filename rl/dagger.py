@@ -153,6 +153,7 @@ def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, prog
             if (iter_dir / "features" / f"{r['episode']}.npz").exists():
                 done_rows[r["episode"]] = r
     todo = [j for j in jobs if episode_name(j["scene"], j["density"], j["seed"]) not in done_rows]
+    threads = torch.get_num_threads()  # run in this process (workers <= 1), an episode sets one thread
     on_ray = executor is not None and executor.kind == "ray"
     if on_ray:  # Ray tasks are given CPUs only (module docstring)
         todo = [{**j, "device": "cpu"} for j in todo]
@@ -175,6 +176,7 @@ def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, prog
             start = start_method(todo[0].get("device", "cpu")) if todo else "fork"
             map_jobs(dagger_episode, todo, workers, desc, progress, executor=executor, on_result=finished,
                      start=start)
+    torch.set_num_threads(threads)  # the stage's cloning that follows keeps its cores
     return [done_rows[episode_name(j["scene"], j["density"], j["seed"])] for j in jobs]
 
 

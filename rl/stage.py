@@ -224,9 +224,10 @@ class AcceptanceConfig:
 @dataclass
 class TrainConfig(BaseStageConfig):
     """Config of the ``train`` stage (one variant per run)."""
-    # how many cores, as device says where; not `workers`: SARL*-OM's RL rollouts reach its replay memory in an
-    # order that depends on it
-    PLACEMENT_FIELDS: ClassVar[tuple[str, ...]] = ("threads",)
+    # how many cores, as device says where: every episode is seeded by itself and comes back in job order (SARL*-OM's
+    # RL rollouts too: tests/rl/baselines/sarl_om/test_training.py), the DAgger datasets' shards merge to the same
+    # frames (tests/recorder/test_export_shards.py)
+    PLACEMENT_FIELDS: ClassVar[tuple[str, ...]] = ("threads", "workers")
 
     variant: str = "full"  # teacher | full | no_i2 | no_bev | a learned baseline: drl_vo | sarl_om | vint
     encoder: str = "bev"  # pretrained encoder: DATA_DIR/checkpoints/<encoder>/

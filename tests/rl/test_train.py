@@ -171,7 +171,13 @@ def test_dagger_iteration_writes_a_loadable_dataset_and_lowers_bc_loss(tmp_path,
     (it / "raw").mkdir(parents=True)
     (it / "raw" / "hallway_d0.1_s1.mcap.partial").write_bytes(b"killed mid-episode")
     (it / "raw" / "hallway_d0.1_s2.mcap").write_bytes(b"killed before the features were written")
-    rows = run_iteration(it, jobs, workers=1, progress=False)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:  # run in this process, each episode sets one torch thread: the cloning after it keeps the stage's count
+        rows = run_iteration(it, jobs, workers=1, progress=False)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads)
     assert not list((it / "raw").glob("*.partial"))
     assert [r["student_steps"] for r in rows] == [0, 0]  # beta = 1: the teacher drove
     assert sorted(p.name for p in (it / "raw").glob("*.mcap")) == ["hallway_d0.1_s1.mcap", "hallway_d0.1_s2.mcap"]
@@ -274,14 +280,17 @@ def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir):
     run(_train_cfg(a, "no_bev", head="mlp"))
     out_a = a / "checkpoints" / "policy" / "no_bev"
     assert json.loads((out_a / "policy.json").read_text())["produced_by"]["dagger_iterations"] == 2
-    # b: the same run killed during iteration 1 (iteration 0 finished), then resumed
+    # b: the same run killed during iteration 1 (iteration 0 finished), then resumed on 2 workers (`workers` says
+    # where episodes run, not what they are: outside the config hash)
     run(_train_cfg(b, "no_bev", head="mlp"))
     out_b = b / "checkpoints" / "policy" / "no_bev"
     for name in ("manifest.json", "policy.safetensors", "policy.json", "metrics.json"):
         (out_b / name).unlink()
     shutil.rmtree(out_b / "dagger" / "iter_1")
-    run(_train_cfg(b, "no_bev", head="mlp", resume="true"))
+    run(_train_cfg(b, "no_bev", head="mlp", resume="true", workers=2))
     assert (out_a / "policy.safetensors").read_bytes() == (out_b / "policy.safetensors").read_bytes()
+    assert json.loads((out_a / "metrics.json").read_text())["acceptance"] == \
+        json.loads((out_b / "metrics.json").read_text())["acceptance"]
     pa, _ = load_policy(out_a)
     assert (out_a / "curves.png").stat().st_size > 0 and (out_a / "manifest.json").is_file()
     m = json.loads((out_a / "metrics.json").read_text())

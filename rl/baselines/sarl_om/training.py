@@ -90,6 +90,17 @@ def _run_episodes(state: dict[str, np.ndarray], jobs: list[tuple[str, float, int
     return [run_episode(_env((scene, density)), model, oc, seed, eps) for scene, density, seed, eps in jobs]
 
 
+def _pooled_episodes(pool: ProcessPoolExecutor, workers: int, state: dict[str, np.ndarray],
+                     jobs: list[tuple[str, float, int, float]]) -> list[dict]:
+    """``_run_episodes(state, jobs)`` on ``workers`` processes, each given every ``workers``-th job, the episodes
+    back in job order — so the replay memory fills in the same order whatever the worker count."""
+    chunks = [jobs[w::workers] for w in range(min(workers, len(jobs)))]
+    out: list[dict] = [{}] * len(jobs)
+    for w, part in enumerate(pool.map(_run_episodes, [state] * len(chunks), chunks)):
+        out[w::workers] = part
+    return out
+
+
 class _EpsilonGreedy:
     """SARL's one-step lookahead, ε-greedy (training rollouts), on the true world (``info["world"]``)."""
 
@@ -333,11 +344,12 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
                 jobs.append((*pairs[k % len(pairs)], cfg.seed + 100_000 + k, eps))
             state = {k: v.detach().numpy().copy() for k, v in model.state_dict().items()}
             t_roll = time.time()
-            if pool is None:
+            if pool is None:  # one thread, as a pool worker has: the episodes do not depend on `workers`
+                torch.set_num_threads(1)
                 eps_out = _run_episodes(state, jobs)
+                torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
             else:
-                chunks = [jobs[w::cfg.workers] for w in range(cfg.workers) if jobs[w::cfg.workers]]
-                eps_out = [e for part in pool.map(_run_episodes, [state] * len(chunks), chunks) for e in part]
+                eps_out = _pooled_episodes(pool, cfg.workers, state, jobs)
             for e in eps_out:
                 replay.push({k: e[k] for k in TRANSITION_KEYS})
             steps = int(sum(len(e["reward"]) for e in eps_out))

@@ -348,9 +348,9 @@ def test_the_fields_a_stage_names_as_placement_are_out_of_its_hash() -> None:
 
 
 def test_each_stage_leaves_out_only_what_does_not_change_its_output() -> None:
-    """Episode-seeded stages drop ``workers``; the torch stages drop ``threads``; ``train`` keeps ``workers``
-    (SARL*-OM's replay memory fills in an order that depends on it) and ``export`` keeps it (it is the shard
-    count)."""
+    """Episode-seeded stages drop ``workers``; the torch stages drop ``threads``; ``train`` drops both (its episodes
+    are seeded one by one and gathered in job order: tests/rl/baselines/sarl_om/test_training.py); ``export`` keeps
+    ``workers`` (the shard count of the dataset it writes)."""
     from evaluation.stage import EvalConfig
     from pretrain.intention import IntentionConfig
     from pretrain.stage import PretrainConfig
@@ -365,9 +365,9 @@ def test_each_stage_leaves_out_only_what_does_not_change_its_output() -> None:
                                                                  TrainConfig)}
     assert own == {"RecordConfig": {"workers"}, "RolloutConfig": {"workers"}, "EvalConfig": {"workers"},
                    "ExportConfig": set(), "IntentionConfig": {"threads"}, "PretrainConfig": {"threads"},
-                   "TrainConfig": {"threads"}}
-    assert config_hash(TrainConfig(workers=1)) != config_hash(TrainConfig(workers=2))
-    assert config_hash(TrainConfig(threads=1)) == config_hash(TrainConfig(threads=2))
+                   "TrainConfig": {"threads", "workers"}}
+    assert config_hash(TrainConfig(workers=1, threads=1)) == config_hash(TrainConfig(workers=8, threads=2))
+    assert config_hash(ExportConfig(workers=1)) != config_hash(ExportConfig(workers=2))
 
 
 def test_describe_fields() -> None:

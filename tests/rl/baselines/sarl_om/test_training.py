@@ -103,3 +103,31 @@ def test_a_resumed_run_continues_from_the_single_state_file(trained, tmp_path):
     whole = torch.load(tmp_path / "whole" / "rl" / "state.pt", weights_only=False)
     for key in ("model", "target"):
         assert all(torch.equal(whole[key][k], st[key][k]) for k in whole[key]), key
+
+
+def test_two_workers_train_the_one_worker_weights(trained, tmp_path):
+    """The RL rollouts dealt out to 2 processes (``jobs[w::2]``, here 3 episodes per iteration: uneven chunks) come
+    back in job order and run on one torch thread as in one process, so the replay memory and the weights equal a
+    1-worker run's — ``train.workers`` says where SARL*-OM's episodes run, not what it learns (outside the config
+    hash: tests/pipeline/core/test_config.py)."""
+    from rl.stage import TrainConfig
+
+    _, sim_cfg, _, _ = trained
+    states = {}
+    for workers in (1, 2):
+        cfg = TrainConfig(variant="sarl_om", sim=sim_cfg, workers=workers, threads=1, progress=False, seed=0)
+        cfg.teacher.curriculum = trained_curriculum(sim_cfg)
+        cfg.teacher.bc_episodes = 4
+        cfg.sarl_om = replace(S.Config(), il_epochs=1, rl_iterations=2, episodes_per_iter=3, train_batches=2,
+                              target_update_episodes=3, checkpoint_every=1, epsilon_start=0.5)
+        S.train(cfg, tmp_path / f"w{workers}", RecordingLog())
+        states[workers] = torch.load(tmp_path / f"w{workers}" / "rl" / "state.pt", weights_only=False)
+    one, two = states[1], states[2]
+    assert one["counters"]["episodes"] == two["counters"]["episodes"] == 6
+    size = one["replay"]["size"]
+    assert size == two["replay"]["size"] > 0
+    for k in one["replay"]["data"]:
+        np.testing.assert_array_equal(np.asarray(one["replay"]["data"][k])[:size],
+                                      np.asarray(two["replay"]["data"][k])[:size], err_msg=k)
+    for key in ("model", "target"):
+        assert all(torch.equal(one[key][k], two[key][k]) for k in one[key]), key
