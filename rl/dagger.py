@@ -43,6 +43,7 @@ from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.device import start_method
 from pipeline.core.errors import InputMissingError
 from pipeline.core.executor import Bundle, Executor, in_scratch, map_jobs, receive_files
+from pipeline.core.timing import PhaseClock
 from recorder.export import export_run
 from recorder.mcap.layout import partial_path_of
 from recorder.mcap.writer import EpisodeWriter
@@ -63,8 +64,8 @@ class _DaggerDriver:
     """Executes the teacher's label of the current frame (set by :func:`dagger_episode` before each act) with
     probability β, else the student's action on the same frame."""
 
-    def __init__(self, student, beta: float, rng: np.random.Generator) -> None:
-        self.student, self.beta, self.rng = student, beta, rng
+    def __init__(self, student, beta: float, rng: np.random.Generator, clock: PhaseClock) -> None:
+        self.student, self.beta, self.rng, self.clock = student, beta, rng, clock
         self.label, self.s_obs, self.student_steps = 0, None, 0
 
     def reset(self, obs, info) -> None:
@@ -73,8 +74,36 @@ class _DaggerDriver:
     def act(self, obs, info):
         if self.student is not None and self.rng.random() >= self.beta:
             self.student_steps += 1
-            return act(self.student, self.s_obs)
+            with self.clock("student"):
+                return act(self.student, self.s_obs)
         return self.label
+
+
+# an episode's phases, each exclusive of the others (:func:`episode_phases`): the simulator's step (robot, crowd,
+# bodies, privileged channels), its two cameras' rendering, the pose detector, the student's action (steps it
+# drives), its observation (the frozen encoder with its mirrored stream and map heads; tracks, forecasts, scan), the
+# teacher's label, the MCAP frame, the features file, and what is left (the loop itself, the env's construction)
+PHASES = ("sim", "render", "detect", "student", "encode", "perceive", "teacher", "record", "save", "other")
+
+
+def episode_phases(seconds: dict[str, float], total_s: float) -> dict[str, float]:
+    """A :class:`PhaseClock`'s sums of one DAgger episode (``env`` holding ``render``, ``detect`` and ``student``)
+    → the exclusive seconds of every name in :data:`PHASES` (rounded to ms), ``other`` = ``total_s`` less the rest."""
+    get = seconds.get
+    out = {"sim": get("env", 0.0) - get("render", 0.0) - get("detect", 0.0) - get("student", 0.0)}
+    out.update({k: get(k, 0.0) for k in PHASES[1:-1]})
+    out["other"] = total_s - sum(out.values())
+    return {k: round(max(out[k], 0.0), 3) for k in PHASES}
+
+
+def _timed(steps, clock: PhaseClock, name: str):
+    """The items of iterator ``steps``, the wall time of producing each added to ``clock``'s phase ``name``."""
+    while True:
+        with clock(name):
+            item = next(steps, None)
+        if item is None:
+            return
+        yield item
 
 
 def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
@@ -92,10 +121,14 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
         stale.unlink(missing_ok=True)  # a killed attempt's files (the features file, written last, is not there)
     env = CrowdNavEnv(config=replace(sim_cfg, scene=args["scene"], density=args["density"], obs_mode="visual",
                                      info_level="full", action_type="discrete"))
+    clock = PhaseClock()  # where the episode's time goes: the row's "phase_s"
+    env.render_cameras = clock.wrap("render", env.render_cameras)
+    env.detector.detect = clock.wrap("detect", env.detector.detect)
     encoder = cached_student_encoder(args["variant"], args["encoder"], args.get("device", "cpu"),
                                      args.get("encoder_precision", "fp32"))
     teacher = cached_policy(args["teacher"])
-    driver = _DaggerDriver(cached_policy(args["student"]), args["beta"], np.random.default_rng(args["seed"] + 7919))
+    driver = _DaggerDriver(cached_policy(args["student"]), args["beta"], np.random.default_rng(args["seed"] + 7919),
+                           clock)
     head = args.get("head", "mlp")
     forecaster = cached_student_forecaster(args["variant"], head, args.get("intention"))
     map_cost = bool(args.get("map_cost", False))
@@ -103,7 +136,8 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
                                 forecaster=forecaster, map_cost=map_cost,
                                 map_heads=cached_student_heads(args["variant"], head, map_cost, args["encoder"],
                                                                encoder))
-    steps = episode_steps(PrivilegedObservation(env), driver, args["seed"])
+    observer.clock = clock
+    steps = _timed(episode_steps(PrivilegedObservation(env), driver, args["seed"]), clock, "env")
     first = next(steps)
     meta = episode_meta_from_env(env, args["seed"], f"dagger:{args['variant']}:iter{args['iteration']}:"
                                                     f"beta{args['beta']:g}")
@@ -111,15 +145,19 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
     labels: list[int] = []
     teacher_logits: list[np.ndarray] = []
     info = first.info
-    with EpisodeWriter(raw / f"{name}.mcap", meta, env.layout.occupancy) as writer:
+    writer = EpisodeWriter(raw / f"{name}.mcap", meta, env.layout.occupancy)
+    writer.finish = clock.wrap("record", writer.finish)  # the MCAP's summary and index, written as it closes
+    with writer:
         for tr in itertools.chain([first], steps):
             info = tr.info
             s_obs = observer(tr.obs)
-            logits = action_logits(teacher, tr.obs)
+            with clock("teacher"):
+                logits = action_logits(teacher, tr.obs)
             label = int(np.argmax(logits))
             cmd = (0.0, 0.0) if tr.step == 0 else tuple(env.robot_v)
-            writer.add(frame_from_env(env, tr.obs, tr.info, tr.step, command=cmd, reward=tr.reward or 0.0,
-                                      done=tr.done, label=env.decode_action(label)))
+            with clock("record"):
+                writer.add(frame_from_env(env, tr.obs, tr.info, tr.step, command=cmd, reward=tr.reward or 0.0,
+                                          done=tr.done, label=env.decode_action(label)))
             for k, v in s_obs.items():
                 rows.setdefault(k, []).append(v.astype(np.float16) if k.startswith("bev") else v)
             labels.append(label)
@@ -127,15 +165,17 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
             driver.label, driver.s_obs = label, s_obs
     env.close()
     outcome = info.get("outcome") or "timeout"
-    arrays = {k: np.stack(v) for k, v in rows.items()}
-    arrays["action"] = np.asarray(labels, np.int64)
-    arrays["teacher_logits"] = np.stack(teacher_logits)
-    tmp = feat / f"{name}.tmp.npz"
-    np.savez(tmp, **arrays)
-    tmp.replace(feat / f"{name}.npz")
+    with clock("save"):
+        arrays = {k: np.stack(v) for k, v in rows.items()}
+        arrays["action"] = np.asarray(labels, np.int64)
+        arrays["teacher_logits"] = np.stack(teacher_logits)
+        tmp = feat / f"{name}.tmp.npz"
+        np.savez(tmp, **arrays)
+        tmp.replace(feat / f"{name}.npz")
+    seconds = time.perf_counter() - t0
     return {"episode": name, "scene": Path(args["scene"]).stem, "density": args["density"], "seed": args["seed"],
             "frames": len(labels), "student_steps": driver.student_steps, "outcome": outcome,
-            "seconds": round(time.perf_counter() - t0, 2)}
+            "seconds": round(seconds, 2), "phase_s": episode_phases(clock.seconds, seconds)}
 
 
 def run_iteration(iter_dir: Path, jobs: list[dict[str, Any]], workers: int, progress: bool = True,
@@ -295,6 +335,64 @@ def export_iteration(iter_dir: Path, repo_id: str, progress: bool = True, shards
     iteration: :data:`recorder.export.MIN_SHARD_FRAMES`; ``kwargs``: :func:`recorder.export.export_dataset`'s)."""
     return export_run(Path(iter_dir) / "raw", Path(iter_dir) / "dataset", repo_id, overwrite=True,
                       progress=progress, shards=shards, executor=executor, **kwargs)
+
+
+ITERATION_PARTS = ("rollout", "export", "intention_tune", "pool", "clone")  # rl.stage's parts of an iteration
+
+
+def iteration_timing(seconds: dict[str, float], rows: list[dict[str, Any]], frames: int,
+                     resumed: bool) -> dict[str, Any]:
+    """Where a DAgger iteration's time went (its ``done.json`` ``"timing"``): the wall seconds of its parts
+    (``seconds``: :data:`ITERATION_PARTS` from the stage's :class:`PhaseClock`), the loop's frames per second over
+    them and the rollouts' alone (both left out when ``resumed``: part of the rollouts ran before), and the
+    episodes' own phases (:data:`PHASES`) summed over the workers — worker-seconds and milliseconds per frame."""
+    total = sum(seconds.values())
+    timed = [r for r in rows if "phase_s" in r]  # episodes rolled out by code that timed them
+    timed_frames = sum(r["frames"] for r in timed)
+    worker = {p: sum(r["phase_s"][p] for r in timed) for p in PHASES}
+    out: dict[str, Any] = {"seconds": {p: round(seconds.get(p, 0.0), 1) for p in ITERATION_PARTS},
+                           "total_s": round(total, 1), "frames": frames, "resumed": resumed,
+                           "worker_s": {p: round(v, 1) for p, v in worker.items()},
+                           "worker_ms_per_frame": {p: round(1e3 * v / max(timed_frames, 1), 2)
+                                                   for p, v in worker.items()},
+                           "timed_frames": timed_frames}
+    if not resumed:
+        out["loop_frames_per_s"] = round(frames / max(total, 1e-9), 2)
+        out["rollout_frames_per_s"] = round(frames / max(seconds.get("rollout", 0.0), 1e-9), 2)
+    return out
+
+
+def throughput_table(iterations: list[dict[str, Any]]) -> str:
+    """A Markdown account of a student's DAgger loop from its iterations' ``done.json`` (those with ``"timing"``):
+    per iteration the frames, each part's wall and the frames per second; then the rollout episodes' phases in
+    worker-milliseconds per frame over every timed iteration, with each phase's share."""
+    its = [i for i in iterations if "timing" in i]
+    if not its:
+        return "no timed DAgger iteration"
+    lines = ["| iteration | frames (pool) | " + " | ".join(f"{p} s" for p in ITERATION_PARTS)
+             + " | total s | loop frames/s | rollout frames/s |", "|---" * (len(ITERATION_PARTS) + 6) + "|"]
+    for i in its:
+        t = i["timing"]
+        rates = ("— | — (resumed)" if t["resumed"]
+                 else f"{t['loop_frames_per_s']:.1f} | {t['rollout_frames_per_s']:.1f}")
+        lines.append(f"| {i['iteration']} | {i['frames']:,} ({i['aggregate_frames']:,}) | "
+                     + " | ".join(f"{t['seconds'][p]:.0f}" for p in ITERATION_PARTS)
+                     + f" | {t['total_s']:.0f} | {rates} |")
+    fresh = [i["timing"] for i in its if not i["timing"]["resumed"]]
+    if fresh:
+        frames, total = sum(t["frames"] for t in fresh), sum(t["total_s"] for t in fresh)
+        rollout = sum(t["seconds"]["rollout"] for t in fresh)
+        lines.append(f"\n{frames:,} frames in {total / 60:.1f} min: the loop {frames / total:.1f} frames/s, its "
+                     f"rollouts {frames / rollout:.1f} frames/s ({rollout / total:.0%} of the loop's wall)")
+    timed_frames = sum(i["timing"]["timed_frames"] for i in its)
+    if timed_frames:
+        worker = {p: sum(i["timing"]["worker_s"][p] for i in its) for p in PHASES}
+        whole = sum(worker.values())
+        lines += ["", f"Rollout episodes, {timed_frames:,} frames: worker-milliseconds per frame by phase",
+                  "", "| " + " | ".join(PHASES) + " | all |", "|---" * (len(PHASES) + 1) + "|",
+                  "| " + " | ".join(f"{1e3 * worker[p] / timed_frames:.1f} ({worker[p] / whole:.0%})" for p in PHASES)
+                  + f" | {1e3 * whole / timed_frames:.1f} |"]
+    return "\n".join(lines)
 
 
 def write_done(iter_dir: Path, info: dict[str, Any]) -> None:

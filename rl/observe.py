@@ -39,6 +39,7 @@ The privileged teacher's observation of a visual-mode env (its DAgger labels) co
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +49,7 @@ import torch
 import torch.nn.functional as F
 
 from pipeline.core.errors import ConfigError
+from pipeline.core.timing import PhaseClock
 from pretrain.geometry import Camera, LiftGeometry, lift_splat, sample_depth
 from pretrain.intention import IntentionForecaster, load_forecaster
 from pretrain.model import TARGETS, BEVEncoder, BEVStream, EncoderConfig, PretextHeads
@@ -144,6 +146,12 @@ class StudentObserver:
             check_mirror_symmetric(cameras)
         self._first = True
         self.observation_space = self._space()
+        # where the observation's time goes, when someone asks (rl.dagger's rollouts): "encode" (the frozen encoder
+        # or the depth occupancy, with the map heads) and "perceive" (tracks, forecasts, depth scan)
+        self.clock: PhaseClock | None = None
+
+    def _phase(self, name: str):
+        return self.clock(name) if self.clock is not None else nullcontext()
 
     def _pooled_shape(self) -> tuple[int, int]:
         nx, ny = self.grid.shape
@@ -180,10 +188,23 @@ class StudentObserver:
     @torch.no_grad()
     def __call__(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         out: dict[str, np.ndarray] = {"state": np.asarray(obs["state"], np.float32)}
+        if "bev" in self.keys or "occ" in self.keys:
+            with self._phase("encode"):
+                self._encode(obs, out)
+        if "poses" in self.keys:
+            out["poses"] = np.asarray(obs["poses"], np.float32)
+            out["pose_mask"] = np.asarray(obs["pose_mask"], np.float32)
+        if self.perception is not None:
+            with self._phase("perceive"):
+                out.update(self.perception(obs))
+        self._first = False
+        return out
+
+    def _encode(self, obs: dict[str, np.ndarray], out: dict[str, np.ndarray]) -> None:
+        """The frozen encoder's ``bev`` (+ ``bev_mirror``, ``bev_occ``) or the depth occupancy ``occ``, into ``out``."""
         names = [c.name for c in self.cameras]
         dev = self.device
-        if "bev" in self.keys or "occ" in self.keys:
-            depth = torch.from_numpy(np.stack([obs[f"depth_{n}"] for n in names])).unsqueeze(0).to(dev)  # 1 N H W
+        depth = torch.from_numpy(np.stack([obs[f"depth_{n}"] for n in names])).unsqueeze(0).to(dev)  # 1 N H W
         if "bev" in self.keys:
             rgb = torch.from_numpy(np.stack([obs[f"rgb_{n}"] for n in names])).permute(0, 3, 1, 2).unsqueeze(0).to(dev)
             pose = torch.as_tensor(np.asarray(obs["odom"], np.float64)).unsqueeze(0).to(dev)
@@ -207,13 +228,6 @@ class StudentObserver:
                 out["bev_occ"] = F.max_pool2d(occ, BEV_POOL)[0].cpu().numpy()
         if "occ" in self.keys:
             out["occ"] = self.occupancy(depth)[0].cpu().numpy()
-        if "poses" in self.keys:
-            out["poses"] = np.asarray(obs["poses"], np.float32)
-            out["pose_mask"] = np.asarray(obs["pose_mask"], np.float32)
-        if self.perception is not None:
-            out.update(self.perception(obs))
-        self._first = False
-        return out
 
     def occupancy(self, depth: torch.Tensor) -> torch.Tensor:
         """``B x N x H x W`` depth → ``B x 1 x X/2 x Y/2`` occupancy (1 = a depth point above the floor)."""

@@ -59,6 +59,7 @@ from pipeline.core.config import BaseStageConfig, dump_yaml
 from pipeline.core.device import device_counts, resolve_device, resolve_precision, start_method
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from pipeline.core.executor import Executor, check_executor, check_ray_files
+from pipeline.core.timing import PhaseClock
 from pretrain.checkpoint import read_encoder_json
 from pretrain.geometry import BEVGrid
 from pretrain.intention import (
@@ -75,7 +76,7 @@ from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
 from rl.baselines.sarl_om.configuration import Config as SARLOMConfig
 from rl.baselines.vint.configuration import Config as ViNTConfig
 from rl.callbacks import checkpoint_callback, progress_callback, save_ppo
-from rl.dagger import bev_stats, export_iteration, load_features, run_iteration, write_done
+from rl.dagger import bev_stats, export_iteration, iteration_timing, load_features, run_iteration, write_done
 from rl.evaluate import evaluate, success_table
 from rl.figures import plot_learning_curve, plot_training
 from rl.lookahead import LINEAR_TERMS, PED_TERMS, check_shield_s
@@ -618,30 +619,37 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                  "intention": str(int_dir) if int_dir else None}
                 for e in range(d.episodes_per_iter)]
         ex = Executor.of(cfg)
-        rows = run_iteration(it, jobs, cfg.workers, cfg.progress, ex)
-        counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress, cfg.workers, ex)
+        clock = PhaseClock()  # the iteration's parts (done.json "timing"; rl.dagger.throughput_table)
+        resumed = (it / "episodes.jsonl").exists()  # some rollouts ran in an earlier invocation
+        with clock("rollout"):
+            rows = run_iteration(it, jobs, cfg.workers, cfg.progress, ex)
+        with clock("export"):
+            counts = export_iteration(it, f"icrowdnav/dagger_{cfg.variant}_iter{k}", cfg.progress, cfg.workers, ex)
         # the intention model on this student's rollouts so far, from the pretrained weights every time
-        tuned = _tune_intention(cfg, out, k, device) if tune else None
+        with clock("intention_tune"):
+            tuned = _tune_intention(cfg, out, k, device) if tune else None
         if tuned and "skipped" not in tuned:
             int_dir = it / "intention"
-        data = load_features([out / "dagger" / f"iter_{j}" for j in range(k + 1)], memory_gb=d.pool_memory_gb,
-                             scratch=out / "dagger")
-        # every episode has the teacher's logits (the pool keeps only keys all episodes hold)
-        soft = d.soft_tau > 0 and "teacher_logits" in data
-        if soft:  # distillation: softmin(-logits / τ) = the teacher's distribution softmax(logits / τ)
-            data["costs"] = -data.pop("teacher_logits")
-        # the newest iteration's frames: the pool's tail after the earlier iterations' frames_total (views)
-        new = {key: v[frames_total:] for key, v in data.items()}
-        if k == 0 and "bev" in space.spaces:
-            policy.features_extractor.set_bev_stats(*bev_stats(data))
-        before = bc_loss(policy, new)  # the hard-label loss (bc_loss reads costs only with soft_tau)
-        if soft:
-            soft_before = bc_loss(policy, new, soft_tau=d.soft_tau)
-        hist, linear_fit = distill(policy, data, d, cfg.map_signs, cfg.seed + k, n_rot, inherited, soft,
-                                   cfg.progress, f"student {cfg.variant} iteration {k}")
-        after = bc_loss(policy, new)
-        soft_ce = ({"soft_ce_new_before": soft_before, "soft_ce_new_after": bc_loss(policy, new, soft_tau=d.soft_tau)}
-                   if soft else {})
+        with clock("pool"):
+            data = load_features([out / "dagger" / f"iter_{j}" for j in range(k + 1)], memory_gb=d.pool_memory_gb,
+                                 scratch=out / "dagger")
+        with clock("clone"):  # the lookahead features, the linear fit, the cloning, and its losses
+            # every episode has the teacher's logits (the pool keeps only keys all episodes hold)
+            soft = d.soft_tau > 0 and "teacher_logits" in data
+            if soft:  # distillation: softmin(-logits / τ) = the teacher's distribution softmax(logits / τ)
+                data["costs"] = -data.pop("teacher_logits")
+            # the newest iteration's frames: the pool's tail after the earlier iterations' frames_total (views)
+            new = {key: v[frames_total:] for key, v in data.items()}
+            if k == 0 and "bev" in space.spaces:
+                policy.features_extractor.set_bev_stats(*bev_stats(data))
+            before = bc_loss(policy, new)  # the hard-label loss (bc_loss reads costs only with soft_tau)
+            if soft:
+                soft_before = bc_loss(policy, new, soft_tau=d.soft_tau)
+            hist, linear_fit = distill(policy, data, d, cfg.map_signs, cfg.seed + k, n_rot, inherited, soft,
+                                       cfg.progress, f"student {cfg.variant} iteration {k}")
+            after = bc_loss(policy, new)
+            soft_ce = ({"soft_ce_new_before": soft_before,
+                        "soft_ce_new_after": bc_loss(policy, new, soft_tau=d.soft_tau)} if soft else {})
         frames_total = int(len(data["action"]))
         for r in hist:
             logger.add("dagger_bc", k * d.bc_epochs + r["epoch"], bc_loss=r["bc_loss"], accuracy=r["accuracy"])
@@ -653,7 +661,8 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 "student_steps": int(sum(r["student_steps"] for r in rows)),
                 "bc_loss_new_before": before, "bc_loss_new_after": after, "final_accuracy": hist[-1]["accuracy"],
                 "dataset": str(it / "dataset"), "dataset_frames": counts["frames"], **soft_ce,
-                **({"linear_fit": linear_fit} if linear_fit else {}), **({"intention_tune": tuned} if tuned else {})}
+                **({"linear_fit": linear_fit} if linear_fit else {}), **({"intention_tune": tuned} if tuned else {}),
+                "timing": iteration_timing(clock.seconds, rows, int(len(new["action"])), resumed)}
         save_policy(it / "policy", policy, describe("student", cfg.variant, space, net, **extra,
                                                     intention=str(int_dir) if int_dir else None,
                                                     produced_by={"dagger_iterations": k + 1,

@@ -8,8 +8,10 @@ A Markdown table in the order the stages finished: stage, output (relative to DA
 changes), finish time (UTC), wall, and the invocations that built the output (more than 1 when continued with
 ``--resume``: the wall then sums them, a killed one counted until its last write to the output, so it is a lower
 bound); then the sum of the walls and the span from the first stage's start to the last one's end (the start: the
-finish less the total wall). Exit 0; 1 when a manifest
-is damaged (one line each naming the file, the others still listed); 2 when DATA_DIR is not a directory.
+finish less the total wall). Then, for every student whose DAgger iterations were timed (finished or not), where its
+DAgger loop's time went (:func:`rl.dagger.throughput_table`: each iteration's rollouts, export, pool and cloning,
+frames per second, and the rollout episodes' phases per frame). Exit 0; 1 when a manifest or a ``done.json`` is
+damaged (one line each naming the file, the others still listed); 2 when DATA_DIR is not a directory.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.core.errors import CorruptArtifactError
+from pipeline.core.layout import policy_dir, policy_root
 from pipeline.core.manifest import Manifest
 
 
@@ -40,6 +43,24 @@ def stage_timings(data_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
                      "dirty": m.git_dirty, "start": end - timedelta(seconds=m.wall_total_s), "end": end,
                      "wall_s": m.wall_total_s, "last_wall_s": m.duration_s, "invocations": m.invocations})
     return sorted(rows, key=lambda r: r["end"]), errors
+
+
+def dagger_timings(data_dir: Path) -> tuple[dict[str, list[dict[str, Any]]], list[str]]:
+    """``({variant: [done.json of each finished DAgger iteration, in order]}, errors)`` for every student under
+    ``data_dir``'s policy checkpoints; ``errors``: one line per unreadable ``done.json``."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    errors: list[str] = []
+    for variant_dir in sorted(policy_root(data_dir).glob("*/")):
+        iters = []
+        for path in sorted((variant_dir / "dagger").glob("iter_*/done.json"),
+                           key=lambda p: int(p.parent.name.removeprefix("iter_") or -1)):
+            try:
+                iters.append(json.loads(path.read_text()))
+            except (OSError, ValueError) as e:
+                errors.append(f"{path}: unreadable ({type(e).__name__}: {e})")
+        if iters:
+            out[variant_dir.name] = iters
+    return out, errors
 
 
 def _wall(seconds: float) -> str:
@@ -83,6 +104,15 @@ def main(argv: list[str]) -> int:
                            "end": r["end"].astimezone(UTC).isoformat()} for r in rows], indent=2))
     else:
         print(markdown(rows) if rows else f"no finished stage (manifest.json) under {data_dir}")
+        loops, bad = dagger_timings(data_dir)
+        errors += bad
+        if any("timing" in i for iters in loops.values() for i in iters):
+            from rl.dagger import throughput_table  # lazy: torch only with a DAgger loop to show
+
+            for variant, iters in loops.items():
+                where = policy_dir(data_dir, variant).relative_to(data_dir) / "dagger"
+                print(f"\nDAgger loop of `{variant}` ({where})\n")
+                print(throughput_table(iters))
     for e in errors:
         print(f"error: {e}", file=sys.stderr)
     return 1 if errors else 0

@@ -11,7 +11,15 @@ import pytest
 
 from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, InputMissingError
-from rl.dagger import feature_files, load_features, pool_frames
+from rl.dagger import (
+    PHASES,
+    episode_phases,
+    feature_files,
+    iteration_timing,
+    load_features,
+    pool_frames,
+    throughput_table,
+)
 from rl.stage import TrainConfig
 
 
@@ -80,3 +88,41 @@ def test_damaged_or_mismatched_episode_is_one_named_error(tmp_path):
 def test_pool_memory_limit_must_be_positive(value):
     with pytest.raises(ConfigError, match="pool_memory_gb"):
         load_config(TrainConfig, "train", "smoke", {"dagger.pool_memory_gb": str(value)})
+
+
+def test_an_episodes_phases_are_exclusive_and_account_for_its_wall():
+    """The clock's ``env`` holds the render, the detector and the student's action (the steps it drove): each is
+    counted once, and ``other`` is the wall no phase claims."""
+    sums = {"env": 10.0, "render": 4.0, "detect": 1.0, "student": 0.5, "encode": 6.0, "perceive": 2.0,
+            "teacher": 1.5, "record": 1.0, "save": 0.25}
+    p = episode_phases(sums, total_s=24.0)
+    assert tuple(p) == PHASES
+    assert p["sim"] == 4.5 and p["render"] == 4.0 and p["student"] == 0.5 and p["encode"] == 6.0
+    assert p["other"] == 24.0 - 10.0 - 6.0 - 2.0 - 1.5 - 1.0 - 0.25
+    assert sum(p.values()) == pytest.approx(24.0)
+    assert episode_phases({}, 1.0) == {**dict.fromkeys(PHASES, 0.0), "other": 1.0}  # no phase ran
+
+
+def test_an_iterations_timing_and_its_table():
+    """``done.json``'s ``timing``: the parts' walls, frames per second over the loop and over its rollouts, the
+    episodes' phases summed over workers; a resumed iteration has no rates (part of its rollouts ran before), and
+    episodes rolled out by code that did not time them are left out of the per-frame phases."""
+    phase = dict.fromkeys(PHASES, 0.0) | {"render": 0.5, "encode": 1.5}
+    rows = [{"frames": 100, "phase_s": phase}, {"frames": 100, "phase_s": phase}, {"frames": 50}]
+    t = iteration_timing({"rollout": 20.0, "export": 5.0, "pool": 1.0, "clone": 14.0}, rows, 250, resumed=False)
+    assert t["total_s"] == 40.0 and t["loop_frames_per_s"] == 6.25 and t["rollout_frames_per_s"] == 12.5
+    assert t["seconds"]["intention_tune"] == 0.0 and t["timed_frames"] == 200
+    assert t["worker_s"]["encode"] == 3.0 and t["worker_ms_per_frame"]["render"] == 5.0
+    resumed = iteration_timing({"rollout": 2.0, "clone": 1.0}, rows, 250, resumed=True)
+    assert "loop_frames_per_s" not in resumed and "rollout_frames_per_s" not in resumed
+    its = [{"iteration": 0, "frames": 250, "aggregate_frames": 250, "timing": t},
+           {"iteration": 1, "frames": 250, "aggregate_frames": 500, "timing": resumed},
+           {"iteration": 2, "frames": 10, "aggregate_frames": 510}]  # an iteration of older code: no timing
+    table = throughput_table(its)
+    assert "| 0 | 250 (250) | 20 | 5 | 0 | 1 | 14 | 40 | 6.2 | 12.5 |" in table
+    assert "| 1 | 250 (500) | 2 | 0 | 0 | 0 | 1 | 3 | — | — (resumed) |" in table
+    assert "250 frames in 0.7 min: the loop 6.2 frames/s, its rollouts 12.5 frames/s (50% of the loop's wall)" in table
+    # 400 timed frames: render 1.0 s and encode 3.0 s in each iteration -> 5.0 and 15.0 ms per frame, 25 % / 75 %
+    assert "Rollout episodes, 400 frames" in table and "| 0.0 (0%) | 5.0 (25%) |" in table
+    assert "| 15.0 (75%) |" in table and table.rstrip().endswith("| 20.0 |")
+    assert throughput_table([its[2]]) == "no timed DAgger iteration"

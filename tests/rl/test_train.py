@@ -13,8 +13,10 @@ import yaml
 
 from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.timing import PhaseClock
+from pipeline.verbs.timings import main as timings_main
 from pretrain.intention import load_forecaster
-from rl.dagger import load_features
+from rl.dagger import PHASES, load_features
 from rl.driver import PolicyDriver
 from rl.lookahead import LINEAR_TERMS, SCORE_SCALE
 from rl.policy import act, build_policy, check_checkpoint_weights, describe, load_policy, save_policy
@@ -180,6 +182,11 @@ def test_dagger_iteration_writes_a_loadable_dataset_and_lowers_bc_loss(tmp_path,
         torch.set_num_threads(threads)
     assert not list((it / "raw").glob("*.partial"))
     assert [r["student_steps"] for r in rows] == [0, 0]  # beta = 1: the teacher drove
+    for r in rows:  # where each episode's time went: exclusive phases that account for its wall (rounded to ms)
+        assert tuple(r["phase_s"]) == PHASES and min(r["phase_s"].values()) >= 0.0
+        assert sum(r["phase_s"].values()) == pytest.approx(r["seconds"], abs=0.02)
+        assert r["phase_s"]["render"] > 0 and r["phase_s"]["teacher"] > 0 and r["phase_s"]["record"] > 0
+        assert r["phase_s"]["student"] == 0.0  # the teacher drove every step
     assert sorted(p.name for p in (it / "raw").glob("*.mcap")) == ["hallway_d0.1_s1.mcap", "hallway_d0.1_s2.mcap"]
     # in two shards merged by lerobot, as train exports an iteration of default size (min_shard_frames: tiny here)
     counts = export_iteration(it, "icrowdnav/dagger_test", progress=False, shards=2, min_shard_frames=1)
@@ -236,6 +243,9 @@ def test_observer_full_variant_streams_the_encoder():
         ref = F.avg_pool2d(enc(rgb, depth, poses), BEV_POOL)[0].numpy()
     assert out["bev"].shape == ref.shape and np.allclose(out["bev"], ref, atol=1e-4)
     assert set(out) == {"bev", "poses", "pose_mask", "state"}
+    obs_obs.clock = PhaseClock()  # asked, it says where an observation's time goes (rl.dagger's rollouts)
+    obs_obs(o)
+    assert set(obs_obs.clock.seconds) == {"encode"} and obs_obs.clock.seconds["encode"] > 0
 
 
 def test_observer_occupancy_sees_a_wall_ahead():
@@ -271,7 +281,7 @@ def _train_cfg(data_dir, variant, **over):
     return load_config(TrainConfig, "train", "smoke", {"data_dir": str(data_dir), **ov})
 
 
-def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir):
+def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir, capsys):
     from pipeline.verbs.train import run
 
     a, b = tmp_path / "a", tmp_path / "b"
@@ -297,6 +307,16 @@ def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir):
     assert m["acceptance"]["table"]["hallway@0.1"]["n"] == 1
     assert all(it["bc_loss_new_after"] < it["bc_loss_new_before"] for it in m["dagger"])
     assert all(it["soft_ce_new_after"] < it["soft_ce_new_before"] for it in m["dagger"])
+    # each iteration says where its time went; the resumed run's iteration 1 ran whole after the kill
+    for it in m["dagger"] + json.loads((out_b / "metrics.json").read_text())["dagger"][1:]:
+        t = it["timing"]
+        assert not t["resumed"] and t["timed_frames"] == it["frames"] and t["loop_frames_per_s"] > 0
+        assert t["total_s"] == pytest.approx(sum(t["seconds"].values()), abs=0.3)
+        assert t["rollout_frames_per_s"] > t["loop_frames_per_s"]
+    timings_main([str(a)])
+    shown = capsys.readouterr().out
+    assert "DAgger loop of `no_bev` (checkpoints/policy/no_bev/dagger)" in shown
+    assert "| 1 | " in shown and "Rollout episodes, " in shown
 
 
 def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir, monkeypatch):

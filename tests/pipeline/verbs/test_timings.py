@@ -43,3 +43,27 @@ def test_a_damaged_manifest_is_named_and_the_rest_still_listed(tmp_path, capsys)
     assert "| record |" in cap.out and "eval/x/manifest.json" in cap.err and cap.err.startswith("error: ")
     assert main([str(tmp_path / "nope")]) == 2 and "not a directory" in capsys.readouterr().err
     assert main(["--bad"]) == 2
+
+
+def test_a_students_dagger_loop_is_shown_and_a_damaged_iteration_named(tmp_path, capsys):
+    """After the stages, each student's DAgger loop from its iterations' ``done.json`` (timed ones; a ``done.json``
+    of older code without ``timing`` is skipped), in iteration order; an unreadable one is named, exit 1."""
+    from rl.dagger import PHASES, iteration_timing
+
+    _stage(tmp_path, "checkpoints/policy/full", "train", "2026-11-27T10:00:00Z", 600.0)
+    phase = dict.fromkeys(PHASES, 0.0) | {"encode": 2.0}
+    for k in (0, 1, 10):  # iteration 10 sorts after 1
+        it = tmp_path / "checkpoints" / "policy" / "full" / "dagger" / f"iter_{k}"
+        it.mkdir(parents=True)
+        timing = iteration_timing({"rollout": 30.0, "clone": 10.0}, [{"frames": 200, "phase_s": phase}], 200, False)
+        (it / "done.json").write_text(json.dumps({"iteration": k, "frames": 200, "aggregate_frames": 200 * (k + 1),
+                                                  "timing": timing}))
+    assert main([str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "DAgger loop of `full` (checkpoints/policy/full/dagger)" in out
+    assert out.index("| 1 | 200 (400) |") < out.index("| 10 | 200 (2,200) |")
+    assert "600 frames in 2.0 min: the loop 5.0 frames/s, its rollouts 6.7 frames/s" in out
+    (tmp_path / "checkpoints" / "policy" / "full" / "dagger" / "iter_1" / "done.json").write_text("{")
+    assert main([str(tmp_path)]) == 1
+    captured = capsys.readouterr()
+    assert "iter_1/done.json: unreadable" in captured.err and "| 10 | 200 (2,200) |" in captured.out
