@@ -1,5 +1,6 @@
 """Stable-Baselines3 callbacks shared by the PPO runs (the teacher's, the students' fine-tuning, DRL-VO's): the
-resume checkpoint and the progress bar."""
+resume checkpoint and the progress bar; and their common schedule, PPO after a critic warm-up
+(:func:`learn_with_critic_warmup`)."""
 
 from __future__ import annotations
 
@@ -9,11 +10,32 @@ from stable_baselines3.common.callbacks import BaseCallback
 from tqdm import tqdm
 
 from pipeline.core.artifacts import atomic_write_with
+from rl.policy import freeze_actor
 
 
 def save_ppo(model, path: Path) -> Path:
     """Saves an SB3 ``model`` to ``path`` atomically (a kill leaves the previous file or none, never half of one)."""
     return atomic_write_with(path, model.save)
+
+
+def learn_with_critic_warmup(model, total_steps: int, warmup_steps: int, callback: list[BaseCallback],
+                             tb_log_name: str) -> None:
+    """PPO ``model.learn`` until ``model.num_timesteps`` reaches ``total_steps``, the first ``warmup_steps`` of them
+    (at most ``total_steps``) training only the value branch (:func:`rl.policy.freeze_actor`): a policy cloned by
+    imitation starts with a critic that has never seen a return, and its advantages would move the actor at random
+    before the critic has fitted on-policy. A resumed model continues where it stopped, inside the warm-up or after
+    it (SB3 collects whole rollouts, so each part ends at the first multiple of ``n_steps · n_envs`` past it)."""
+    warm = min(warmup_steps, total_steps)
+    if model.num_timesteps < warm:
+        frozen = freeze_actor(model.policy)
+        try:
+            model.learn(warm - model.num_timesteps, callback=callback, reset_num_timesteps=False,
+                        tb_log_name=tb_log_name)
+        finally:
+            for p in frozen:
+                p.requires_grad_(True)
+    model.learn(max(0, total_steps - model.num_timesteps), callback=callback, reset_num_timesteps=False,
+                tb_log_name=tb_log_name)
 
 
 def checkpoint_callback(path: Path, model, every: int) -> BaseCallback:

@@ -75,7 +75,7 @@ from rl.baselines.common import curve_points
 from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
 from rl.baselines.sarl_om.configuration import Config as SARLOMConfig
 from rl.baselines.vint.configuration import Config as ViNTConfig
-from rl.callbacks import checkpoint_callback, progress_callback, save_ppo
+from rl.callbacks import checkpoint_callback, learn_with_critic_warmup, progress_callback, save_ppo
 from rl.dagger import bev_stats, export_iteration, iteration_timing, load_features, run_iteration, write_done
 from rl.evaluate import evaluate, success_table
 from rl.figures import plot_learning_curve, plot_training
@@ -94,7 +94,6 @@ from rl.observe import (
 from rl.policy import (
     build_policy,
     describe,
-    freeze_actor,
     load_policy,
     policy_class,
     policy_kwargs,
@@ -193,6 +192,9 @@ class FinetuneConfig:
     """PPO fine-tuning of the student with the paper's reward and the frozen encoder."""
 
     ppo_steps: int = 0  # rendered env steps (0 = no fine-tuning; the paper profile sizes it like the paper)
+    # the first env steps train only the value head, the actor frozen (as DRL-VO's): DAgger clones the actor only, so
+    # the distilled student's critic has never seen a return (rl.callbacks.learn_with_critic_warmup)
+    critic_warmup_steps: int = 4096
     n_envs: int = 2
     ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 256, "batch_size": 128, "n_epochs": 6,
                                                            "learning_rate": 5e-5, "clip_range": 0.1})
@@ -307,8 +309,11 @@ class TrainConfig(BaseStageConfig):
                        ("intention_tune.batch", self.intention_tune.batch)):
             if v < 1:
                 raise ConfigError(f"train.{key}: expected an integer >= 1, got {v}")
-        if t.ppo_steps < 0 or self.finetune.ppo_steps < 0 or t.critic_warmup_steps < 0:
-            raise ConfigError("train: ppo_steps and teacher.critic_warmup_steps must be >= 0")
+        for key, v in (("teacher.ppo_steps", t.ppo_steps), ("finetune.ppo_steps", self.finetune.ppo_steps),
+                       ("teacher.critic_warmup_steps", t.critic_warmup_steps),
+                       ("finetune.critic_warmup_steps", self.finetune.critic_warmup_steps)):
+            if v < 0:
+                raise ConfigError(f"train.{key}: expected an integer >= 0, got {v}")
         if d.soft_tau < 0:
             raise ConfigError(f"train.dagger.soft_tau: expected >= 0, got {d.soft_tau}")
         if not d.pool_memory_gb > 0:  # NaN fails too
@@ -528,14 +533,7 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         t0 = time.perf_counter()
         cb = [curriculum_callback(t.curriculum, t.ppo_steps), checkpoint_callback(out / "ppo", model, 20_000),
               progress_callback(t.ppo_steps, "teacher PPO", cfg.progress)]
-        warm = min(t.critic_warmup_steps, t.ppo_steps)
-        if done < warm:  # fit the cloned critic on-policy before the actor moves
-            frozen = freeze_actor(model.policy)
-            model.learn(warm - done, callback=cb, reset_num_timesteps=False, tb_log_name="ppo")
-            for p in frozen:
-                p.requires_grad_(True)
-        model.learn(max(0, t.ppo_steps - model.num_timesteps), callback=cb, reset_num_timesteps=False,
-                    tb_log_name="ppo")
+        learn_with_critic_warmup(model, t.ppo_steps, t.critic_warmup_steps, cb, "ppo")
         summary["ppo_steps_per_s"] = round((model.num_timesteps - done) / max(time.perf_counter() - t0, 1e-9), 1)
         ppo_steps = int(model.num_timesteps)
         save_ppo(model, last)
@@ -814,9 +812,9 @@ def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, e
         model.policy.load_state_dict(policy.state_dict())
     done = model.num_timesteps
     t0 = time.perf_counter()
-    model.learn(max(0, f.ppo_steps - done), reset_num_timesteps=False, tb_log_name="finetune",
-                callback=[checkpoint_callback(out / "ppo", model, f.checkpoint_steps),
-                          progress_callback(f.ppo_steps, "student PPO", cfg.progress)])
+    learn_with_critic_warmup(model, f.ppo_steps, f.critic_warmup_steps, tb_log_name="finetune",
+                             callback=[checkpoint_callback(out / "ppo", model, f.checkpoint_steps),
+                                       progress_callback(f.ppo_steps, "student PPO", cfg.progress)])
     rate = round((model.num_timesteps - done) / max(time.perf_counter() - t0, 1e-9), 2)
     save_ppo(model, last)
     venv.close()

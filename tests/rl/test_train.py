@@ -323,14 +323,15 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
     """PPO fine-tuning of a student killed in its second rollout continues from its checkpoint: the checkpoint holds
     the first update (written when the next rollout starts, so no counted step is left untrained), the resumed run
     loads it, does not redo DAgger, and ends at the budget with one update per rollout, as an uninterrupted run.
-    (Not byte-equal to one: SB3 resets the envs when it loads a model, so the second rollout sees other states.)"""
+    (Not byte-equal to one: SB3 resets the envs when it loads a model, so the second rollout sees other states.)
+    The first rollout is the critic warm-up: its update moves the value branch only; the resumed run moves the actor."""
     import stable_baselines3
 
     from pipeline.verbs.train import run
 
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
     sizes = {"head": "mlp", "finetune.ppo_steps": 64, "finetune.n_envs": 1, "finetune.checkpoint_steps": 32,
-             "finetune.ppo": "{n_steps: 32, batch_size: 32, n_epochs: 1}"}
+             "finetune.critic_warmup_steps": 32, "finetune.ppo": "{n_steps: 32, batch_size: 32, n_epochs: 1}"}
     out = tmp_path / "checkpoints" / "policy" / "no_bev"
 
     class Killed(Exception):
@@ -351,8 +352,13 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
     saved = stable_baselines3.PPO.load(out / "ppo" / "last.zip", device="cpu")
     assert (saved.num_timesteps, saved._n_updates) == (32, 1)  # the first rollout and its update
     cloned, _ = load_policy(out / "dagger" / "iter_1" / "policy")
-    assert any(not torch.equal(a, b) for a, b in zip(saved.policy.state_dict().values(),
-                                                     cloned.state_dict().values(), strict=True))
+
+    def moved(model) -> set[bool]:  # (is a value-branch weight) for every weight the model changed since the cloning
+        ref = cloned.state_dict()
+        return {k.startswith(("value_net.", "mlp_extractor.value_net.")) for k, v in model.policy.state_dict().items()
+                if not torch.equal(v, ref[k])}
+
+    assert moved(saved) == {True}  # the warm-up's update: the critic only
     dagger_done = (out / "dagger" / "iter_1" / "done.json").stat().st_mtime_ns
     loaded = []
     load = stable_baselines3.PPO.load
@@ -368,6 +374,7 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
     assert (out / "dagger" / "iter_1" / "done.json").stat().st_mtime_ns == dagger_done
     final = load(out / "ppo" / "last.zip", device="cpu")
     assert (final.num_timesteps, final._n_updates) == (64, 2)
+    assert moved(final) == {True, False}  # after the warm-up, the actor too
     assert json.loads((out / "policy.json").read_text())["produced_by"]["ppo_finetune_steps"] == 64
 
 

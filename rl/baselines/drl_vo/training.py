@@ -33,8 +33,7 @@ from rl.baselines.common import (
 from rl.baselines.drl_vo.configuration import NAME, Config, RewardConfig
 from rl.baselines.drl_vo.model import build_policy, describe_inputs, policy_kwargs
 from rl.baselines.drl_vo.observation import Observer
-from rl.callbacks import checkpoint_callback, progress_callback, save_ppo
-from rl.policy import freeze_actor
+from rl.callbacks import checkpoint_callback, learn_with_critic_warmup, progress_callback, save_ppo
 from rl.teacher import SceneMixEnv, curriculum_callback, discounted, ppo_kwargs
 from rl.vec_env import BatchedSubprocVecEnv
 
@@ -260,14 +259,8 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
         cb = [curriculum_callback(cfg.teacher.curriculum, c.ppo_steps), checkpoint_callback(out / "ppo", model, 5_000),
               progress_callback(c.ppo_steps, "drl_vo PPO", cfg.progress), _log_callback(log),
               _curve_callback(c.curve_steps, curve_point)]
-        warm = min(c.critic_warmup_steps, c.ppo_steps)
-        if done < warm:  # the cloned critic is poor: fit it on-policy before the actor moves (measured below)
-            frozen = freeze_actor(model.policy)
-            model.learn(warm - done, callback=cb, reset_num_timesteps=False, tb_log_name="ppo")
-            for p in frozen:
-                p.requires_grad_(True)
-        model.learn(max(0, c.ppo_steps - model.num_timesteps), callback=cb, reset_num_timesteps=False,
-                    tb_log_name="ppo")
+        # the cloned critic is poor: fitted on-policy before the actor moves (measured: the module's docstring)
+        learn_with_critic_warmup(model, c.ppo_steps, c.critic_warmup_steps, cb, "ppo")
         wall["ppo_s"] = round(time.perf_counter() - t0, 1)
         summary["ppo_steps_per_s"] = round((model.num_timesteps - done) / max(wall["ppo_s"], 1e-9), 1)
         ppo_steps = int(model.num_timesteps)
