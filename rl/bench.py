@@ -16,6 +16,10 @@
   ``teacher_loop_bound_steps_per_s`` — SB3's PPO loop as it runs: only the env steps are spread over the cores, the
   forward pass and the update run on one thread while the env workers wait, ``1 / (env / cores + policy +
   update)``; ``teacher_cores`` is the usable core count (``os.sched_getaffinity``);
+* ``dagger_ms_per_frame`` / ``dagger_ms_per_frame_<phase>`` — one DAgger rollout frame of the default student,
+  phase by phase (simulator, rendering, detector, encoder with its mirrored world and map heads, perception,
+  teacher, MCAP, features file), against the same episodes with the encoder in bf16 where native
+  (:func:`measure_dagger_rollout`);
 * ``dagger_pool_*`` — the students' DAgger frame pool in memory and memory-mapped against the list + concatenate
   it replaced: peak allocated memory and seconds per mode (:func:`measure_frame_pool`);
 * ``student_ppo_env_steps_per_s_<no_bev|full>`` / ``student_ppo_update_share_<variant>`` — the rendered student's
@@ -57,14 +61,16 @@ from pretrain.intention import ForecasterConfig, IntentionForecaster
 from pretrain.model import BEVEncoder, BEVStream, EncoderConfig, PretextHeads
 from pretrain.quantize import BF16BEVEncoder, QuantizedBEVEncoder
 from pretrain.stage import PretrainConfig
-from rl.dagger import pool_frames
+from rl.dagger import PHASES, dagger_episode, pool_frames
 from rl.observe import BEV_POOL, StudentEnv, StudentObserver, env_cameras, observer_for_env, perception_params
-from rl.policy import act, build_policy, policy_class, policy_kwargs
+from rl.policy import act, build_policy, describe, policy_class, policy_kwargs, save_policy
 from rl.stage import TrainConfig, student_net
 from rl.teacher import (
     SceneMixEnv,
     attach_lookahead_cache,
     behaviour_clone,
+    collect_expert,
+    fit_lookahead_linear,
     make_vec_env,
     ppo_kwargs,
     teacher_net,
@@ -236,12 +242,7 @@ def measure_student_ppo(sim_cfg: Any, scene: str, density: float, seed: int, tra
             probe.reset(seed=seed)
             cams = env_cameras(probe)
             probe.close()
-            ckpt = Path(tmp) / "bev"
-            ckpt.mkdir()
-            torch.manual_seed(seed)
-            enc = BEVEncoder(encoder_cfg, cams).eval()
-            write_encoder_checkpoint(ckpt, enc, PretextHeads(encoder_cfg.bev_channels), {})
-            (ckpt / "manifest.json").write_text("{}")
+            ckpt = _random_encoder(Path(tmp) / "bev", encoder_cfg, cams, seed)
             for variant in variants:
                 enc_dir = ckpt if variant != "no_bev" else None
 
@@ -269,6 +270,74 @@ def measure_student_ppo(sim_cfg: Any, scene: str, density: float, seed: int, tra
                     venv.close()
                 out[f"student_ppo_env_steps_per_s_{variant}"] = done / wall
                 out[f"student_ppo_update_share_{variant}"] = spent["train"] / max(wall, 1e-9)
+    finally:
+        torch.set_num_threads(threads)
+    return out
+
+
+def _random_encoder(ckpt: Path, encoder_cfg: Any, cams, seed: int) -> Path:
+    """A random-weight encoder checkpoint of ``encoder_cfg`` for ``cams`` (with its pretext heads), as
+    ``make pretrain`` writes one."""
+    ckpt.mkdir()
+    torch.manual_seed(seed)
+    enc = BEVEncoder(encoder_cfg, cams).eval()
+    write_encoder_checkpoint(ckpt, enc, PretextHeads(encoder_cfg.bev_channels), {})
+    (ckpt / "manifest.json").write_text("{}")
+    return ckpt
+
+
+def measure_dagger_rollout(train_cfg: Any, encoder_cfg: Any, seed: int, episodes: int = 2,
+                           episode_s: float = 12.0) -> dict[str, float]:
+    """Where a DAgger frame's time goes (``dagger_ms_per_frame`` and ``dagger_ms_per_frame_<phase>``, the phases of
+    :data:`rl.dagger.PHASES`): :func:`rl.dagger.dagger_episode` as ``train`` runs it for the default student
+    (``full``, the lookahead head, the mirrored world, the profile's ``map_cost``; constant-velocity prediction, no
+    intention model being at hand), one thread, ``episodes`` episodes of at most ``episode_s`` on the first DAgger
+    scene at its highest density, driven by a lookahead teacher fitted to one expert episode. The reference is the
+    encoder in float32 (``train.encoder_precision`` fp32); where bfloat16 is native, the same episodes with the
+    encoder in bf16 (``dagger_bf16_ms_per_frame``, ``dagger_bf16_encode_ms_per_frame`` and their speed-ups)."""
+    import tempfile
+
+    d = train_cfg.dagger
+    sim = replace(train_cfg.sim, max_episode_s=episode_s)
+    scene, density = d.scenes[0], max(d.densities)
+    threads = torch.get_num_threads()
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            probe = CrowdNavEnv(config=replace(sim, scene=scene, density=density, obs_mode="visual"))
+            probe.reset(seed=seed)
+            ckpt = _random_encoder(Path(tmp) / "bev", encoder_cfg, env_cameras(probe), seed)
+            probe.close()
+            teacher = Path(tmp) / "teacher"
+            data = collect_expert(sim, [(scene, density)], 1, seed, 0.99, 1, progress=False)
+            space = SceneMixEnv(sim, [(scene, density)]).observation_space
+            net = teacher_net(train_cfg.teacher.net, sim)
+            policy = build_policy("teacher", None, space, net)
+            fit_lookahead_linear(policy, data, train_cfg.teacher.soft_tau)
+            save_policy(teacher, policy, describe("teacher", None, space, net))
+            (teacher / "manifest.json").write_text("{}")
+            out: dict[str, float] = {}
+            for precision in ("fp32", "bf16") if native_bf16("cpu") else ("fp32",):
+                it = Path(tmp) / precision
+                for sub in ("raw", "features"):
+                    (it / sub).mkdir(parents=True)
+                rows = [dagger_episode({"sim": sim, "scene": scene, "density": density, "seed": seed + e,
+                                        "variant": "full", "encoder": str(ckpt), "teacher": str(teacher),
+                                        "student": None, "beta": 1.0, "iteration": 0, "iter_dir": str(it),
+                                        "mirror": d.mirror, "head": "lookahead", "device": "cpu",
+                                        "map_cost": train_cfg.map_cost, "encoder_precision": precision})
+                        for e in range(episodes)]
+                frames = sum(r["frames"] for r in rows)
+                ms = {p: 1e3 * sum(r["phase_s"][p] for r in rows) / frames for p in PHASES}
+                key = "dagger" if precision == "fp32" else f"dagger_{precision}"
+                out[f"{key}_ms_per_frame"] = sum(ms.values())
+                out[f"{key}_encode_ms_per_frame"] = ms["encode"]
+                if precision == "fp32":
+                    out.update({f"dagger_ms_per_frame_{p}": v for p, v in ms.items()})
+                    out["dagger_frames"] = frames
+            if "dagger_bf16_ms_per_frame" in out:
+                out["dagger_bf16_speedup"] = out["dagger_ms_per_frame"] / out["dagger_bf16_ms_per_frame"]
+                out["dagger_bf16_encode_speedup"] = (out["dagger_encode_ms_per_frame"]
+                                                     / out["dagger_bf16_encode_ms_per_frame"])
     finally:
         torch.set_num_threads(threads)
     return out

@@ -36,8 +36,9 @@ are kept, ours are replaced) and prints every figure. Figures (single process, t
   numbers per parquet row of each, which the load time follows (see :mod:`recorder.bench`);
 * ``bev_*`` — the BEV encoder with the profile's ``pretrain.encoder`` architecture, one thread: lift vs its
   reference, streaming step vs recomputing the window (see :mod:`pretrain.bench`);
-* ``teacher_env_steps_per_s`` (vs one in-process env) and ``policy_inference_hz`` (streaming vs recomputing the
-  window) — see :mod:`rl.bench`.
+* ``teacher_env_steps_per_s`` (vs one in-process env), ``policy_inference_hz`` (streaming vs recomputing the
+  window) and ``dagger_ms_per_frame`` (a DAgger rollout frame by phase; its encoder in fp32 vs bf16) — see
+  :mod:`rl.bench`.
 """
 
 from __future__ import annotations
@@ -63,7 +64,13 @@ from recorder.bench import measure_chunk_loading
 from recorder.export import write_dataset
 from recorder.record import RecordConfig
 from recorder.record import body as record_body
-from rl.bench import measure_frame_pool, measure_inference, measure_student_ppo, measure_teacher
+from rl.bench import (
+    measure_dagger_rollout,
+    measure_frame_pool,
+    measure_inference,
+    measure_student_ppo,
+    measure_teacher,
+)
 from rl.stage import TrainConfig
 from sim.crowd import Crowd, social_force_reference
 from sim.env import SimConfig
@@ -178,6 +185,7 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
         enc_cfg = load_config(PretrainConfig, "pretrain", cfg.profile).encoder
         out.update(measure_inference(cfg.sim, cfg.scene, cfg.density, cfg.seed, enc_cfg, s))
         out.update(measure_student_ppo(cfg.sim, cfg.scene, cfg.density, cfg.seed, train_cfg, enc_cfg, 2 * s))
+        out.update(measure_dagger_rollout(train_cfg, enc_cfg, cfg.seed))
         out.update(measure_frame_pool())
     if cfg.record_episodes > 0:
         out.update(measure_recorder(cfg))

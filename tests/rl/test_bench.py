@@ -53,6 +53,33 @@ def test_student_ppo_benchmark_runs_the_rendered_students_ppo():
         assert 0 < out[f"student_ppo_update_share_{v}"] < 1
 
 
+def test_dagger_rollout_benchmark_accounts_for_each_phase_of_a_frame():
+    """A DAgger rollout frame of the default student by phase, at tiny sizes (smoke encoder, 64 x 48 cameras, 2 s
+    episodes): every phase is there, they add up to the frame, the encoder and the renderer cost something; with
+    native bfloat16 the same episodes in bf16 and the ratios."""
+    from pipeline.core.config import load_config
+    from pipeline.core.device import native_bf16
+    from pretrain.stage import PretrainConfig
+    from rl.bench import measure_dagger_rollout
+    from rl.dagger import PHASES
+
+    cfg = TrainConfig(map_cost=True)
+    cfg.sim = replace(cfg.sim, camera=replace(cfg.sim.camera, width_px=64, height_px=48))
+    cfg.dagger = replace(cfg.dagger, scenes=["hallway"], densities=[0.1])
+    out = measure_dagger_rollout(cfg, load_config(PretrainConfig, "pretrain", "smoke").encoder, 0, episodes=1,
+                                 episode_s=2.0)
+    assert out["dagger_frames"] >= 2
+    phases = [out[f"dagger_ms_per_frame_{p}"] for p in PHASES]
+    assert min(phases) >= 0 and out["dagger_ms_per_frame_encode"] > 0 and out["dagger_ms_per_frame_render"] > 0
+    assert math.isclose(sum(phases), out["dagger_ms_per_frame"], rel_tol=1e-9)
+    assert out["dagger_encode_ms_per_frame"] == out["dagger_ms_per_frame_encode"]
+    if native_bf16("cpu"):
+        assert math.isclose(out["dagger_bf16_speedup"], out["dagger_ms_per_frame"] / out["dagger_bf16_ms_per_frame"])
+        assert out["dagger_bf16_encode_speedup"] > 0
+    else:
+        assert "dagger_bf16_speedup" not in out
+
+
 def test_student_device_figures_on_the_cpu(tiny_dataset):
     """The default student's DAgger update and the frozen encoder's streaming step, from a dataset's cameras only."""
     from pretrain.geometry import cameras_from_dataset
