@@ -196,8 +196,11 @@ class FinetuneConfig:
     # the distilled student's critic has never seen a return (rl.callbacks.learn_with_critic_warmup)
     critic_warmup_steps: int = 4096
     n_envs: int = 2
+    # target_kl 0.02 stops an update's epochs once the policy has moved that far (as DRL-VO's, which PPO straight
+    # after cloning destroyed: docs/notes/2026-11-drl-vo-ppo-after-cloning.md)
     ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 256, "batch_size": 128, "n_epochs": 6,
-                                                           "learning_rate": 5e-5, "clip_range": 0.1})
+                                                           "learning_rate": 5e-5, "clip_range": 0.1,
+                                                           "target_kl": 0.02})
     checkpoint_steps: int = 2048  # ppo/last.zip after the first update past every this many env steps (--resume)
 
 
