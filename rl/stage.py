@@ -681,6 +681,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     if cfg.finetune.ppo_steps > 0:
         policy, steps, rate = _finetune(cfg, out, policy, net, pairs, enc_dir, device, int_dir)
         produced["ppo_finetune_steps"] = steps
+        produced["ppo_critic_warmup_steps"] = min(cfg.finetune.critic_warmup_steps, steps)
         summary["finetune"] = {"steps": steps, "steps_per_s": rate}
     save_policy(out, policy, describe("student", cfg.variant, space, net, **extra,
                                       intention=str(int_dir) if int_dir else None, produced_by=produced))

@@ -375,7 +375,8 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
     final = load(out / "ppo" / "last.zip", device="cpu")
     assert (final.num_timesteps, final._n_updates) == (64, 2)
     assert moved(final) == {True, False}  # after the warm-up, the actor too
-    assert json.loads((out / "policy.json").read_text())["produced_by"]["ppo_finetune_steps"] == 64
+    produced = json.loads((out / "policy.json").read_text())["produced_by"]
+    assert (produced["ppo_finetune_steps"], produced["ppo_critic_warmup_steps"]) == (64, 32)
 
 
 def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
