@@ -370,7 +370,7 @@ def throughput_table(iterations: list[dict[str, Any]]) -> str:
     if not its:
         return "no timed DAgger iteration"
     lines = ["| iteration | frames (pool) | " + " | ".join(f"{p} s" for p in ITERATION_PARTS)
-             + " | total s | loop frames/s | rollout frames/s |", "|---" * (len(ITERATION_PARTS) + 6) + "|"]
+             + " | total s | loop frames/s | rollout frames/s |", "|---" * (len(ITERATION_PARTS) + 5) + "|"]
     for i in its:
         t = i["timing"]
         rates = ("— | — (resumed)" if t["resumed"]

@@ -119,6 +119,8 @@ def test_an_iterations_timing_and_its_table():
            {"iteration": 1, "frames": 250, "aggregate_frames": 500, "timing": resumed},
            {"iteration": 2, "frames": 10, "aggregate_frames": 510}]  # an iteration of older code: no timing
     table = throughput_table(its)
+    header, rule = table.splitlines()[:2]
+    assert header.count("|") == rule.count("|") == 11  # 10 columns
     assert "| 0 | 250 (250) | 20 | 5 | 0 | 1 | 14 | 40 | 6.2 | 12.5 |" in table
     assert "| 1 | 250 (500) | 2 | 0 | 0 | 0 | 1 | 3 | — | — (resumed) |" in table
     assert "250 frames in 0.7 min: the loop 6.2 frames/s, its rollouts 12.5 frames/s (50% of the loop's wall)" in table
