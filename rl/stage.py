@@ -794,7 +794,7 @@ def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, e
     each env's frozen encoder on ``device`` (env subprocesses spawned for CUDA); ``int_dir`` the intention model the
     DAgger loop ended with."""
     from stable_baselines3 import PPO
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
 
     f = cfg.finetune
     sim, variant, head, dev, map_cost = cfg.sim, cfg.variant, cfg.head, str(device), cfg.map_cost
@@ -806,6 +806,7 @@ def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, e
 
     venv = (SubprocVecEnv([make] * f.n_envs, start_method=start_method(device)) if f.n_envs > 1
             else DummyVecEnv([make]))
+    venv = VecMonitor(venv)  # episode returns and lengths: tb/finetune_*'s rollout/ep_rew_mean, ep_len_mean
     venv.seed(cfg.seed + 77)
     last = out / "ppo" / "last.zip"
     if last.exists():

@@ -375,6 +375,14 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
     final = load(out / "ppo" / "last.zip", device="cpu")
     assert (final.num_timesteps, final._n_updates) == (64, 2)
     assert moved(final) == {True, False}  # after the warm-up, the actor too
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    tags = set()  # the episodes' returns are logged (the envs are monitored)
+    for run_dir in (out / "tb").glob("finetune_*"):
+        ea = EventAccumulator(str(run_dir))
+        ea.Reload()
+        tags |= set(ea.Tags()["scalars"])
+    assert {"rollout/ep_rew_mean", "rollout/ep_len_mean"} <= tags
     produced = json.loads((out / "policy.json").read_text())["produced_by"]
     assert (produced["ppo_finetune_steps"], produced["ppo_critic_warmup_steps"]) == (64, 32)
 
