@@ -54,7 +54,7 @@ import torch
 from pipeline.core.config import load_config
 from pipeline.core.device import machine_facts, native_bf16, resolve_device
 from pipeline.core.errors import reports_errors
-from pipeline.core.timing import time_call
+from pipeline.core.timing import PhaseClock, time_call
 from pretrain.checkpoint import write_encoder_checkpoint
 from pretrain.geometry import cameras_from_dataset
 from pretrain.intention import ForecasterConfig, IntentionForecaster
@@ -344,21 +344,13 @@ def measure_dagger_rollout(train_cfg: Any, encoder_cfg: Any, seed: int, episodes
 
 
 def _time_phases(model) -> dict[str, float]:
-    """Wraps ``model.collect_rollouts`` / ``model.train`` to add their wall time to the returned dict."""
-    spent = {"collect": 0.0, "train": 0.0}
-
-    def timed(name, fn):
-        def call(*args, **kwargs):
-            t = time.perf_counter()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                spent[name] += time.perf_counter() - t
-        return call
-
-    model.collect_rollouts = timed("collect", model.collect_rollouts)
-    model.train = timed("train", model.train)
-    return spent
+    """Wraps ``model.collect_rollouts`` / ``model.train`` to add their wall time to the returned dict (the
+    :class:`pipeline.core.timing.PhaseClock`'s sums, filled as they run)."""
+    clock = PhaseClock()
+    clock.seconds.update(collect=0.0, train=0.0)  # both read even if a budget ends before either ran
+    model.collect_rollouts = clock.wrap("collect", model.collect_rollouts)
+    model.train = clock.wrap("train", model.train)
+    return clock.seconds
 
 
 def _policy_ms_per_step(model, venv, n_envs: int, calls: int = 50) -> float:

@@ -52,8 +52,9 @@ def dagger_timings(data_dir: Path) -> tuple[dict[str, list[dict[str, Any]]], lis
     errors: list[str] = []
     for variant_dir in sorted(policy_root(data_dir).glob("*/")):
         iters = []
-        for path in sorted((variant_dir / "dagger").glob("iter_*/done.json"),
-                           key=lambda p: int(p.parent.name.removeprefix("iter_") or -1)):
+        done = [p for p in (variant_dir / "dagger").glob("iter_*/done.json")
+                if p.parent.name.removeprefix("iter_").isdigit()]  # iter_<k> only (rl.stage)
+        for path in sorted(done, key=lambda p: int(p.parent.name.removeprefix("iter_"))):
             try:
                 iters.append(json.loads(path.read_text()))
             except (OSError, ValueError) as e:
