@@ -158,6 +158,9 @@ class TeacherConfig:
         CurriculumStage(until=0.3, densities=[0.1]), CurriculumStage(until=1.0, densities=[0.1, 0.2])])
 
 
+BC_SCHEDULES = ("pool", "new")  # DaggerConfig.bc_schedule
+
+
 @dataclass
 class DaggerConfig:
     """DAgger distillation into the student (rl.dagger)."""
@@ -166,7 +169,12 @@ class DaggerConfig:
     episodes_per_iter: int = 20  # rendered episodes per iteration
     beta0: float = 1.0  # probability that the teacher drives, iteration 0
     beta_decay: float = 0.5  # β_k = beta0 · beta_decay^k
-    bc_epochs: int = 8  # cloning epochs on the aggregate after each iteration
+    bc_epochs: int = 8  # cloning epochs after each iteration (over what bc_schedule says)
+    # the cloning after iteration k, continuing from iteration k-1's student: "pool" = bc_epochs passes over the whole
+    # pool (every iteration's frames: its cost grows with k, quadratic over the run); "new" = bc_epochs x the
+    # iteration's new frames, drawn from the whole pool (rl.teacher.behaviour_clone's epoch_size: linear over the run,
+    # the last student has taken as many steps as one bc_epochs-cloning of the final pool)
+    bc_schedule: str = "pool"
     bc_batch: int = 128
     bc_lr: float = 5e-4
     soft_tau: float = 1.0  # > 0: clone the teacher's action distribution softmax(logits / soft_tau); 0: its argmax
@@ -319,6 +327,8 @@ class TrainConfig(BaseStageConfig):
                 raise ConfigError(f"train.{key}: expected an integer >= 0, got {v}")
         if d.soft_tau < 0:
             raise ConfigError(f"train.dagger.soft_tau: expected >= 0, got {d.soft_tau}")
+        if d.bc_schedule not in BC_SCHEDULES:
+            raise ConfigError(f"train.dagger.bc_schedule: expected one of {list(BC_SCHEDULES)}, got {d.bc_schedule!r}")
         if not d.pool_memory_gb > 0:  # NaN fails too
             raise ConfigError(f"train.dagger.pool_memory_gb: expected > 0 (GiB), got {d.pool_memory_gb}")
         it = self.intention_tune
@@ -646,8 +656,10 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             before = bc_loss(policy, new)  # the hard-label loss (bc_loss reads costs only with soft_tau)
             if soft:
                 soft_before = bc_loss(policy, new, soft_tau=d.soft_tau)
+            clone_samples = d.bc_epochs * len(new["action"] if d.bc_schedule == "new" else data["action"])
             hist, linear_fit = distill(policy, data, d, cfg.map_signs, cfg.seed + k, n_rot, inherited, soft,
-                                       cfg.progress, f"student {cfg.variant} iteration {k}")
+                                       cfg.progress, f"student {cfg.variant} iteration {k}",
+                                       epoch_size=len(new["action"]) if d.bc_schedule == "new" else None)
             after = bc_loss(policy, new)
             soft_ce = ({"soft_ce_new_before": soft_before,
                         "soft_ce_new_after": bc_loss(policy, new, soft_tau=d.soft_tau)} if soft else {})
@@ -661,6 +673,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 "aggregate_frames": frames_total, "rollout_success_rate": sr_rollout,
                 "student_steps": int(sum(r["student_steps"] for r in rows)),
                 "bc_loss_new_before": before, "bc_loss_new_after": after, "final_accuracy": hist[-1]["accuracy"],
+                "clone_samples": clone_samples,
                 "dataset": str(it / "dataset"), "dataset_frames": counts["frames"], **soft_ce,
                 **({"linear_fit": linear_fit} if linear_fit else {}), **({"intention_tune": tuned} if tuned else {}),
                 "timing": iteration_timing(clock.seconds, rows, int(len(new["action"])), resumed)}
@@ -673,7 +686,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         del data, new
     # provenance paths, like policy.json's checkpoint references, relative to the checkpoint (rl.policy)
     produced = {"teacher": relative_to(teacher_dir, out), "dagger_iterations": d.iterations,
-                "dagger_frames": frames_total, "ppo_finetune_steps": 0,
+                "dagger_frames": frames_total, "dagger_bc_schedule": d.bc_schedule, "ppo_finetune_steps": 0,
                 "bc_precision": resolve_precision(d.bc_precision, device, "train.dagger.bc_precision")}
     summary: dict[str, Any] = {"dagger": iters}
     produced["intention"] = (None if int_dir is None else "frozen" if int_dir == intention_dir(cfg)
@@ -689,12 +702,13 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
 
 
 def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str, seed: int, n_rot: int,
-            inherited: bool, soft: bool, progress: bool = True, label: str = "student"
-            ) -> tuple[list[dict[str, float]], dict[str, Any] | None]:
+            inherited: bool, soft: bool, progress: bool = True, label: str = "student",
+            epoch_size: int | None = None) -> tuple[list[dict[str, float]], dict[str, Any] | None]:
     """One cloning of a student on ``data`` (the aggregate of DAgger frames, ``costs`` = the teacher's negated logits
     when ``soft``): for the lookahead head its rollout features once, the convex fit of the linear cost terms
     ``d.linear_cost`` names (the map cost on top of an ``inherited`` teacher cost by default), then
-    :func:`behaviour_clone` of every other weight. Returns the cloning's per-epoch rows and the linear fit's record
+    :func:`behaviour_clone` of every other weight (``epoch_size`` samples per epoch: all of ``data`` by default).
+    Returns the cloning's per-epoch rows and the linear fit's record
     (None without one). Used by every DAgger iteration and by ``rl.data_scale``."""
     linear_fit, cache = None, None
     if has_lookahead(policy):  # rollout features once; the linear cost by convex regression, then the rest
@@ -713,7 +727,8 @@ def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str
     hist = behaviour_clone(policy, data, d.bc_epochs, d.bc_batch, d.bc_lr, seed, progress=progress,
                            soft_tau=d.soft_tau if soft else 0.0, mirror=d.mirror, n_rot=n_rot,
                            frozen=FITTED_PREFIXES if (linear_fit or inherited) else (), cache=cache,
-                           precision=resolve_precision(d.bc_precision, policy.device, "train.dagger.bc_precision"))
+                           precision=resolve_precision(d.bc_precision, policy.device, "train.dagger.bc_precision"),
+                           epoch_size=epoch_size)
     return hist, linear_fit
 
 

@@ -257,7 +257,7 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
                     progress: bool = True, soft_tau: float = 0.0, mirror: bool = False,
                     n_rot: int = 21, frozen: tuple[str, ...] = (),
                     cache: tuple[np.ndarray, np.ndarray | None] | None = None,
-                    precision: str = "fp32") -> list[dict[str, float]]:
+                    precision: str = "fp32", epoch_size: int | None = None) -> list[dict[str, float]]:
     """Cross-entropy on ``data["action"]`` (+ value regression on ``data["return"]`` when present).
 
     With ``soft_tau > 0`` and ``data["costs"]`` (the expert's cost of every action), the target is the softmin
@@ -272,6 +272,10 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     :func:`pipeline.core.device.resolve_precision`): ``bf16`` runs the forward pass under bfloat16 autocast (the loss,
     the weights and the optimiser stay float32). The convolutions over the cached maps (``bev``, ``occ``) run
     channels-last (the policy is converted for the cloning and back afterwards: what is saved is unchanged).
+    ``epoch_size``: samples per epoch (default: all of ``data``), drawn from one stream of shuffled passes over all of
+    ``data`` — every frame once per pass, a pass running on across epochs — so ``epochs`` x ``epoch_size`` samples in
+    all, whatever the size of ``data`` (DAgger's ``bc_schedule: new``: passes over each iteration's new frames, drawn
+    from the whole pool). With ``epoch_size`` = ``len(data)`` it is the default, to the bit.
 
     Returns one row per epoch: ``{"epoch", "bc_loss", "accuracy", "value_loss"}`` (means over the epoch).
     """
@@ -280,7 +284,19 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     keys = keys or tuple(policy.observation_space.spaces)
     dev = policy.device
     n = len(data["action"])
+    per_epoch = n if epoch_size is None else int(epoch_size)
+    if per_epoch < 1:
+        raise ConfigError(f"behaviour_clone epoch_size: expected an integer >= 1, got {epoch_size}")
     g = torch.Generator().manual_seed(seed)
+    stream = np.empty(0, np.int64)  # the unused rest of the current shuffled pass over the data
+
+    def draw(m: int) -> np.ndarray:  # the next m sample indices of the stream of passes
+        nonlocal stream
+        while len(stream) < m:
+            stream = np.concatenate([stream, torch.randperm(n, generator=g).numpy()])
+        out, stream = stream[:m], stream[m:]
+        return out
+
     opt = torch.optim.Adam([p for name, p in policy.named_parameters() if not name.startswith(frozen)], lr=lr)
     policy.set_training_mode(True)
 
@@ -306,9 +322,9 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     try:
         for epoch in tqdm(range(epochs), desc=f"behaviour cloning ({precision})", unit="epoch",
                           disable=not progress, dynamic_ncols=True):
-            perm = torch.randperm(n, generator=g).numpy()
+            perm = draw(per_epoch)
             tot = {"bc_loss": 0.0, "accuracy": 0.0, "value_loss": 0.0}
-            for s in range(0, n, batch):
+            for s in range(0, per_epoch, batch):
                 idx = np.sort(perm[s:s + batch])
                 obs = take(idx)
                 act_t = torch.as_tensor(data["action"][idx], dtype=torch.long).to(dev)
@@ -342,7 +358,7 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
                 pred = logits.detach().argmax(-1)
                 tot["bc_loss"] += loss_bc.item() * len(idx)
                 tot["accuracy"] += float((pred == act_t).float().sum())
-            rows.append({"epoch": epoch, **{k: v / n for k, v in tot.items()}})
+            rows.append({"epoch": epoch, **{k: v / per_epoch for k, v in tot.items()}})
     finally:
         for m in convs:
             m.to(memory_format=torch.contiguous_format)

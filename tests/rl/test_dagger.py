@@ -90,6 +90,11 @@ def test_pool_memory_limit_must_be_positive(value):
         load_config(TrainConfig, "train", "smoke", {"dagger.pool_memory_gb": str(value)})
 
 
+def test_an_unknown_cloning_schedule_is_named():
+    with pytest.raises(ConfigError, match=r"train\.dagger\.bc_schedule: expected one of \['pool', 'new'\], got 'both'"):
+        load_config(TrainConfig, "train", "smoke", {"dagger.bc_schedule": "both"})
+
+
 def test_an_episodes_phases_are_exclusive_and_account_for_its_wall():
     """The clock's ``env`` holds the render, the detector and the student's action (the steps it drove): each is
     counted once, and ``other`` is the wall no phase claims."""

@@ -307,6 +307,7 @@ def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir, capsys)
     assert m["acceptance"]["table"]["hallway@0.1"]["n"] == 1
     assert all(it["bc_loss_new_after"] < it["bc_loss_new_before"] for it in m["dagger"])
     assert all(it["soft_ce_new_after"] < it["soft_ce_new_before"] for it in m["dagger"])
+    assert [it["clone_samples"] for it in m["dagger"]] == [2 * it["aggregate_frames"] for it in m["dagger"]]
     # each iteration says where its time went; the resumed run's iteration 1 ran whole after the kill
     for it in m["dagger"] + json.loads((out_b / "metrics.json").read_text())["dagger"][1:]:
         t = it["timing"]
@@ -317,6 +318,22 @@ def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir, capsys)
     shown = capsys.readouterr().out
     assert "DAgger loop of `no_bev` (checkpoints/policy/no_bev/dagger)" in shown
     assert "| 1 | " in shown and "Rollout episodes, " in shown
+
+
+def test_cloning_on_the_new_frames_schedule_takes_steps_for_each_iterations_new_frames(tmp_path, teacher_dir):
+    """``dagger.bc_schedule: new``: after each iteration the student clones ``bc_epochs`` x that iteration's new
+    frames (drawn from the whole pool), not ``bc_epochs`` passes over the pool; the iterations and the checkpoint say
+    which schedule and how many samples."""
+    from pipeline.verbs.train import run
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    run(_train_cfg(tmp_path, "no_bev", head="mlp", **{"dagger.bc_schedule": "new"}))
+    out = tmp_path / "checkpoints" / "policy" / "no_bev"
+    its = json.loads((out / "metrics.json").read_text())["dagger"]
+    assert its[1]["aggregate_frames"] > its[1]["frames"] > 0
+    assert [it["clone_samples"] for it in its] == [2 * it["frames"] for it in its]  # bc_epochs 2
+    assert all(it["soft_ce_new_after"] < it["soft_ce_new_before"] for it in its)
+    assert json.loads((out / "policy.json").read_text())["produced_by"]["dagger_bc_schedule"] == "new"
 
 
 def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir, monkeypatch):
@@ -866,3 +883,50 @@ def test_cloning_in_bf16_learns_like_fp32_and_leaves_float32_contiguous_weights(
     (b32, a32, _), (b16, a16, rows) = out["fp32"], out["bf16"]
     assert b16 == b32 and a16 < 0.5 * b16 and rows[-1]["bc_loss"] < rows[0]["bc_loss"]
     assert a16 == pytest.approx(a32, rel=0.35, abs=0.1)
+
+
+class _Recorded(np.ndarray):
+    """An array that remembers the index arrays it was read with (which frames a cloning drew)."""
+
+    def __getitem__(self, idx):
+        if isinstance(idx, np.ndarray):
+            self.reads.append(np.asarray(idx).copy())
+        return np.asarray(super().__getitem__(idx))
+
+
+def test_cloning_epochs_of_a_given_size_are_passes_over_the_whole_set():
+    """``behaviour_clone(epoch_size=m)`` (DAgger's ``bc_schedule: new``) takes ``epochs`` x ``m`` samples from one
+    stream of shuffled passes over all the data — every frame once per pass, whichever epoch the pass falls in — and
+    with ``m`` = the data's size it is the default cloning to the bit."""
+    from rl.observe import StudentObserver, env_cameras
+    from sim.env import CrowdNavEnv
+
+    env = CrowdNavEnv(config=replace(TINY_SIM, obs_mode="state"))
+    env.reset(seed=0)
+    space = StudentObserver("no_bev", env_cameras(env), None, TINY_SIM.detector.max_people).observation_space
+    space.seed(0)
+    obs = [space.sample() for _ in range(50)]
+    data = {k: np.stack([o[k] for o in obs]).astype(np.float32) for k in space.spaces}
+    data["action"] = (data["state"][:, 1] > 0).astype(np.int64) * 40
+
+    def clone(**kw):
+        torch.manual_seed(0)
+        policy = build_policy("student", "no_bev", space, {"bev_width": 8})
+        rows = behaviour_clone(policy, data, 3, 16, 1e-3, 0, progress=False, **kw)
+        return rows, policy.state_dict()
+
+    (rows_a, a), (rows_b, b) = clone(), clone(epoch_size=50)
+    assert rows_a == rows_b and all(torch.equal(a[k], b[k]) for k in a)
+    actions = data["action"]
+    data["action"] = actions.view(_Recorded)
+    data["action"].reads = []
+    rows, _ = clone(epoch_size=20)
+    drawn = np.concatenate(data["action"].reads)
+    assert len(rows) == 3 and len(drawn) == 60  # 3 epochs of 20 samples
+    # (within a batch the indices are sorted, so look at whole epochs) the first pass spans epochs 0-2: epochs 0 and 1
+    # hold 40 distinct frames, and over all three every frame comes once or — the second pass's 10 — twice
+    assert len(set(drawn[:40].tolist())) == 40
+    counts = np.bincount(drawn, minlength=50)
+    assert counts.min() == 1 and counts.max() == 2 and (counts == 2).sum() == 10
+    with pytest.raises(ConfigError, match="epoch_size: expected an integer >= 1, got 0"):
+        clone(epoch_size=0)
