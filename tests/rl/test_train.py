@@ -851,22 +851,28 @@ def test_an_int8_student_trains_records_its_precision_and_acts_with_the_int8_enc
         _train_cfg(tmp_path, "full", encoder_precision="fp16")
 
 
+def _random_no_bev_frames(n: int):
+    """A ``no_bev`` student's observation space and ``n`` random frames of it (seeded), as float32 arrays."""
+    from rl.observe import StudentObserver, env_cameras
+    from sim.env import CrowdNavEnv
+
+    env = CrowdNavEnv(config=replace(TINY_SIM, obs_mode="state"))
+    env.reset(seed=0)
+    space = StudentObserver("no_bev", env_cameras(env), None, TINY_SIM.detector.max_people).observation_space
+    space.seed(0)
+    obs = [space.sample() for _ in range(n)]
+    return space, {k: np.stack([o[k] for o in obs]).astype(np.float32) for k in space.spaces}
+
+
 def test_cloning_in_bf16_learns_like_fp32_and_leaves_float32_contiguous_weights():
     """``behaviour_clone(precision="bf16")`` (``train.dagger.bc_precision``) runs the forward pass under bfloat16
     autocast and the map CNN channels-last: on the same labels it lowers the loss about as far as float32 does, and
     what it leaves — and saves — is the usual float32, contiguous policy."""
     from pipeline.core.device import native_bf16
-    from rl.observe import StudentObserver, env_cameras
-    from sim.env import CrowdNavEnv
 
     if not native_bf16("cpu"):
         pytest.skip("this CPU has no native bfloat16")
-    env = CrowdNavEnv(config=replace(TINY_SIM, obs_mode="state"))
-    env.reset(seed=0)
-    space = StudentObserver("no_bev", env_cameras(env), None, TINY_SIM.detector.max_people).observation_space
-    space.seed(0)
-    obs = [space.sample() for _ in range(96)]
-    data = {k: np.stack([o[k] for o in obs]).astype(np.float32) for k in space.spaces}
+    space, data = _random_no_bev_frames(96)
     # a label the inputs decide: the occupancy map's left half against its right half, and the goal's side
     occ, half = data["occ"], data["occ"].shape[3] // 2
     data["action"] = ((occ[..., :half].mean((1, 2, 3)) > occ[..., half:].mean((1, 2, 3))) * 10
@@ -898,15 +904,7 @@ def test_cloning_epochs_of_a_given_size_are_passes_over_the_whole_set():
     """``behaviour_clone(epoch_size=m)`` (DAgger's ``bc_schedule: new``) takes ``epochs`` x ``m`` samples from one
     stream of shuffled passes over all the data — every frame once per pass, whichever epoch the pass falls in — and
     with ``m`` = the data's size it is the default cloning to the bit."""
-    from rl.observe import StudentObserver, env_cameras
-    from sim.env import CrowdNavEnv
-
-    env = CrowdNavEnv(config=replace(TINY_SIM, obs_mode="state"))
-    env.reset(seed=0)
-    space = StudentObserver("no_bev", env_cameras(env), None, TINY_SIM.detector.max_people).observation_space
-    space.seed(0)
-    obs = [space.sample() for _ in range(50)]
-    data = {k: np.stack([o[k] for o in obs]).astype(np.float32) for k in space.spaces}
+    space, data = _random_no_bev_frames(50)
     data["action"] = (data["state"][:, 1] > 0).astype(np.int64) * 40
 
     def clone(**kw):
