@@ -314,6 +314,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--save", type=Path, default=None, help="write the largest size's student as a checkpoint")
     ap.add_argument("--acceptance", action="store_true",
                     help="then run the profile's acceptance episodes on it (needs --save; acceptance_episodes.jsonl)")
+    ap.add_argument("--acceptance-episodes", type=int, default=None,
+                    help="episodes per acceptance cell (default: the profile's acceptance.episodes)")
     a = ap.parse_args(argv)
     if a.head not in STUDENT_HEADS:
         raise ConfigError(f"--head: expected one of {list(STUDENT_HEADS)}, got {a.head!r}")
@@ -326,6 +328,8 @@ def main(argv: list[str] | None = None) -> int:
         over["dagger.bc_epochs"] = str(a.epochs)
     if a.pool_memory_gb is not None:
         over["dagger.pool_memory_gb"] = str(a.pool_memory_gb)
+    if a.acceptance_episodes is not None:
+        over["acceptance.episodes"] = str(a.acceptance_episodes)
     cfg = load_config(TrainConfig, "train", a.profile, over)
     if sizes and not layout.checkpoint_dir(cfg.data_dir, cfg.encoder).exists() and cfg.variant != "no_bev":
         raise InputMissingError(f"{layout.checkpoint_dir(cfg.data_dir, cfg.encoder)}: the encoder checkpoint the "

@@ -753,7 +753,7 @@ def test_sampled_actions_follow_the_logits_and_repeat_per_episode_seed(teacher_d
     assert wide == actions(100.0, 1) and wide != actions(100.0, 2) and len(set(wide)) > 10
 
 
-def test_data_scale_clones_nested_subsets_of_pooled_dagger_frames(tmp_path, teacher_dir):
+def test_data_scale_clones_nested_subsets_of_pooled_dagger_frames(tmp_path, teacher_dir, capsys):
     """``python -m rl.data_scale``: duplicate episodes count once, held-out episodes never train, each size is whole
     episodes and a prefix of the next, the scores are the teacher-distribution cross-entropy (never below the
     teacher's entropy) and agreement, the largest student saves as a loadable checkpoint, and pooling trainings on
@@ -799,6 +799,10 @@ def test_data_scale_clones_nested_subsets_of_pooled_dagger_frames(tmp_path, teac
         learning_curve(cfg, [it0], [other / "iter_1"], [1])
     assert scale_main(["--train", str(it0), "--holdout", str(it1), "--sizes", "2,1", "--head", "mlp",
                        "--variant", "no_bev", "--data-dir", str(tmp_path)]) == 2
+    # --acceptance-episodes is the config's acceptance.episodes (checked there: one named error, exit 2)
+    assert scale_main(["--train", str(it0), "--holdout", str(it1), "--sizes", "1", "--head", "mlp", "--variant",
+                       "no_bev", "--data-dir", str(tmp_path), "--acceptance-episodes", "0"]) == 2
+    assert "train.acceptance.episodes: expected an integer >= 1, got 0" in capsys.readouterr().err
 
 
 def _tiny_bev_checkpoint(ck: Path, int8: bool) -> None:
