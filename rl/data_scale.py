@@ -39,11 +39,10 @@ from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, InputMissingError, reports_errors
-from rl.dagger import bev_stats, pool_frames
+from rl.dagger import pool_frames
 from rl.networks import STUDENT_HEADS
 from rl.observe import load_student_encoder, load_student_heads, observer_for_env
 from rl.policy import (
-    build_policy,
     describe,
     load_policy,
     read_policy_json,
@@ -54,14 +53,13 @@ from rl.policy import (
 from rl.stage import (
     TrainConfig,
     acceptance,
-    cloned_net,
     distill,
     encoder_dir,
-    inherit_linear_cost,
+    fresh_student,
     policy_root,
     student_net,
 )
-from rl.teacher import bc_loss, has_lookahead, policy_logits_values
+from rl.teacher import bc_loss, policy_logits_values
 from sim.env import CrowdNavEnv
 
 log = logging.getLogger(__name__)
@@ -224,13 +222,7 @@ def learning_curve(cfg: TrainConfig, train: list[Path], holdout: list[Path], siz
     for size, nf in zip(sizes, n_files, strict=True):
         n = int(ends[nf - 1])
         sub = {k: v[:n] for k, v in data.items()}  # views: each subset is a prefix of the next
-        torch.manual_seed(seed)
-        policy = build_policy("student", cfg.variant, space, cloned_net(net))
-        inherited = has_lookahead(policy) and d.linear_cost != "fit"
-        if inherited:
-            inherit_linear_cost(policy, teacher_dir)
-        if "bev" in space.spaces:
-            policy.features_extractor.set_bev_stats(*bev_stats(sub))
+        policy, inherited = fresh_student(cfg, space, net, teacher_dir, sub, seed)
         hist, linear_fit = distill(policy, sub, d, cfg.map_signs, seed, n_rot, inherited, True, cfg.progress,
                                    f"data scale {n} frames")
         row = {"size": size, "frames": n, "episodes": nf, "train_ce_last_epoch": hist[-1]["bc_loss"],

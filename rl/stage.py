@@ -175,6 +175,10 @@ class DaggerConfig:
     # iteration's new frames, drawn from the whole pool (rl.teacher.behaviour_clone's epoch_size: linear over the run,
     # the last student has taken as many steps as one bc_epochs-cloning of the final pool)
     bc_schedule: str = "pool"
+    # after the last iteration, clone a fresh student (new weights) on the whole pool for bc_epochs and keep it as the
+    # final policy (dagger/final/): measured for the MLP head on its own 8 x 60 run, one fresh cloning of the pooled
+    # frames drove better than the warm-started last iteration (docs/results.md, the paper's MLP head)
+    final_clone: bool = False
     bc_batch: int = 128
     bc_lr: float = 5e-4
     soft_tau: float = 1.0  # > 0: clone the teacher's action distribution softmax(logits / soft_tau); 0: its argmax
@@ -684,11 +688,16 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         write_done(it, info)
         iters.append(info)
         del data, new
+    summary: dict[str, Any] = {"dagger": iters}
+    if d.final_clone:
+        policy, summary["final_clone"] = _final_clone(cfg, out, space, net, teacher_dir, n_rot, device, frames_total,
+                                                      extra, int_dir)
     # provenance paths, like policy.json's checkpoint references, relative to the checkpoint (rl.policy)
     produced = {"teacher": relative_to(teacher_dir, out), "dagger_iterations": d.iterations,
                 "dagger_frames": frames_total, "dagger_bc_schedule": d.bc_schedule, "ppo_finetune_steps": 0,
                 "bc_precision": resolve_precision(d.bc_precision, device, "train.dagger.bc_precision")}
-    summary: dict[str, Any] = {"dagger": iters}
+    if d.final_clone:
+        produced["dagger_final_clone"] = {k: summary["final_clone"][k] for k in ("frames", "clone_samples", "seed")}
     produced["intention"] = (None if int_dir is None else "frozen" if int_dir == intention_dir(cfg)
                              else {"tuned": relative_to(int_dir, out), "epochs": cfg.intention_tune.epochs})
     if cfg.finetune.ppo_steps > 0:
@@ -699,6 +708,57 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     save_policy(out, policy, describe("student", cfg.variant, space, net, **extra,
                                       intention=str(int_dir) if int_dir else None, produced_by=produced))
     return summary
+
+
+def fresh_student(cfg: TrainConfig, space, net: dict[str, Any], teacher_dir: Path, data: dict[str, np.ndarray],
+                  seed: int):
+    """A new student of ``cfg``'s variant and head (seeded weights; the lookahead head inherits its teacher's linear
+    cost unless ``dagger.linear_cost`` fits it), its BEV normalisation from ``data``. Returns (policy, inherited).
+    Used by the final cloning of a DAgger run and by ``rl.data_scale``."""
+    torch.manual_seed(seed)
+    policy = build_policy("student", cfg.variant, space, cloned_net(net))
+    inherited = has_lookahead(policy) and cfg.dagger.linear_cost != "fit"
+    if inherited:
+        inherit_linear_cost(policy, teacher_dir)
+    if "bev" in space.spaces:
+        policy.features_extractor.set_bev_stats(*bev_stats(data))
+    return policy, inherited
+
+
+def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teacher_dir: Path, n_rot: int,
+                 device: torch.device, frames_total: int, extra: dict[str, Any], int_dir: Path | None):
+    """``dagger.final_clone``: a fresh student cloned ``bc_epochs`` over every iteration's frames, saved in
+    ``dagger/final/`` (its ``done.json`` last, so a resumed run loads it instead of cloning again)."""
+    d = cfg.dagger
+    fin = out / "dagger" / "final"
+    shield = 0.0 if "shield_s" in net else None
+    if (fin / "done.json").exists():
+        policy, _ = load_policy(fin / "policy", shield_s=shield)
+        return policy.to(device), json.loads((fin / "done.json").read_text())
+    clock = PhaseClock()
+    with clock("pool"):
+        data = load_features([out / "dagger" / f"iter_{j}" for j in range(d.iterations)], memory_gb=d.pool_memory_gb,
+                             scratch=out / "dagger")
+    with clock("clone"):
+        soft = d.soft_tau > 0 and "teacher_logits" in data
+        if soft:
+            data["costs"] = -data.pop("teacher_logits")
+        seed = cfg.seed + d.iterations
+        policy, inherited = fresh_student(cfg, space, net, teacher_dir, data, seed)
+        policy.to(device)
+        hist, _ = distill(policy, data, d, cfg.map_signs, seed, n_rot, inherited, soft, cfg.progress,
+                          f"student {cfg.variant} final cloning")
+    info = {"frames": int(len(data["action"])), "clone_samples": d.bc_epochs * int(len(data["action"])), "seed": seed,
+            "final_bc_loss": hist[-1]["bc_loss"], "seconds": clock.seconds}
+    if info["frames"] != frames_total:
+        raise CorruptArtifactError(f"{out / 'dagger'}: the iterations' features hold {info['frames']} frames, their "
+                                   f"done.json files {frames_total}; delete {fin} and the damaged iteration to redo them")
+    save_policy(fin / "policy", policy, describe("student", cfg.variant, space, net, **extra,
+                                                 intention=str(int_dir) if int_dir else None,
+                                                 produced_by={"dagger_iterations": d.iterations,
+                                                              "dagger_frames": frames_total, "final_clone": True}))
+    write_done(fin, info)
+    return policy, info
 
 
 def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str, seed: int, n_rot: int,

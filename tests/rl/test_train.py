@@ -320,20 +320,38 @@ def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir, capsys)
     assert "| 1 | " in shown and "Rollout episodes, " in shown
 
 
-def test_cloning_on_the_new_frames_schedule_takes_steps_for_each_iterations_new_frames(tmp_path, teacher_dir):
+def test_new_frames_schedule_and_a_final_fresh_cloning(tmp_path, teacher_dir):
     """``dagger.bc_schedule: new``: after each iteration the student clones ``bc_epochs`` x that iteration's new
     frames (drawn from the whole pool), not ``bc_epochs`` passes over the pool; the iterations and the checkpoint say
-    which schedule and how many samples."""
+    which schedule and how many samples. ``dagger.final_clone``: the saved policy is a fresh student cloned on the
+    whole pool (``dagger/final``), not the last iteration's, and a resumed run loads it rather than cloning again."""
     from pipeline.verbs.train import run
 
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
-    run(_train_cfg(tmp_path, "no_bev", head="mlp", **{"dagger.bc_schedule": "new"}))
+    cfg = {"dagger.bc_schedule": "new", "dagger.final_clone": "true"}
+    run(_train_cfg(tmp_path, "no_bev", head="mlp", **cfg))
     out = tmp_path / "checkpoints" / "policy" / "no_bev"
-    its = json.loads((out / "metrics.json").read_text())["dagger"]
+    m = json.loads((out / "metrics.json").read_text())
+    its = m["dagger"]
     assert its[1]["aggregate_frames"] > its[1]["frames"] > 0
     assert [it["clone_samples"] for it in its] == [2 * it["frames"] for it in its]  # bc_epochs 2
     assert all(it["soft_ce_new_after"] < it["soft_ce_new_before"] for it in its)
-    assert json.loads((out / "policy.json").read_text())["produced_by"]["dagger_bc_schedule"] == "new"
+    produced = json.loads((out / "policy.json").read_text())["produced_by"]
+    assert produced["dagger_bc_schedule"] == "new"
+    fin = json.loads((out / "dagger" / "final" / "done.json").read_text())
+    assert fin["frames"] == its[1]["aggregate_frames"] and fin["clone_samples"] == 2 * fin["frames"]
+    assert produced["dagger_final_clone"] == {k: fin[k] for k in ("frames", "clone_samples", "seed")}
+    saved = (out / "policy.safetensors").read_bytes()
+    assert saved == (out / "dagger" / "final" / "policy" / "policy.safetensors").read_bytes()
+    assert saved != (out / "dagger" / "iter_1" / "policy" / "policy.safetensors").read_bytes()
+    # killed after the final cloning: the resumed run loads it (a changed file would be cloned over, not kept)
+    for name in ("manifest.json", "policy.safetensors", "policy.json", "metrics.json"):
+        (out / name).unlink()
+    done = (out / "dagger" / "final" / "done.json")
+    done.write_text(json.dumps({**fin, "marker": 1}))
+    run(_train_cfg(tmp_path, "no_bev", head="mlp", resume="true", **cfg))
+    assert (out / "policy.safetensors").read_bytes() == saved
+    assert json.loads((out / "metrics.json").read_text())["final_clone"]["marker"] == 1
 
 
 def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir, monkeypatch):
