@@ -646,13 +646,8 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         if tuned and "skipped" not in tuned:
             int_dir = it / "intention"
         with clock("pool"):
-            data = load_features([out / "dagger" / f"iter_{j}" for j in range(k + 1)], memory_gb=d.pool_memory_gb,
-                                 scratch=out / "dagger")
+            data, soft = _cloning_pool(out, k + 1, d)
         with clock("clone"):  # the lookahead features, the linear fit, the cloning, and its losses
-            # every episode has the teacher's logits (the pool keeps only keys all episodes hold)
-            soft = d.soft_tau > 0 and "teacher_logits" in data
-            if soft:  # distillation: softmin(-logits / τ) = the teacher's distribution softmax(logits / τ)
-                data["costs"] = -data.pop("teacher_logits")
             # the newest iteration's frames: the pool's tail after the earlier iterations' frames_total (views)
             new = {key: v[frames_total:] for key, v in data.items()}
             if k == 0 and "bev" in space.spaces:
@@ -660,10 +655,10 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             before = bc_loss(policy, new)  # the hard-label loss (bc_loss reads costs only with soft_tau)
             if soft:
                 soft_before = bc_loss(policy, new, soft_tau=d.soft_tau)
-            clone_samples = d.bc_epochs * len(new["action"] if d.bc_schedule == "new" else data["action"])
+            epoch = len(new["action"] if d.bc_schedule == "new" else data["action"])  # = the default epoch for pool
+            clone_samples = d.bc_epochs * epoch
             hist, linear_fit = distill(policy, data, d, cfg.map_signs, cfg.seed + k, n_rot, inherited, soft,
-                                       cfg.progress, f"student {cfg.variant} iteration {k}",
-                                       epoch_size=len(new["action"]) if d.bc_schedule == "new" else None)
+                                       cfg.progress, f"student {cfg.variant} iteration {k}", epoch_size=epoch)
             after = bc_loss(policy, new)
             soft_ce = ({"soft_ce_new_before": soft_before,
                         "soft_ce_new_after": bc_loss(policy, new, soft_tau=d.soft_tau)} if soft else {})
@@ -710,6 +705,18 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     return summary
 
 
+def _cloning_pool(out: Path, n_iters: int, d: DaggerConfig) -> tuple[dict[str, np.ndarray], bool]:
+    """The cached frames of DAgger iterations 0 .. n_iters-1 as one pool (rl.dagger.load_features), and whether the
+    cloning is soft: every episode has the teacher's logits (the pool keeps only keys all episodes hold), turned into
+    ``costs`` — softmin(-logits / τ) is the teacher's distribution softmax(logits / τ)."""
+    data = load_features([out / "dagger" / f"iter_{j}" for j in range(n_iters)], memory_gb=d.pool_memory_gb,
+                         scratch=out / "dagger")
+    soft = d.soft_tau > 0 and "teacher_logits" in data
+    if soft:
+        data["costs"] = -data.pop("teacher_logits")
+    return data, soft
+
+
 def fresh_student(cfg: TrainConfig, space, net: dict[str, Any], teacher_dir: Path, data: dict[str, np.ndarray],
                   seed: int):
     """A new student of ``cfg``'s variant and head (seeded weights; the lookahead head inherits its teacher's linear
@@ -737,12 +744,12 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
         return policy.to(device), json.loads((fin / "done.json").read_text())
     clock = PhaseClock()
     with clock("pool"):
-        data = load_features([out / "dagger" / f"iter_{j}" for j in range(d.iterations)], memory_gb=d.pool_memory_gb,
-                             scratch=out / "dagger")
+        data, soft = _cloning_pool(out, d.iterations, d)
+    if len(data["action"]) != frames_total:  # before the cloning, not after it
+        raise CorruptArtifactError(f"{out / 'dagger'}: the iterations' features hold {len(data['action'])} frames, "
+                                   f"their done.json files {frames_total}; delete {fin} and the damaged iteration to "
+                                   "redo them")
     with clock("clone"):
-        soft = d.soft_tau > 0 and "teacher_logits" in data
-        if soft:
-            data["costs"] = -data.pop("teacher_logits")
         seed = cfg.seed + d.iterations
         policy, inherited = fresh_student(cfg, space, net, teacher_dir, data, seed)
         policy.to(device)
@@ -750,9 +757,6 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
                           f"student {cfg.variant} final cloning")
     info = {"frames": int(len(data["action"])), "clone_samples": d.bc_epochs * int(len(data["action"])), "seed": seed,
             "final_bc_loss": hist[-1]["bc_loss"], "seconds": clock.seconds}
-    if info["frames"] != frames_total:
-        raise CorruptArtifactError(f"{out / 'dagger'}: the iterations' features hold {info['frames']} frames, their "
-                                   f"done.json files {frames_total}; delete {fin} and the damaged iteration to redo them")
     save_policy(fin / "policy", policy, describe("student", cfg.variant, space, net, **extra,
                                                  intention=str(int_dir) if int_dir else None,
                                                  produced_by={"dagger_iterations": d.iterations,
