@@ -362,10 +362,11 @@ def iteration_timing(seconds: dict[str, float], rows: list[dict[str, Any]], fram
     return out
 
 
-def throughput_table(iterations: list[dict[str, Any]]) -> str:
+def throughput_table(iterations: list[dict[str, Any]], final: dict[str, Any] | None = None) -> str:
     """A Markdown account of a student's DAgger loop from its iterations' ``done.json`` (those with ``"timing"``):
     per iteration the frames, each part's wall and the frames per second; then the rollout episodes' phases in
-    worker-milliseconds per frame over every timed iteration, with each phase's share."""
+    worker-milliseconds per frame over every timed iteration, with each phase's share. ``final``: the final
+    cloning's ``done.json`` (``dagger.final_clone``; ``dagger/final``), its pool loading and cloning after the loop."""
     its = [i for i in iterations if "timing" in i]
     if not its:
         return "no timed DAgger iteration"
@@ -392,6 +393,11 @@ def throughput_table(iterations: list[dict[str, Any]]) -> str:
                   "", "| " + " | ".join(PHASES) + " | all |", "|---" * (len(PHASES) + 1) + "|",
                   "| " + " | ".join(f"{1e3 * worker[p] / timed_frames:.1f} ({worker[p] / whole:.0%})" for p in PHASES)
                   + f" | {1e3 * whole / timed_frames:.1f} |"]
+    if final and "seconds" in final:
+        sec, samples = final["seconds"], final["clone_samples"]
+        lines.append(f"\nFinal cloning (dagger/final): a fresh student on {final['frames']:,} frames, {samples:,} samples "
+                     f"in {sum(sec.values()) / 60:.1f} min (pool {sec.get('pool', 0.0):.0f} s, cloning "
+                     f"{sec.get('clone', 0.0):.0f} s: {1e3 * sec.get('clone', 0.0) / max(samples, 1):.2f} ms per sample)")
     return "\n".join(lines)
 
 

@@ -10,7 +10,8 @@ changes), finish time (UTC), wall, and the invocations that built the output (mo
 bound); then the sum of the walls and the span from the first stage's start to the last one's end (the start: the
 finish less the total wall). Then, for every student whose DAgger iterations were timed (finished or not), where its
 DAgger loop's time went (:func:`rl.dagger.throughput_table`: each iteration's rollouts, export, pool and cloning,
-frames per second, and the rollout episodes' phases per frame). Exit 0; 1 when a manifest or a ``done.json`` is
+frames per second, the rollout episodes' phases per frame, and the final cloning's pool and cloning when
+``dagger.final_clone`` ran). Exit 0; 1 when a manifest or a ``done.json`` is
 damaged (one line each naming the file, the others still listed); 2 when DATA_DIR is not a directory.
 """
 
@@ -45,22 +46,29 @@ def stage_timings(data_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
     return sorted(rows, key=lambda r: r["end"]), errors
 
 
-def dagger_timings(data_dir: Path) -> tuple[dict[str, list[dict[str, Any]]], list[str]]:
-    """``({variant: [done.json of each finished DAgger iteration, in order]}, errors)`` for every student under
-    ``data_dir``'s policy checkpoints; ``errors``: one line per unreadable ``done.json``."""
-    out: dict[str, list[dict[str, Any]]] = {}
+def dagger_timings(data_dir: Path) -> tuple[dict[str, tuple[list[dict[str, Any]], dict[str, Any] | None]],
+                                            list[str]]:
+    """``({variant: ([done.json of each finished DAgger iteration, in order], the final cloning's done.json or
+    None)}, errors)`` for every student under ``data_dir``'s policy checkpoints; ``errors``: one line per unreadable
+    ``done.json``."""
+    out: dict[str, tuple[list[dict[str, Any]], dict[str, Any] | None]] = {}
     errors: list[str] = []
+
+    def read(path: Path) -> dict[str, Any] | None:
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            errors.append(f"{path}: unreadable ({type(e).__name__}: {e})")
+            return None
+
     for variant_dir in sorted(policy_root(data_dir).glob("*/")):
-        iters = []
         done = [p for p in (variant_dir / "dagger").glob("iter_*/done.json")
                 if p.parent.name.removeprefix("iter_").isdigit()]  # iter_<k> only (rl.stage)
-        for path in sorted(done, key=lambda p: int(p.parent.name.removeprefix("iter_"))):
-            try:
-                iters.append(json.loads(path.read_text()))
-            except (OSError, ValueError) as e:
-                errors.append(f"{path}: unreadable ({type(e).__name__}: {e})")
+        iters = [i for p in sorted(done, key=lambda p: int(p.parent.name.removeprefix("iter_")))
+                 if (i := read(p)) is not None]
+        final_done = variant_dir / "dagger" / "final" / "done.json"  # dagger.final_clone
         if iters:
-            out[variant_dir.name] = iters
+            out[variant_dir.name] = (iters, read(final_done) if final_done.exists() else None)
     return out, errors
 
 
@@ -107,13 +115,13 @@ def main(argv: list[str]) -> int:
         print(markdown(rows) if rows else f"no finished stage (manifest.json) under {data_dir}")
         loops, bad = dagger_timings(data_dir)
         errors += bad
-        if any("timing" in i for iters in loops.values() for i in iters):
+        if any("timing" in i for iters, _ in loops.values() for i in iters):
             from rl.dagger import throughput_table  # lazy: torch only with a DAgger loop to show
 
-            for variant, iters in loops.items():
+            for variant, (iters, final) in loops.items():
                 where = policy_dir(data_dir, variant).relative_to(data_dir) / "dagger"
                 print(f"\nDAgger loop of `{variant}` ({where})\n")
-                print(throughput_table(iters))
+                print(throughput_table(iters, final))
     for e in errors:
         print(f"error: {e}", file=sys.stderr)
     return 1 if errors else 0

@@ -320,7 +320,7 @@ def test_stage_resume_equals_an_uninterrupted_run(tmp_path, teacher_dir, capsys)
     assert "| 1 | " in shown and "Rollout episodes, " in shown
 
 
-def test_new_frames_schedule_and_a_final_fresh_cloning(tmp_path, teacher_dir):
+def test_new_frames_schedule_and_a_final_fresh_cloning(tmp_path, teacher_dir, capsys):
     """``dagger.bc_schedule: new``: after each iteration the student clones ``bc_epochs`` x that iteration's new
     frames (drawn from the whole pool), not ``bc_epochs`` passes over the pool; the iterations and the checkpoint say
     which schedule and how many samples. ``dagger.final_clone``: the saved policy is a fresh student cloned on the
@@ -352,6 +352,8 @@ def test_new_frames_schedule_and_a_final_fresh_cloning(tmp_path, teacher_dir):
     run(_train_cfg(tmp_path, "no_bev", head="mlp", resume="true", **cfg))
     assert (out / "policy.safetensors").read_bytes() == saved
     assert json.loads((out / "metrics.json").read_text())["final_clone"]["marker"] == 1
+    timings_main([str(tmp_path)])  # the final cloning's time after the loop's
+    assert f"Final cloning (dagger/final): a fresh student on {fin['frames']:,} frames" in capsys.readouterr().out
 
 
 def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir, monkeypatch):

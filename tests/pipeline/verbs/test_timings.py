@@ -47,7 +47,8 @@ def test_a_damaged_manifest_is_named_and_the_rest_still_listed(tmp_path, capsys)
 
 def test_a_students_dagger_loop_is_shown_and_a_damaged_iteration_named(tmp_path, capsys):
     """After the stages, each student's DAgger loop from its iterations' ``done.json`` (timed ones; a ``done.json``
-    of older code without ``timing`` is skipped), in iteration order; an unreadable one is named, exit 1."""
+    of older code without ``timing`` is skipped), in iteration order, then its final cloning when it ran; an
+    unreadable ``done.json`` is named, exit 1."""
     from rl.dagger import PHASES, iteration_timing
 
     _stage(tmp_path, "checkpoints/policy/full", "train", "2026-11-27T10:00:00Z", 600.0)
@@ -63,6 +64,17 @@ def test_a_students_dagger_loop_is_shown_and_a_damaged_iteration_named(tmp_path,
     assert "DAgger loop of `full` (checkpoints/policy/full/dagger)" in out
     assert out.index("| 1 | 200 (400) |") < out.index("| 10 | 200 (2,200) |")
     assert "600 frames in 2.0 min: the loop 5.0 frames/s, its rollouts 6.7 frames/s" in out
+    assert "Final cloning" not in out
+    fin = tmp_path / "checkpoints" / "policy" / "full" / "dagger" / "final"  # dagger.final_clone after the loop
+    fin.mkdir()
+    (fin / "done.json").write_text(json.dumps({"frames": 2200, "clone_samples": 17600, "seed": 3,
+                                               "seconds": {"pool": 6.0, "clone": 54.0}}))
+    assert main([str(tmp_path)]) == 0
+    assert ("Final cloning (dagger/final): a fresh student on 2,200 frames, 17,600 samples in 1.0 min (pool 6 s, "
+            "cloning 54 s: 3.07 ms per sample)") in capsys.readouterr().out
+    (fin / "done.json").write_text("{")
+    assert main([str(tmp_path)]) == 1 and "final/done.json: unreadable" in capsys.readouterr().err
+    (fin / "done.json").unlink()
     (tmp_path / "checkpoints" / "policy" / "full" / "dagger" / "iter_1" / "done.json").write_text("{")
     assert main([str(tmp_path)]) == 1
     captured = capsys.readouterr()
