@@ -393,11 +393,11 @@ def throughput_table(iterations: list[dict[str, Any]], final: dict[str, Any] | N
                   "", "| " + " | ".join(PHASES) + " | all |", "|---" * (len(PHASES) + 1) + "|",
                   "| " + " | ".join(f"{1e3 * worker[p] / timed_frames:.1f} ({worker[p] / whole:.0%})" for p in PHASES)
                   + f" | {1e3 * whole / timed_frames:.1f} |"]
-    if final and "seconds" in final:
+    if final:  # rl.stage._final_clone's done.json
         sec, samples = final["seconds"], final["clone_samples"]
         lines.append(f"\nFinal cloning (dagger/final): a fresh student on {final['frames']:,} frames, {samples:,} samples "
-                     f"in {sum(sec.values()) / 60:.1f} min (pool {sec.get('pool', 0.0):.0f} s, cloning "
-                     f"{sec.get('clone', 0.0):.0f} s: {1e3 * sec.get('clone', 0.0) / max(samples, 1):.2f} ms per sample)")
+                     f"in {(sec['pool'] + sec['clone']) / 60:.1f} min (pool {sec['pool']:.0f} s, cloning "
+                     f"{sec['clone']:.0f} s: {1e3 * sec['clone'] / samples:.2f} ms per sample)")
     return "\n".join(lines)
 
 
