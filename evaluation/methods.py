@@ -61,7 +61,7 @@ class MethodSpec:
     reference: bool = False  # an upper reference (privileged information), not a competitor
     checkpoint: Path | None = None  # policy checkpoint directory (kind == policy)
     action_type: str = "continuous"
-    shield_s: float | None = None  # kind == policy: the lookahead head's obstacle shield instead of the saved one
+    shield_s: float | None = None  # kind == policy: the obstacle shield instead of the saved one (rl.driver.PolicyDriver)
     sample_tau: float | None = None  # kind == policy: sample softmax(logits / τ) per step instead of the argmax
     encoder_precision: str | None = None  # kind == policy (students): the frozen encoder's precision, not the saved
     poses: bool = True  # visual: whether the driver reads the detected poses (False: the env skips its detector)

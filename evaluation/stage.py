@@ -134,7 +134,8 @@ class EvalConfig(BaseStageConfig):
     paired_with: str = field(default="full", metadata={"help": "the method every other is paired against"})
     shield_s: float | None = field(default=None, metadata={
         "help": "the saved policies' obstacle shield horizon in s instead of their own (rl.lookahead; 0 = off, "
-                "none = as saved): ablate or add the shield without retraining"})
+                "none = as saved): ablate or add the shield without retraining — inside a lookahead head, or on an "
+                "MLP-head student's logits (rl.lookahead.ObstacleShield on its perceived depth scan)"})
     sample_tau: float | None = field(default=None, metadata={
         "help": "the saved policies (teacher, students) pick each action by sampling softmax(logits / tau), seeded "
                 "per episode, instead of the argmax (none = argmax, as trained policies are normally evaluated)"})

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from rl.lookahead import ObstacleShield
 from rl.observe import (
     StudentObserver,
     load_student_encoder,
@@ -72,7 +73,10 @@ class PolicyDriver:
 
     def __init__(self, ckpt: Path, shield_s: float | None = None, sample_tau: float | None = None,
                  encoder_precision: str | None = None) -> None:
-        """``sample_tau``: pick each action by sampling softmax(logits / τ) with a generator seeded by the episode's
+        """``shield_s``: the obstacle shield's horizon instead of the saved one (None = as saved; 0 = off): inside a
+        lookahead head (:func:`rl.policy.load_policy`), or for a student with the MLP head an
+        :class:`rl.lookahead.ObstacleShield` on its logits, on the depth scan its observer then also perceives.
+        ``sample_tau``: pick each action by sampling softmax(logits / τ) with a generator seeded by the episode's
         seed at reset (reproducible per episode), instead of the argmax (None). ``encoder_precision``: a student's
         frozen encoder at this precision instead of the one its policy.json names (None)."""
         torch.set_num_threads(1)
@@ -91,6 +95,11 @@ class PolicyDriver:
         self.map_cost = bool(self.desc.get("net", {}).get("map_cost", False))
         self.map_heads = (cached_student_heads(self.desc["variant"], self.head, self.map_cost, self.desc.get("encoder"),
                                                self.encoder) if self.student else None)
+        # the MLP head's obstacle shield (built at the first reset, from the env's robot, control period and scan)
+        saved = self.desc.get("net", {}).get("shield_s", 0.0)
+        self.mlp_shield_s = (float(saved if shield_s is None else shield_s)
+                             if self.student and self.head == "mlp" else 0.0)
+        self.shield: ObstacleShield | None = None
         self.observer: StudentObserver | None = None
         self.last_obs: dict[str, np.ndarray] | None = None
 
@@ -98,8 +107,14 @@ class PolicyDriver:
         self.rng = np.random.default_rng([SAMPLE_SEED_KEY, int(info.get("episode_seed", 0))])
         if self.student:
             if self.observer is None:
-                self.observer = observer_for(info["cameras"], info["config"], self.desc["variant"], self.encoder,
-                                             self.head, forecaster=self.forecaster, map_cost=self.map_cost,
+                cfg = info["config"]
+                if self.mlp_shield_s:
+                    self.shield = ObstacleShield(cfg.robot, cfg.dt_s, cfg.scan_rays, cfg.scan_range_m,
+                                                 self.mlp_shield_s)
+                # the shield reads the lookahead head's perception (its scan, without the detected people's points)
+                self.observer = observer_for(info["cameras"], cfg, self.desc["variant"], self.encoder,
+                                             "lookahead" if self.shield is not None else self.head,
+                                             forecaster=self.forecaster, map_cost=self.map_cost,
                                              map_heads=self.map_heads,
                                              track_unseen_s=self.desc.get("net", {}).get("track_unseen_s", 0.0))
             self.observer.reset()
@@ -108,9 +123,14 @@ class PolicyDriver:
         o = self.observer(obs) if self.student else dict(obs)
         o["state"] = obs["state"]
         self.last_obs = o
-        if self.sample_tau is None:
+        if self.sample_tau is None and self.shield is None:
             return act(self.policy, o)
-        z = action_logits(self.policy, o).astype(np.float64) / self.sample_tau
+        z = action_logits(self.policy, o).astype(np.float64)
+        if self.shield is not None:
+            z = z - self.shield(torch.as_tensor(o["scan"], dtype=torch.float32)[None])[0].double().numpy()
+        if self.sample_tau is None:
+            return int(np.argmax(z))
+        z = z / self.sample_tau
         p = np.exp(z - z.max())
         return int(self.rng.choice(len(p), p=p / p.sum()))
 

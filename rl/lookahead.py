@@ -75,6 +75,28 @@ def intrusion(clearances: torch.Tensor, margin_m: float) -> torch.Tensor:
     return (margin_m - clearances.amin(-1)).clamp_min(0.0)
 
 
+def ray_directions(rays: int) -> torch.Tensor:
+    """``R x 2`` unit directions of a 360° scan's rays in the robot frame (ray k at k·2π/R, as the env's
+    ``static_scan`` and :class:`rl.perceive.DepthScan`)."""
+    ang = torch.arange(int(rays)) * (2 * torch.pi / int(rays))
+    return torch.stack([torch.cos(ang), torch.sin(ang)], -1)
+
+
+def scan_clearances(arcs: torch.Tensor, scan: torch.Tensor, ray_dir: torch.Tensor, scan_range_m: float,
+                    radius_m: float) -> torch.Tensor:
+    """``B x A x S`` (m): the robot body's clearance to the obstacles of the range scan ``scan`` ``B x R`` (ray k
+    along ``ray_dir[k]``, robot frame; a ray at ``scan_range_m`` hit nothing) at every point of the arcs ``A x S x 2``
+    — measured against the end points of the :data:`SCAN_POINTS` nearest hits (farther ones cannot be the nearest
+    obstacle of an arc that stays within the horizon); :data:`CLEAR_CAP_M` + 1 - ``radius_m`` where nothing was hit."""
+    a, s = arcs.shape[:2]
+    b = scan.shape[0]
+    rng, idx = scan.topk(min(SCAN_POINTS, scan.shape[-1]), dim=-1, largest=False)
+    hit = rng < scan_range_m - 1e-3
+    pts = rng[..., None] * ray_dir[idx]  # B R 2
+    dq = torch.cdist(arcs.reshape(1, a * s, 2).expand(b, -1, -1), pts)  # B AS R
+    return dq.masked_fill(~hit[:, None, :], CLEAR_CAP_M + 1.0).amin(-1).view(b, a, s) - radius_m
+
+
 def lookahead_times(dt_s: float) -> torch.Tensor:
     """The ``S`` lookahead times (s): the control period, then every :data:`LOOKAHEAD_STEP_S` up to
     :data:`LOOKAHEAD_HORIZON_S` — where the head places the robot and every pedestrian."""
@@ -188,9 +210,7 @@ class LookaheadHead(nn.Module):
             self.register_buffer("path_s", spacing * torch.arange(1, n_path + 1, dtype=torch.float32),
                                  persistent=False)
             self.path_lead = max(1, int(round(1.0 / spacing)))  # heading target: 1 m further along the path
-        rays = observation_space["scan"].shape[0]
-        ang = torch.arange(rays) * (2 * torch.pi / rays)
-        self.register_buffer("ray_dir", torch.stack([torch.cos(ang), torch.sin(ang)], -1), persistent=False)
+        self.register_buffer("ray_dir", ray_directions(observation_space["scan"].shape[0]), persistent=False)
         self.map_key = map_key
         self.n_map = N_MAP if map_key else 0
         if map_key:
@@ -349,13 +369,7 @@ class LookaheadHead(nn.Module):
         ped_min = d.clamp(-0.5, CLEAR_CAP_M)
         ped_contact = ((0.15 - d).clamp_min(0.0) * disc).sum(-1)
         ped_comfort = ((0.8 - d).clamp_min(0.0) ** 2 * disc).sum(-1) * LOOKAHEAD_STEP_S
-        # static obstacles: the end points of the nearest scan hits (farther ones cannot be the nearest obstacle of
-        # an arc that stays within the horizon), B R 2
-        rng, idx = obs["scan"].topk(min(SCAN_POINTS, obs["scan"].shape[-1]), dim=-1, largest=False)
-        hit = rng < self.scan_range_m - 1e-3
-        pts = rng[..., None] * self.ray_dir[idx]
-        dq = torch.cdist(arcs.reshape(1, a * s, 2).expand(b, -1, -1), pts)  # B AS R
-        dq = dq.masked_fill(~hit[:, None, :], CLEAR_CAP_M + 1.0).amin(-1).view(b, a, s) - self.radius_m
+        dq = scan_clearances(arcs, obs["scan"], self.ray_dir, self.scan_range_m, self.radius_m)  # B A S
         obs_min = dq.clamp(-0.5, CLEAR_CAP_M)
         obs_contact = ((0.05 - dq).clamp_min(0.0) * disc).sum(-1)
         obs_near = ((0.25 - dq).clamp_min(0.0) ** 2 * disc).sum(-1)
@@ -404,3 +418,39 @@ class LookaheadHead(nn.Module):
                               obs_near.clamp_max(10.0), sub_gain, goal_gain, (1.0 - near) * abs_err,
                               near * (obs["state"][:, 2:3] - goal_near), grid[..., 0], grid[..., 1].abs()], -1)]
         return torch.cat(feats, -1)
+
+
+class ObstacleShield(nn.Module):
+    """The lookahead head's obstacle shield for an actor that has no rollouts of its own (the paper's MLP head,
+    ``net.head = "mlp"``): the same arcs of the action grid, the same clearances to the perceived scan
+    (:func:`scan_clearances`) and the same rule (:meth:`LookaheadHead.shield_intrusion`: an action whose arc comes
+    closer than :data:`SHIELD_MARGIN_M` to the scan within ``shield_s`` loses :data:`SHIELD_NATS_PER_M` nats per
+    metre of intrusion), as a penalty to subtract from the actor's logits. No weights: a parameter-free rule on top of
+    a learned head (DWA's admissible velocities), so a student with it is no longer "every weight decides".
+
+    Args:
+        robot: the robot (:class:`sim.robot.RobotConfig` or its fields; its grid is the policy's action grid).
+        dt_s: the control period (the first lookahead time).
+        rays, scan_range_m: the scan's layout (the env's ``scan_rays`` / ``scan_range_m``).
+        shield_s: the horizon (s, > 0 .. :data:`LOOKAHEAD_HORIZON_S`).
+    """
+
+    def __init__(self, robot: RobotConfig | dict[str, Any] | None, dt_s: float, rays: int, scan_range_m: float,
+                 shield_s: float) -> None:
+        super().__init__()
+        check_shield_s(shield_s, "obstacle shield shield_s")
+        if not shield_s > 0.0:
+            raise ConfigError(f"obstacle shield shield_s: expected > 0 s (0 is no shield: build none), got {shield_s!r}")
+        rc = robot if isinstance(robot, RobotConfig) else RobotConfig(**(robot or {}))
+        times = lookahead_times(dt_s)
+        times = times[times <= float(shield_s) + 1e-6]
+        arcs, _ = unicycle_arcs(torch.as_tensor(action_grid(rc), dtype=torch.float32), times)
+        self.register_buffer("arcs", arcs, persistent=False)  # A x S x 2, S = the lookahead times up to shield_s
+        self.register_buffer("ray_dir", ray_directions(rays), persistent=False)
+        self.scan_range_m, self.radius_m = float(scan_range_m), float(rc.radius_m)
+
+    @torch.no_grad()
+    def forward(self, scan: torch.Tensor) -> torch.Tensor:
+        """``B x A`` (nats, ≥ 0): what to subtract from the logits of the scans ``scan`` ``B x R`` (m)."""
+        clear = scan_clearances(self.arcs, scan, self.ray_dir, self.scan_range_m, self.radius_m)
+        return SHIELD_NATS_PER_M * intrusion(clear.clamp(-0.5, CLEAR_CAP_M), SHIELD_MARGIN_M)

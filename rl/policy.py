@@ -195,7 +195,8 @@ def upgrade_state_dict(sd: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 def load_policy(ckpt: Path, shield_s: float | None = None) -> tuple[ActorCriticPolicy, dict[str, Any]]:
     """The policy saved in ``ckpt`` (eval mode) and its description. ``shield_s``: the lookahead head's obstacle
     shield horizon instead of the saved one (:class:`rl.lookahead.LookaheadHead`; it has no weights, so any
-    lookahead checkpoint can be evaluated with or without it; ignored by other heads); None = as saved.
+    lookahead checkpoint can be evaluated with or without it; other heads ignore it here — the MLP head's shield
+    sits in :class:`rl.driver.PolicyDriver`); None = as saved.
 
     Raises:
         InputMissingError: the directory or a file is missing. CorruptArtifactError: unreadable or mismatching.

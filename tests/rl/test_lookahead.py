@@ -9,7 +9,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from pipeline.core.errors import ConfigError, CorruptArtifactError
-from rl.lookahead import N_LINEAR, SHIELD_NATS_PER_M, unicycle_arcs
+from rl.lookahead import N_LINEAR, SHIELD_NATS_PER_M, ObstacleShield, unicycle_arcs
 from rl.networks import LookaheadTeacherExtractor
 from rl.policy import (
     POLICY_WEIGHTS,
@@ -263,6 +263,26 @@ def test_obstacle_shield_lowers_exactly_the_arcs_predicted_to_hit(space):
     torch.testing.assert_close(plain.features_extractor(free), shielded.features_extractor(free))
     with pytest.raises(ConfigError, match="shield_s"):
         build_policy("teacher", None, space, {**teacher_net({"encoder": "lookahead"}, SIM), "shield_s": 5.0})
+
+
+def test_the_mlp_heads_obstacle_shield_is_the_lookahead_heads_rule(space):
+    """:class:`rl.lookahead.ObstacleShield` (the shield of a head without rollouts) subtracts exactly what the
+    lookahead head's shield subtracts, on a wall, on random scans and on an empty one; 0 or an out-of-range
+    horizon is one ConfigError."""
+    _, shielded = _plain_and(space, shield_s=0.6)
+    head = shielded.features_extractor.lookahead
+    shield = ObstacleShield(SIM.robot, SIM.dt_s, SIM.scan_rays, SIM.scan_range_m, 0.6)
+    gen = torch.Generator().manual_seed(0)
+    scans = [_obs(scan_m=0.6)["scan"], _obs()["scan"], 0.2 + 3.0 * torch.rand(4, 72, generator=gen)]
+    for scan in scans:
+        obs = {**_obs(), "scan": scan, **{k: v.expand(len(scan), *v.shape[1:]) for k, v in _obs().items()
+                                          if k != "scan"}}
+        expected = SHIELD_NATS_PER_M * head.shield_intrusion(head.action_features(obs))
+        torch.testing.assert_close(shield(scan), expected)
+    assert shield(scans[0])[0].max() > 100.0 and shield(scans[1]).abs().max() == 0
+    for bad in (0.0, 5.0, float("nan")):
+        with pytest.raises(ConfigError, match="obstacle shield shield_s"):
+            ObstacleShield(SIM.robot, SIM.dt_s, SIM.scan_rays, SIM.scan_range_m, bad)
 
 
 def test_shield_can_be_set_on_a_saved_checkpoint_without_touching_its_files(tmp_path, space):
