@@ -16,7 +16,8 @@ teacher's. That is the learning curve behind "how many frames does the paper's M
 ``--train`` / ``--holdout`` take policy checkpoints (every DAgger iteration of each) or iteration directories;
 duplicate episodes (the same frames reached through copies, or iteration 0 of two trainings with the same seed) count
 once, and held-out episodes never enter training. ``--save DIR`` writes the student of the largest size as a
-checkpoint that :mod:`rl.evaluate` runs (its ``produced_by`` names the frames it was cloned on); ``--acceptance``
+checkpoint that ``icrowdnav eval`` runs (its ``produced_by`` names the frames it was cloned on; its ``manifest.json``,
+written last as a stage writes it, hashes the teacher, encoder and features files it came from); ``--acceptance``
 then runs the profile's acceptance episodes on it, which ``python -m evaluation.compare`` pairs with a trained
 student's.
 Numbers in docs/results.md ("The paper's MLP head and the amount of data").
@@ -28,6 +29,8 @@ import argparse
 import functools
 import hashlib
 import logging
+import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -39,6 +42,7 @@ from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json
 from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, InputMissingError, reports_errors
+from pipeline.core.stage import code_state, finish_output, hash_inputs
 from rl.dagger import pool_frames
 from rl.networks import STUDENT_HEADS
 from rl.observe import load_student_encoder, load_student_heads, observer_for_env
@@ -56,6 +60,7 @@ from rl.stage import (
     distill,
     encoder_dir,
     fresh_student,
+    inputs,
     policy_root,
     student_net,
 )
@@ -246,7 +251,24 @@ def learning_curve(cfg: TrainConfig, train: list[Path], holdout: list[Path], siz
                                            encoder=str(enc_dir) if enc_dir else None, teacher=str(teacher_dir),
                                            intention=None, produced_by=produced))
         result["saved"] = str(save)
+        result["saved_from"] = [str(f) for f, _ in tr_files[:n_files[-1]]]  # the features files it was cloned on
     return result
+
+
+def write_manifest(save: Path, cfg: TrainConfig, result: dict[str, Any], t0: float, code: tuple[str, bool, str],
+                   argv: list[str] | None) -> None:
+    """The saved student's ``config.yaml`` and ``manifest.json`` (:func:`pipeline.core.stage.finish_output`):
+    its inputs the teacher, encoder (and intention model) ``train`` would read and the features files it was cloned
+    on; its counts the frames, held-out scores and acceptance SR per cell."""
+    row = result["rows"][-1]
+    counts: dict[str, Any] = {"frames": row["frames"], "episodes": row["episodes"],
+                              "holdout_ce": round(row["holdout"]["ce"], 4),
+                              "holdout_top1_agreement": round(row["holdout"]["top1_agreement"], 4)}
+    for cell, r in result.get("acceptance", {}).get("table", {}).items():
+        counts[f"sr_{cell}"] = round(r["sr"], 3)
+    paths = [*inputs(cfg), *map(Path, result["saved_from"])]
+    command = [sys.argv[0], *(sys.argv[1:] if argv is None else argv)]
+    finish_output(save, "data_scale", cfg, counts, hash_inputs(paths, cfg.data_dir), command, t0, code)
 
 
 def plot(result: dict[str, Any], path: Path) -> None:
@@ -309,13 +331,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--acceptance-episodes", type=int, default=None,
                     help="episodes per acceptance cell (default: the profile's acceptance.episodes)")
     a = ap.parse_args(argv)
+    t0, code = time.monotonic(), code_state()
     if a.head not in STUDENT_HEADS:
         raise ConfigError(f"--head: expected one of {list(STUDENT_HEADS)}, got {a.head!r}")
     try:
         sizes = [int(s) for s in a.sizes.split(",") if s.strip()]
     except ValueError:
         raise ConfigError(f"--sizes: expected comma-separated integers, got {a.sizes!r}") from None
-    over = {"data_dir": str(a.data_dir), "variant": a.variant, "head": a.head}
+    over = {"data_dir": str(a.data_dir), "variant": a.variant, "head": a.head, "seed": str(a.seed)}
     if a.epochs is not None:
         over["dagger.bc_epochs"] = str(a.epochs)
     if a.pool_memory_gb is not None:
@@ -337,6 +360,8 @@ def main(argv: list[str] | None = None) -> int:
         result["reference"] = reference_scores(a.reference, a.holdout, cfg.dagger.soft_tau, cfg.dagger.pool_memory_gb)
     if a.acceptance:
         result["acceptance"] = acceptance(cfg, a.save, f"{cfg.variant}_{cfg.head}_{result['rows'][-1]['frames']}")
+    if a.save is not None and result.get("saved"):  # last: a checkpoint without it is unfinished (eval refuses it)
+        write_manifest(Path(a.save), cfg, result, t0, code, argv)
     if a.json:
         atomic_write_json(a.json, result)
     if a.figure and result["rows"]:

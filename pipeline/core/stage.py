@@ -352,39 +352,65 @@ def _begin_invocation(out: Path) -> tuple[float, int]:
     return earlier
 
 
+def code_state(packages: tuple[str, ...] = CODE_PACKAGES) -> tuple[str, bool, str]:
+    """``(git commit, dirty, code hash)`` of the code running now (read when a run starts: one that spans commits
+    must not record a later one)."""
+    commit, dirty = git_info(_CODE_ROOT)
+    return commit, dirty, code_hash(None, packages)
+
+
+def finish_output(out: Path, name: str, cfg: Any, counts: Any, inputs: list[FileRecord], command: list[str],
+                  t0: float, code: tuple[str, bool, str], earlier: tuple[float, int] = (0.0, 0), *,
+                  params: dict[str, Any] | None = None, chash: str | None = None) -> Manifest:
+    """Writes ``config.yaml`` and then ``manifest.json`` (last: a consumer refuses an output without one) into the
+    finished output directory ``out`` — the provenance every stage writes, and a tool that writes an artefact
+    outside the stage runner (``python -m rl.data_scale --save``) writes the same way.
+
+    Args:
+        name: the stage (or tool) that made it. cfg: its resolved config. counts: its summary numbers.
+        inputs: the hashed inputs (:func:`hash_inputs`). command: its command line.
+        t0: ``time.monotonic()`` at its start (the wall includes hashing the outputs).
+        code: :func:`code_state` at its start. earlier: walls and count of the invocations before this one.
+        params, chash: the config's dict and hash when the caller has them already.
+    """
+    counts = _clean_counts(name, counts)
+    dump_yaml(cfg, out / CONFIG_NAME)
+    seed = getattr(cfg, "seed", None)
+    outputs = hash_tree(out)
+    wall = round(time.monotonic() - t0, 3)  # the outputs' hashing included
+    manifest = Manifest(
+        stage=name,
+        params=to_dict(cfg) if params is None else params,
+        config_hash=config_hash(cfg) if chash is None else chash,
+        seed=seed if isinstance(seed, int) and not isinstance(seed, bool) else None,
+        inputs=inputs,
+        outputs=outputs,
+        counts=counts,
+        created_utc=datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        git_commit=code[0],
+        git_dirty=code[1],
+        versions=collect_versions(),
+        duration_s=wall,
+        command=list(command),
+        code_hash=code[2],
+        wall_total_s=round(earlier[0] + wall, 3),
+        invocations=earlier[1] + 1,
+    )
+    manifest.write(out / MANIFEST_NAME)
+    return manifest
+
+
 def _run_body(stage: Stage, cfg: Any, out: Path, mode: str, chash: str, params: dict, inputs: list[FileRecord],
               command: list[str], t0: float, earlier: tuple[float, int]) -> tuple[Manifest, bool]:
     """The body in its :class:`OutputDir`, then ``config.yaml`` and ``manifest.json`` (its wall adds ``earlier``:
     the walls and count of the invocations that built an output continued in place before this one)."""
     # the code that runs is the code at the start: a run that spans commits must not record a later one
-    commit, dirty = git_info(_CODE_ROOT)
-    chash_code = code_hash(None, stage.code)
+    code = code_state(stage.code)
     with OutputDir(out, mode) as od:
         log.info("%s: running (mode %s) -> %s", stage.name, mode, out)
-        counts = _clean_counts(stage.name, stage.body(cfg, od.path))
-        dump_yaml(cfg, od.path / CONFIG_NAME)
-        seed = getattr(cfg, "seed", None)
-        outputs = hash_tree(od.path)
-        wall = round(time.monotonic() - t0, 3)  # the outputs' hashing included
-        manifest = Manifest(
-            stage=stage.name,
-            params=params,
-            config_hash=chash,
-            seed=seed if isinstance(seed, int) and not isinstance(seed, bool) else None,
-            inputs=inputs,
-            outputs=outputs,
-            counts=counts,
-            created_utc=datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
-            git_commit=commit,
-            git_dirty=dirty,
-            versions=collect_versions(),
-            duration_s=wall,
-            command=command,
-            code_hash=chash_code,
-            wall_total_s=round(earlier[0] + wall, 3),
-            invocations=earlier[1] + 1,
-        )
-        manifest.write(od.path / MANIFEST_NAME)
+        counts = stage.body(cfg, od.path)
+        manifest = finish_output(od.path, stage.name, cfg, counts, inputs, command, t0, code, earlier,
+                                 params=params, chash=chash)
     _ledger_path(out).unlink(missing_ok=True)
     log.info("%s: done in %.1f s -> %s", stage.name, manifest.duration_s, out)
     return manifest, True

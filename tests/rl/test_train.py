@@ -11,8 +11,10 @@ import pytest
 import torch
 import yaml
 
+from evaluation.methods import spec_from_checkpoint
 from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pipeline.core.manifest import Manifest
 from pipeline.core.timing import PhaseClock
 from pipeline.verbs.timings import main as timings_main
 from pretrain.intention import load_forecaster
@@ -819,6 +821,17 @@ def test_data_scale_clones_nested_subsets_of_pooled_dagger_frames(tmp_path, teac
         learning_curve(cfg, [it0], [other / "iter_1"], [1])
     assert scale_main(["--train", str(it0), "--holdout", str(it1), "--sizes", "2,1", "--head", "mlp",
                        "--variant", "no_bev", "--data-dir", str(tmp_path)]) == 2
+    # --save from the command line: a finished checkpoint (manifest last) that eval's weight check accepts
+    saved = tmp_path / "checkpoints" / "policy" / "no_bev_offline"
+    assert scale_main(["--train", str(it0), "--holdout", str(it1), "--sizes", "1", "--head", "mlp", "--variant",
+                       "no_bev", "--data-dir", str(tmp_path), "--seed", "3", "--save", str(saved)]) == 0
+    m = Manifest.read(saved / "manifest.json")
+    assert m.stage == "data_scale" and m.seed == 3 and m.params["seed"] == 3 and m.counts["frames"] >= 1
+    assert {"policy.json", "policy.safetensors", "config.yaml"} <= {r.path for r in m.outputs}
+    assert "checkpoints/policy/teacher/policy.safetensors" in {r.path for r in m.inputs}
+    assert [r.path for r in m.inputs if "/features/" in r.path] and "--save" in m.command
+    check_checkpoint_weights(saved)
+    assert spec_from_checkpoint(saved).checkpoint == saved
     # --acceptance-episodes is the config's acceptance.episodes (checked there: one named error, exit 2)
     assert scale_main(["--train", str(it0), "--holdout", str(it1), "--sizes", "1", "--head", "mlp", "--variant",
                        "no_bev", "--data-dir", str(tmp_path), "--acceptance-episodes", "0"]) == 2
