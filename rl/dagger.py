@@ -48,7 +48,15 @@ from recorder.export import export_run
 from recorder.mcap.layout import partial_path_of
 from recorder.mcap.writer import EpisodeWriter
 from recorder.schema import episode_meta_from_env, frame_from_env
-from rl.driver import cached_policy, cached_student_encoder, cached_student_forecaster, cached_student_heads
+from rl.driver import (
+    cached_policy,
+    cached_student_encoder,
+    cached_student_forecaster,
+    cached_student_heads,
+    mlp_shield,
+    shielded_logits,
+)
+from rl.lookahead import ObstacleShield
 from rl.observe import observer_for_env
 from rl.policy import act, action_logits, checkpoint_bundle
 from sim.env import CrowdNavEnv, SimConfig
@@ -62,10 +70,12 @@ def episode_name(scene: str, density: float, seed: int) -> str:
 
 class _DaggerDriver:
     """Executes the teacher's label of the current frame (set by :func:`dagger_episode` before each act) with
-    probability β, else the student's action on the same frame."""
+    probability β, else the student's action on the same frame — for an MLP head with an obstacle shield
+    (``train.mlp_shield_s``) the argmax of its logits less the shield's penalty, as it acts once trained."""
 
-    def __init__(self, student, beta: float, rng: np.random.Generator, clock: PhaseClock) -> None:
-        self.student, self.beta, self.rng, self.clock = student, beta, rng, clock
+    def __init__(self, student, beta: float, rng: np.random.Generator, clock: PhaseClock,
+                 shield: ObstacleShield | None = None) -> None:
+        self.student, self.beta, self.rng, self.clock, self.shield = student, beta, rng, clock, shield
         self.label, self.s_obs, self.student_steps = 0, None, 0
 
     def reset(self, obs, info) -> None:
@@ -75,7 +85,9 @@ class _DaggerDriver:
         if self.student is not None and self.rng.random() >= self.beta:
             self.student_steps += 1
             with self.clock("student"):
-                return act(self.student, self.s_obs)
+                if self.shield is None:
+                    return act(self.student, self.s_obs)
+                return int(np.argmax(shielded_logits(self.student, self.s_obs, self.shield)))
         return self.label
 
 
@@ -127,12 +139,15 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
     encoder = cached_student_encoder(args["variant"], args["encoder"], args.get("device", "cpu"),
                                      args.get("encoder_precision", "fp32"))
     teacher = cached_policy(args["teacher"])
-    driver = _DaggerDriver(cached_policy(args["student"]), args["beta"], np.random.default_rng(args["seed"] + 7919),
-                           clock)
     head = args.get("head", "mlp")
+    # an MLP head's shield reads the depth scan the lookahead head perceives: its observer perceives it too
+    shield = mlp_shield(sim_cfg, float(args.get("mlp_shield_s", 0.0))) if head == "mlp" else None
+    driver = _DaggerDriver(cached_policy(args["student"]), args["beta"], np.random.default_rng(args["seed"] + 7919),
+                           clock, shield)
     forecaster = cached_student_forecaster(args["variant"], head, args.get("intention"))
     map_cost = bool(args.get("map_cost", False))
-    observer = observer_for_env(env, args["variant"], encoder, head, mirror=args.get("mirror", False),
+    observer = observer_for_env(env, args["variant"], encoder, "lookahead" if shield is not None else head,
+                                mirror=args.get("mirror", False),
                                 forecaster=forecaster, map_cost=map_cost,
                                 map_heads=cached_student_heads(args["variant"], head, map_cost, args["encoder"],
                                                                encoder))

@@ -68,6 +68,22 @@ def cached_student_forecaster(variant: str, head: str, intention_ckpt: Path | st
                           lambda: load_student_forecaster(variant, head, intention_ckpt))
 
 
+def mlp_shield(sim_cfg, shield_s: float) -> ObstacleShield | None:
+    """The obstacle shield of an MLP-head student over ``shield_s`` (None when 0) for the env of ``sim_cfg`` (its
+    robot, control period and scan layout)."""
+    if not shield_s:
+        return None
+    return ObstacleShield(sim_cfg.robot, sim_cfg.dt_s, sim_cfg.scan_rays, sim_cfg.scan_range_m, shield_s)
+
+
+def shielded_logits(policy, obs: dict[str, np.ndarray], shield: ObstacleShield | None) -> np.ndarray:
+    """The policy's action logits on ``obs`` (float64) less ``shield``'s penalty on its perceived ``scan``."""
+    z = action_logits(policy, obs).astype(np.float64)
+    if shield is not None:
+        z = z - shield(torch.as_tensor(obs["scan"], dtype=torch.float32)[None])[0].double().numpy()
+    return z
+
+
 class PolicyDriver:
     """A saved teacher or student policy (``policy.json`` kind ``teacher`` | ``student``) as a driver."""
 
@@ -108,9 +124,7 @@ class PolicyDriver:
         if self.student:
             if self.observer is None:
                 cfg = info["config"]
-                if self.mlp_shield_s:
-                    self.shield = ObstacleShield(cfg.robot, cfg.dt_s, cfg.scan_rays, cfg.scan_range_m,
-                                                 self.mlp_shield_s)
+                self.shield = mlp_shield(cfg, self.mlp_shield_s)
                 # the shield reads the lookahead head's perception (its scan, without the detected people's points)
                 self.observer = observer_for(info["cameras"], cfg, self.desc["variant"], self.encoder,
                                              "lookahead" if self.shield is not None else self.head,
@@ -125,9 +139,7 @@ class PolicyDriver:
         self.last_obs = o
         if self.sample_tau is None and self.shield is None:
             return act(self.policy, o)
-        z = action_logits(self.policy, o).astype(np.float64)
-        if self.shield is not None:
-            z = z - self.shield(torch.as_tensor(o["scan"], dtype=torch.float32)[None])[0].double().numpy()
+        z = shielded_logits(self.policy, o, self.shield)
         if self.sample_tau is None:
             return int(np.argmax(z))
         z = z / self.sample_tau

@@ -274,6 +274,11 @@ class TrainConfig(BaseStageConfig):
     # 2 cm of the perceived obstacles by then is chosen only if every action is (rl.lookahead.LookaheadHead; on
     # the N = 75 benchmark it raised full's SR by 0.078 pooled, docs/results.md "Why they fail")
     shield_s: float = 0.6
+    # mlp head: the same shield (rl.lookahead.ObstacleShield on its perceived depth scan, subtracted from its logits)
+    # over this horizon in s, in its DAgger rollouts, its acceptance and wherever the checkpoint is loaded (saved as
+    # net.shield_s; eval --shield_s overrides it); 0 = off, the paper's head with every weight learned. A hand-built
+    # rule: with it the head is no longer all learned (docs/results.md, "the obstacle shield on the MLP head")
+    mlp_shield_s: float = 0.0
     # lookahead head: also sample an occupancy map along every arc, weighted by a convex-fitted cost (rl.lookahead):
     # the pretrained BEV's predicted occupancy (static, people now / +0.5 s / +1.0 s) for full and no_i2, the depth
     # occupancy (the w/o BEV substitute) for no_bev; the mlp head has no costs and ignores it
@@ -352,6 +357,13 @@ class TrainConfig(BaseStageConfig):
         if self.scorer_bound < 0:
             raise ConfigError(f"train.scorer_bound: expected >= 0, got {self.scorer_bound}")
         check_shield_s(self.shield_s, "train.shield_s")
+        check_shield_s(self.mlp_shield_s, "train.mlp_shield_s")
+        if self.mlp_shield_s and self.head != "mlp":
+            raise ConfigError(f"train.mlp_shield_s: the MLP head's shield, expected 0 with head {self.head!r} (its "
+                              f"own is train.shield_s), got {self.mlp_shield_s}")
+        if self.mlp_shield_s and self.finetune.ppo_steps:
+            raise ConfigError(f"train.mlp_shield_s: PPO fine-tuning acts through the network alone, without the "
+                              f"shield; expected finetune.ppo_steps 0 with it, got {self.finetune.ppo_steps}")
         if self.map_signs not in MAP_SIGNS:
             raise ConfigError(f"train.map_signs: expected one of {list(MAP_SIGNS)}, got {self.map_signs!r}")
         if d.linear_cost not in LINEAR_COSTS:
@@ -631,6 +643,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                  "teacher": str(teacher_dir), "student": str(student_dir) if student_dir else None, "beta": beta,
                  "iteration": k, "iter_dir": str(it), "mirror": d.mirror, "head": cfg.head, "device": str(device),
                  "map_cost": cfg.map_cost, "encoder_precision": cfg.encoder_precision,
+                 "mlp_shield_s": cfg.mlp_shield_s,
                  "intention": str(int_dir) if int_dir else None}
                 for e in range(d.episodes_per_iter)]
         ex = Executor.of(cfg)
@@ -835,7 +848,8 @@ def inherit_linear_cost(policy, teacher_dir: Path) -> None:
 def student_net(cfg: TrainConfig, grid: BEVGrid) -> dict[str, Any]:
     """The student's network description (saved in policy.json): ``cfg.net``, the head and, for the lookahead head,
     what its rollouts need from the simulator (robot limits and radius, control period, scan range) and, with
-    ``map_cost``, the extent of the occupancy map it samples (``grid``: the observer's BEV grid)."""
+    ``map_cost``, the extent of the occupancy map it samples (``grid``: the observer's BEV grid); for the MLP head
+    with ``mlp_shield_s`` that shield's horizon (``shield_s``)."""
     from dataclasses import asdict
 
     net = {**cfg.net, "head": cfg.head}
@@ -848,6 +862,8 @@ def student_net(cfg: TrainConfig, grid: BEVGrid) -> dict[str, Any]:
             net.update({"map_cost": True, "map_bounds": [list(map(float, b[:2])) for b in (grid.x_bound, grid.y_bound)]})
             if cfg.map_view:
                 net["map_view_deg"] = abs(float(cfg.sim.camera.yaw_deg)) + float(cfg.sim.camera.hfov_deg) / 2.0
+    elif cfg.mlp_shield_s:  # the MLP head's shield acts in rl.driver.PolicyDriver and the DAgger rollouts
+        net["shield_s"] = cfg.mlp_shield_s
     return net
 
 

@@ -1,4 +1,5 @@
-"""rl.dagger's frame pool: the cached DAgger episodes concatenated once, in memory or memory-mapped."""
+"""rl.dagger's frame pool (the cached DAgger episodes concatenated once, in memory or memory-mapped), its timing
+and the driver of its rollouts."""
 
 from __future__ import annotations
 
@@ -8,11 +9,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from pipeline.core.config import load_config
 from pipeline.core.errors import ConfigError, InputMissingError
+from pipeline.core.timing import PhaseClock
 from rl.dagger import (
     PHASES,
+    _DaggerDriver,
     episode_phases,
     feature_files,
     iteration_timing,
@@ -20,7 +24,10 @@ from rl.dagger import (
     pool_frames,
     throughput_table,
 )
+from rl.driver import PolicyDriver, cached_policy, mlp_shield
 from rl.stage import TrainConfig
+from sim.env import CrowdNavEnv
+from tests.rl.helpers_mlp import SIM, TARGET, save_mlp_student
 
 
 def _episode(path: Path, n: int, seed: int, **extra: np.ndarray) -> dict[str, np.ndarray]:
@@ -133,3 +140,30 @@ def test_an_iterations_timing_and_its_table():
     assert "Rollout episodes, 400 frames" in table and "| 0.0 (0%) | 5.0 (25%) |" in table
     assert "| 15.0 (75%) |" in table and table.rstrip().endswith("| 20.0 |")
     assert throughput_table([its[2]]) == "no timed DAgger iteration"
+
+
+def test_the_students_rollout_steps_are_its_shielded_actions(tmp_path):
+    """``train.mlp_shield_s``: where a DAgger rollout executes the MLP-head student's action (probability 1 − β),
+    that action is the one :class:`rl.driver.PolicyDriver` takes with the saved shield — the argmax of its logits
+    less the shield's penalty on the perceived scan — so the rollouts visit the states the trained student will.
+    Facing a wall all round at 0.6 m, a student whose argmax drives straight into it turns instead; without the
+    shield it drives on; with β = 1 the teacher's label is executed either way."""
+    env = CrowdNavEnv(config=SIM)
+    obs, info = env.reset(seed=0)
+    env.close()
+    ckpt = save_mlp_student(tmp_path / "straight", info, straight_bias=100.0)
+    deployed = PolicyDriver(ckpt, shield_s=0.6)
+    deployed.reset(obs, info)
+    deployed.act(obs, info)
+    wall = {**deployed.last_obs, "scan": np.full(SIM.scan_rays, 0.6, np.float32)}
+    deployed.observer = lambda _obs: dict(wall)
+    policy, shield = cached_policy(ckpt), mlp_shield(SIM, 0.6)
+    intruding = set(np.flatnonzero(shield(torch.as_tensor(wall["scan"])[None])[0].numpy() > 0).tolist())
+    rollout = {}
+    for name, beta, sh in (("plain", 0.0, None), ("shielded", 0.0, shield), ("teacher", 1.0, shield)):
+        d = _DaggerDriver(policy, beta, np.random.default_rng(0), PhaseClock(), sh)
+        d.label, d.s_obs = 3, wall
+        rollout[name] = d.act(obs, info)
+    assert TARGET in intruding and rollout["plain"] == TARGET
+    assert rollout["shielded"] not in intruding and rollout["shielded"] == deployed.act(obs, info)
+    assert rollout["teacher"] == 3 and mlp_shield(SIM, 0.0) is None

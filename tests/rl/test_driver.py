@@ -8,13 +8,9 @@ import torch
 
 from rl.driver import PolicyDriver
 from rl.lookahead import ObstacleShield
-from rl.observe import observer_for
-from rl.policy import action_logits, build_policy, describe, save_policy
-from sim.env import CameraConfig, CrowdNavEnv, SimConfig
-
-SIM = SimConfig(max_episode_s=4.0, camera=CameraConfig(width_px=64, height_px=48), scene="hallway",
-                obs_mode="visual", action_type="discrete")
-N_ROT = 21
+from rl.policy import action_logits
+from sim.env import CrowdNavEnv
+from tests.rl.helpers_mlp import N_ROT, SIM, TARGET, save_mlp_student
 
 
 @pytest.fixture(scope="module")
@@ -23,22 +19,6 @@ def episode():
     obs, info = env.reset(seed=0)
     yield env, obs, info
     env.close()
-
-
-TARGET = 4 * N_ROT + N_ROT // 2  # the fastest straight command
-
-
-def save_mlp_student(out, info, straight_bias=0.0):
-    """A ``no_bev`` student with the paper's MLP head (random weights, plus ``straight_bias`` nats on the fastest
-    straight command; no encoder needed), saved as train saves it."""
-    space = observer_for(info["cameras"], info["config"], "no_bev", None, "mlp").observation_space
-    torch.manual_seed(0)
-    net = {"head": "mlp"}
-    policy = build_policy("student", "no_bev", space, net)
-    with torch.no_grad():
-        policy.action_net.bias[TARGET] += straight_bias
-    save_policy(out, policy, describe("student", "no_bev", space, net, encoder=None, intention=None))
-    return out
 
 
 @pytest.fixture(scope="module")

@@ -736,7 +736,8 @@ def test_mirror_batch_reflects_the_students_inputs():
 
 def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
     """The lookahead student's policy.json says whether it was built with the obstacle shield (the default profile's
-    0.6 s, or off), the MLP head never has one, and an out-of-range horizon is one named error."""
+    0.6 s, or off), the MLP head has one only with ``mlp_shield_s`` (never with PPO, which acts without it), and an
+    out-of-range horizon is one named error."""
     from pretrain.geometry import BEVGrid
     from rl.stage import student_net
 
@@ -744,6 +745,13 @@ def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
     assert student_net(_train_cfg(tmp_path, "full"), grid)["shield_s"] == 0.6
     assert "shield_s" not in student_net(_train_cfg(tmp_path, "full", shield_s=0.0), grid)
     assert "shield_s" not in student_net(_train_cfg(tmp_path, "full", head="mlp"), grid)
+    assert student_net(_train_cfg(tmp_path, "full", head="mlp", mlp_shield_s=0.6), grid)["shield_s"] == 0.6
+    with pytest.raises(ConfigError, match=r"train.mlp_shield_s: the MLP head's shield, expected 0 with head "
+                                          r"'lookahead' \(its own is train.shield_s\), got 0.6"):
+        _train_cfg(tmp_path, "full", mlp_shield_s=0.6)
+    with pytest.raises(ConfigError, match=r"train.mlp_shield_s: PPO fine-tuning .* expected finetune.ppo_steps 0 "
+                                          r"with it, got 64"):
+        _train_cfg(tmp_path, "full", head="mlp", mlp_shield_s=0.6, **{"finetune.ppo_steps": 64})
     with pytest.raises(ConfigError, match=r"train.shield_s: expected 0 \(off\) .. 2.0 s, got 3.0"):
         _train_cfg(tmp_path, "full", shield_s=3.0)
     with pytest.raises(ConfigError, match=r"train.map_signs: expected one of \['free', 'costs'\], got 'bonus'"):
@@ -753,6 +761,28 @@ def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
         _train_cfg(tmp_path, "full", **{"dagger.linear_cost": "goal"})
     with pytest.raises(ConfigError, match=r"train.dagger.bc_precision: expected one of auto, fp32, bf16, got 'half'"):
         _train_cfg(tmp_path, "full", **{"dagger.bc_precision": "half"})
+
+
+def test_an_mlp_student_trained_with_the_shield_rolls_out_and_loads_with_it(tmp_path, teacher_dir):
+    """``train.mlp_shield_s``: the MLP head's DAgger rollouts perceive the depth scan its shield reads (cached with
+    each frame; the rollouts act through the shield: tests/rl/test_dagger.py), the cloned network is the paper's head
+    (no scan among its inputs, no new weights) and its policy.json carries the shield, so its acceptance run and every
+    later load act shielded."""
+    from pipeline.verbs.train import run
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    run(_train_cfg(tmp_path, "no_bev", head="mlp", mlp_shield_s=0.6))
+    out = tmp_path / "checkpoints" / "policy" / "no_bev"
+    for k in (0, 1):
+        (ep,) = (out / "dagger" / f"iter_{k}" / "features").glob("*.npz")
+        with np.load(ep) as z:
+            assert z["scan"].shape[1] == TINY_SIM.scan_rays and len(z["scan"]) == len(z["action"])
+    desc = json.loads((out / "policy.json").read_text())
+    assert desc["net"] == {"head": "mlp", "shield_s": 0.6, "bev_width": 8}
+    assert set(desc["observation_space"]) == {"occ", "poses", "pose_mask", "state"}
+    driver = PolicyDriver(out)
+    assert driver.mlp_shield_s == 0.6 and PolicyDriver(out, shield_s=0.0).mlp_shield_s == 0.0
+    assert json.loads((out / "metrics.json").read_text())["acceptance"]["table"]["hallway@0.1"]["n"] == 1
 
 
 def test_sampled_actions_follow_the_logits_and_repeat_per_episode_seed(teacher_dir):
