@@ -31,7 +31,9 @@ layout is rebuilt from the run's scene, scene seed and crowd seed; a trace whose
 
 ``--replay K`` reruns the first K obstacle hits of a lookahead-head policy (its checkpoint in the run's data dir,
 the run's ``shield_s``) and asks whether the policy *saw* the hit coming: at each of the last steps, the obstacle
-clearance its head predicted for the arc it chose (over the next :data:`REPLAY_WINDOW_S`, from its perceived scan),
+clearance its head predicted for the arc it chose (over the next :data:`REPLAY_WINDOW_S`, from its perceived scan;
+for a student with the paper's MLP head, which predicts none, the clearance of that arc to the depth scan its
+driver perceives beside its own inputs — what its obstacle shield reads, whether it acts with one or not),
 the best clearance any action of the grid offered, and the true clearance after the step. A hit whose chosen arcs
 were predicted to touch while a free arc existed is the cost's choice (``chose_predicted_contact``), not a
 perception miss. Episodes are deterministic given their seeds; a replay that does not end as the run's row did is
@@ -77,6 +79,7 @@ from pipeline.core.errors import (
     reports_errors,
 )
 from pipeline.core.executor import map_jobs
+from rl.lookahead import ObstacleShield
 from rl.policy import obs_to_tensor
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
@@ -326,15 +329,22 @@ def run_layouts(run: Path) -> Layouts:
     return Layouts(run)
 
 
-def replay_head(spec: MethodSpec) -> Any:
-    """The lookahead head of ``spec``'s policy (its driver made once per process); a method without one is a
-    named error."""
+def replay_head(spec: MethodSpec, sim: SimConfig, pedestrian: bool = False) -> Any:
+    """What predicts the clearances of ``spec``'s actions (its driver made once per process): the lookahead head
+    of its policy, or for a student with the paper's MLP head (obstacle hits only) the arcs of the action grid
+    against the depth scan its driver then perceives (:class:`rl.lookahead.ObstacleShield` over
+    :data:`REPLAY_WINDOW_S` on the run's robot and scan: the clearances its shield reads, whether or not it acts
+    with one). Any other method is a named error."""
     driver = cached_driver(spec)
     head = getattr(getattr(getattr(driver, "policy", None), "features_extractor", None), "lookahead", None)
-    if head is None:
-        raise ConfigError(f"--replay: method {spec.name!r} has no lookahead head whose predicted clearances could "
-                          "be read")
-    return head
+    if head is not None:
+        return head
+    if getattr(driver, "student", False) and getattr(driver, "head", None) == "mlp" and not pedestrian:
+        driver.perceive_scan = True
+        return ObstacleShield(sim.robot, sim.dt_s, sim.scan_rays, sim.scan_range_m, REPLAY_WINDOW_S)
+    what = "predicted pedestrian clearances (a lookahead head)" if pedestrian else (
+        "predicted clearances (a lookahead head, or a student's MLP head and its depth scan)")
+    raise ConfigError(f"--replay{'-peds' if pedestrian else ''}: method {spec.name!r} has no {what} to read")
 
 
 def replay_hit(job: ReplayJob) -> dict[str, Any]:
@@ -343,9 +353,9 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
     ``--replay``), for a pedestrian hit also the tracks and the pedestrian clearances (``--replay-peds``)."""
     torch.set_num_threads(1)  # one episode per worker process
     f, spec, layouts = job.failure, job.spec, run_layouts(job.run)
-    driver, head = cached_driver(spec), replay_head(spec)
-    w = head.steps_within(REPLAY_WINDOW_S)
     ped_hit = f["cause"] == "collision_pedestrian"
+    driver, head = cached_driver(spec), replay_head(spec, layouts.sim, ped_hit)
+    w = head.steps_within(REPLAY_WINDOW_S)
     ep = Job(spec, layouts.sim, f["scene"], float(f["density"]), int(f["seed"]), job.run, save_trace=False,
              scene_seed=layouts.scene_seeds.get(int(f["seed"])))
     env = make_env(ep)
@@ -356,7 +366,8 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
             o = driver.last_obs  # what the policy saw at the previous step, when it chose tr.action
             if tr.step == 0 or o is None:
                 continue
-            obs = obs_to_tensor({key: o[key] for key in driver.policy.observation_space.spaces})
+            keys = [*driver.policy.observation_space.spaces, *(("scan",) if "scan" in o else ())]
+            obs = obs_to_tensor({key: o[key] for key in dict.fromkeys(keys)})
             with torch.no_grad():
                 feats = head.action_features(obs)
             clear = head.obstacle_clearances(feats, w)[0]  # A x w, m
@@ -448,8 +459,8 @@ def replay_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path | None = 
             if (f["cause"] == "collision_pedestrian") == pedestrian and f["cause"] != "timeout"][:k]
     methods = list(dict.fromkeys(f["method"] for f in hits))
     specs = dict(zip(methods, resolve_methods(methods, data_dir, run_layouts(run).config.get("shield_s")), strict=True))
-    for spec in specs.values():  # a method without a lookahead head is refused before any episode runs
-        replay_head(spec)
+    for spec in specs.values():  # a method with nothing to read is refused before any episode runs
+        replay_head(spec, run_layouts(run).sim, pedestrian)
     return map_jobs(replay_hit, [ReplayJob(run, specs[f["method"]], f) for f in hits], workers, "replay",
                     progress)
 

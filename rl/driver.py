@@ -116,21 +116,28 @@ class PolicyDriver:
         self.mlp_shield_s = (float(saved if shield_s is None else shield_s)
                              if self.student and self.head == "mlp" else 0.0)
         self.shield: ObstacleShield | None = None
+        # an MLP-head student's observer also perceives the depth scan its shield would read, without acting on it
+        # (evaluation.failures --replay reads what it showed); takes effect at the next reset
+        self.perceive_scan = False
         self.observer: StudentObserver | None = None
+        self._observer_head: str | None = None
         self.last_obs: dict[str, np.ndarray] | None = None
 
     def reset(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> None:
         self.rng = np.random.default_rng([SAMPLE_SEED_KEY, int(info.get("episode_seed", 0))])
         if self.student:
-            if self.observer is None:
+            # the MLP head's shield reads the lookahead head's perception (its scan, without the detected people's
+            # points)
+            scan = self.head == "mlp" and (bool(self.mlp_shield_s) or self.perceive_scan)
+            observer_head = "lookahead" if scan else self.head
+            if self.observer is None or observer_head != self._observer_head:
                 cfg = info["config"]
                 self.shield = mlp_shield(cfg, self.mlp_shield_s)
-                # the shield reads the lookahead head's perception (its scan, without the detected people's points)
-                self.observer = observer_for(info["cameras"], cfg, self.desc["variant"], self.encoder,
-                                             "lookahead" if self.shield is not None else self.head,
+                self.observer = observer_for(info["cameras"], cfg, self.desc["variant"], self.encoder, observer_head,
                                              forecaster=self.forecaster, map_cost=self.map_cost,
                                              map_heads=self.map_heads,
                                              track_unseen_s=self.desc.get("net", {}).get("track_unseen_s", 0.0))
+                self._observer_head = observer_head
             self.observer.reset()
 
     def act(self, obs: dict[str, np.ndarray], info: dict[str, Any]):

@@ -445,7 +445,8 @@ class ObstacleShield(nn.Module):
         times = lookahead_times(dt_s)
         times = times[times <= float(shield_s) + 1e-6]
         arcs, _ = unicycle_arcs(torch.as_tensor(action_grid(rc), dtype=torch.float32), times)
-        self.register_buffer("arcs", arcs, persistent=False)  # A x S x 2, S = the lookahead times up to shield_s
+        self.register_buffer("times", times, persistent=False)  # S: the lookahead times up to shield_s
+        self.register_buffer("arcs", arcs, persistent=False)  # A x S x 2
         self.register_buffer("ray_dir", ray_directions(rays), persistent=False)
         self.scan_range_m, self.radius_m = float(scan_range_m), float(rc.radius_m)
 
@@ -454,3 +455,18 @@ class ObstacleShield(nn.Module):
         """``B x A`` (nats, ≥ 0): what to subtract from the logits of the scans ``scan`` ``B x R`` (m)."""
         clear = scan_clearances(self.arcs, scan, self.ray_dir, self.scan_range_m, self.radius_m)
         return SHIELD_NATS_PER_M * intrusion(clear.clamp(-0.5, CLEAR_CAP_M), SHIELD_MARGIN_M)
+
+    # the lookahead head's interface for reading predicted obstacle clearances (evaluation.failures --replay)
+    def steps_within(self, seconds: float) -> int:
+        """How many of the shield's lookahead times are at most ``seconds`` from now."""
+        return int((self.times <= float(seconds) + 1e-6).sum())
+
+    @torch.no_grad()
+    def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``B x A x S`` (m): each action's clearance to the obstacles of ``obs["scan"]`` at the shield's lookahead
+        times (what :meth:`forward` penalises)."""
+        return scan_clearances(self.arcs, obs["scan"], self.ray_dir, self.scan_range_m, self.radius_m)
+
+    def obstacle_clearances(self, feats: torch.Tensor, steps: int) -> torch.Tensor:
+        """``B x A x steps`` (m): the first ``steps`` lookahead times of :meth:`action_features`."""
+        return feats[..., :steps]

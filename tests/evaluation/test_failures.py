@@ -13,7 +13,7 @@ import pytest
 from evaluation import failures
 from evaluation.failures import analyse, classify, draw, hit_bearing, main
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
-from sim.env import CrowdNavEnv, SimConfig
+from sim.env import CameraConfig, CrowdNavEnv, SimConfig
 from sim.geometry import Box, Cylinder, StaticGeometry
 from sim.trace import EpisodeTrace
 
@@ -258,3 +258,42 @@ def test_replay_of_pedestrian_hits_finds_the_person_tracked_and_the_contact_chos
     assert f"| teacher | {len(replays)} |" in ped_replay_markdown(replays)
     with pytest.raises(InputMissingError, match="no episode of scene 'warehouse'"):
         analyse(out, scene="warehouse")
+
+
+def test_replay_reads_the_depth_scan_of_an_mlp_student_and_refuses_its_pedestrian_hits(tmp_path):
+    """A student with the paper's MLP head predicts no clearances: its obstacle hits replay with each chosen arc's
+    clearance to the depth scan its driver then perceives (what its obstacle shield reads). One that drives straight
+    at full speed hits the lobby's clutter: the replays end as the run's rows did, the scan showed the contact coming
+    while turning on the spot was free, and its clearances match the true ones (median); asking it for pedestrian
+    clearances is one named error."""
+    from evaluation.failures import replay_head, replay_hits, replay_markdown
+    from evaluation.methods import resolve_methods
+    from evaluation.stage import EvalConfig
+    from pipeline.core.manifest import Manifest, hash_tree
+    from pipeline.verbs.eval import run
+    from tests.rl.helpers_mlp import save_mlp_student
+
+    sim = SimConfig(max_episode_s=12.0, timeout_s_per_m=0.0, camera=CameraConfig(width_px=64, height_px=48))
+    env = CrowdNavEnv(config=replace(sim, scene="office_lobby", obs_mode="visual", action_type="discrete"))
+    _, info = env.reset(seed=0)
+    env.close()
+    ck = save_mlp_student(tmp_path / "checkpoints" / "policy" / "no_bev", info, straight_bias=100.0)
+    Manifest(stage="train", params={}, config_hash="0" * 64, seed=0, outputs=hash_tree(ck)).write(ck / "manifest.json")
+    run(EvalConfig(data_dir=str(tmp_path), methods=["no_bev"], scenes=["office_lobby"], densities=[0.05], goals=3,
+                   trials=1, routing_scenes=[], scenarios=[], cue_twins=[], workers=1, figures=0, videos=0, sim=sim,
+                   progress=False, paired_with="no_bev", run_name="mlp",
+                   long_horizon=replace(EvalConfig().long_horizon, runs=0)))
+    out = tmp_path / "eval" / "mlp"
+    res = analyse(out)
+    hits = [f for f in res["failures"] if f["cause"].startswith("collision_obstacle")]
+    assert hits, res["failures"]
+    replays = replay_hits(out, res, len(hits))
+    assert all(r["reproduced"] for r in replays)
+    assert any(r["chose_predicted_contact"] for r in replays)
+    # the scan against the true distance to the static obstacles: equal, except where depth points that are not a
+    # static obstacle (a person's body) lie nearer (one of the three hits here)
+    assert np.median([r["clearance_error_m"] for r in replays]) < 0.05, replays
+    assert f"Replayed obstacle hits: {len(replays)} ({len(replays)} reproduced)" in replay_markdown(replays)
+    (spec,) = resolve_methods(["no_bev"], tmp_path, None)
+    with pytest.raises(ConfigError, match="--replay-peds: method 'no_bev' has no predicted pedestrian clearances"):
+        replay_head(spec, sim, pedestrian=True)
