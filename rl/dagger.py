@@ -145,7 +145,7 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
     driver = _DaggerDriver(cached_policy(args["student"]), args["beta"], np.random.default_rng(args["seed"] + 7919),
                            clock, shield)
     forecaster = cached_student_forecaster(args["variant"], head, args.get("intention"))
-    map_cost = bool(args.get("map_cost", False))
+    map_cost = bool(args.get("map_cost", False)) and head == "lookahead"  # the MLP head reads no map (nor its shield)
     observer = observer_for_env(env, args["variant"], encoder, "lookahead" if shield is not None else head,
                                 mirror=args.get("mirror", False),
                                 forecaster=forecaster, map_cost=map_cost,

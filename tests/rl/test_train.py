@@ -766,20 +766,22 @@ def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
 def test_an_mlp_student_trained_with_the_shield_rolls_out_and_loads_with_it(tmp_path, teacher_dir):
     """``train.mlp_shield_s``: the MLP head's DAgger rollouts perceive the depth scan its shield reads (cached with
     each frame; the rollouts act through the shield: tests/rl/test_dagger.py), the cloned network is the paper's head
-    (no scan among its inputs, no new weights) and its policy.json carries the shield, so its acceptance run and every
-    later load act shielded."""
+    (no scan among its inputs, no new weights; ``map_cost``, a lookahead head's option, reads nothing) and its
+    policy.json carries the shield, so its acceptance run and every later load act shielded."""
     from pipeline.verbs.train import run
 
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
-    run(_train_cfg(tmp_path, "no_bev", head="mlp", mlp_shield_s=0.6))
-    out = tmp_path / "checkpoints" / "policy" / "no_bev"
+    _tiny_bev_checkpoint(tmp_path / "checkpoints" / "bev", int8=False)
+    run(_train_cfg(tmp_path, "full", head="mlp", intention="", map_cost="true", mlp_shield_s=0.6))
+    out = tmp_path / "checkpoints" / "policy" / "full"
     for k in (0, 1):
         (ep,) = (out / "dagger" / f"iter_{k}" / "features").glob("*.npz")
         with np.load(ep) as z:
             assert z["scan"].shape[1] == TINY_SIM.scan_rays and len(z["scan"]) == len(z["action"])
     desc = json.loads((out / "policy.json").read_text())
     assert desc["net"] == {"head": "mlp", "shield_s": 0.6, "bev_width": 8}
-    assert set(desc["observation_space"]) == {"occ", "poses", "pose_mask", "state"}
+    assert set(desc["observation_space"]) == {"bev", "poses", "pose_mask", "state"}  # no map: map_cost is the
+    # lookahead head's
     driver = PolicyDriver(out)
     assert driver.mlp_shield_s == 0.6 and PolicyDriver(out, shield_s=0.0).mlp_shield_s == 0.0
     assert json.loads((out / "metrics.json").read_text())["acceptance"]["table"]["hallway@0.1"]["n"] == 1
