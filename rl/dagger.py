@@ -54,6 +54,7 @@ from rl.driver import (
     cached_student_forecaster,
     cached_student_heads,
     mlp_shield,
+    observer_head,
     shielded_logits,
 )
 from rl.lookahead import ObstacleShield
@@ -140,13 +141,12 @@ def dagger_episode(args: dict[str, Any]) -> dict[str, Any]:
                                      args.get("encoder_precision", "fp32"))
     teacher = cached_policy(args["teacher"])
     head = args.get("head", "mlp")
-    # an MLP head's shield reads the depth scan the lookahead head perceives: its observer perceives it too
     shield = mlp_shield(sim_cfg, float(args.get("mlp_shield_s", 0.0))) if head == "mlp" else None
     driver = _DaggerDriver(cached_policy(args["student"]), args["beta"], np.random.default_rng(args["seed"] + 7919),
                            clock, shield)
     forecaster = cached_student_forecaster(args["variant"], head, args.get("intention"))
     map_cost = bool(args.get("map_cost", False)) and head == "lookahead"  # the MLP head reads no map (nor its shield)
-    observer = observer_for_env(env, args["variant"], encoder, "lookahead" if shield is not None else head,
+    observer = observer_for_env(env, args["variant"], encoder, observer_head(head, shield is not None),
                                 mirror=args.get("mirror", False),
                                 forecaster=forecaster, map_cost=map_cost,
                                 map_heads=cached_student_heads(args["variant"], head, map_cost, args["encoder"],

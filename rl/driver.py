@@ -76,6 +76,12 @@ def mlp_shield(sim_cfg, shield_s: float) -> ObstacleShield | None:
     return ObstacleShield(sim_cfg.robot, sim_cfg.dt_s, sim_cfg.scan_rays, sim_cfg.scan_range_m, shield_s)
 
 
+def observer_head(head: str, scan: bool) -> str:
+    """The perception a student's observer runs: its head's, or for an MLP head whose shield reads the depth scan
+    (``scan``) the lookahead head's (its scan, without the detected people's points)."""
+    return "lookahead" if head == "mlp" and scan else head
+
+
 def shielded_logits(policy, obs: dict[str, np.ndarray], shield: ObstacleShield | None) -> np.ndarray:
     """The policy's action logits on ``obs`` (float64) less ``shield``'s penalty on its perceived ``scan``."""
     z = action_logits(policy, obs).astype(np.float64)
@@ -126,18 +132,15 @@ class PolicyDriver:
     def reset(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> None:
         self.rng = np.random.default_rng([SAMPLE_SEED_KEY, int(info.get("episode_seed", 0))])
         if self.student:
-            # the MLP head's shield reads the lookahead head's perception (its scan, without the detected people's
-            # points)
-            scan = self.head == "mlp" and (bool(self.mlp_shield_s) or self.perceive_scan)
-            observer_head = "lookahead" if scan else self.head
-            if self.observer is None or observer_head != self._observer_head:
+            perception = observer_head(self.head, bool(self.mlp_shield_s) or self.perceive_scan)
+            if self.observer is None or perception != self._observer_head:
                 cfg = info["config"]
                 self.shield = mlp_shield(cfg, self.mlp_shield_s)
-                self.observer = observer_for(info["cameras"], cfg, self.desc["variant"], self.encoder, observer_head,
+                self.observer = observer_for(info["cameras"], cfg, self.desc["variant"], self.encoder, perception,
                                              forecaster=self.forecaster, map_cost=self.map_cost,
                                              map_heads=self.map_heads,
                                              track_unseen_s=self.desc.get("net", {}).get("track_unseen_s", 0.0))
-                self._observer_head = observer_head
+                self._observer_head = perception
             self.observer.reset()
 
     def act(self, obs: dict[str, np.ndarray], info: dict[str, Any]):

@@ -453,7 +453,7 @@ class ObstacleShield(nn.Module):
     @torch.no_grad()
     def forward(self, scan: torch.Tensor) -> torch.Tensor:
         """``B x A`` (nats, ≥ 0): what to subtract from the logits of the scans ``scan`` ``B x R`` (m)."""
-        clear = scan_clearances(self.arcs, scan, self.ray_dir, self.scan_range_m, self.radius_m)
+        clear = self.action_features({"scan": scan})
         return SHIELD_NATS_PER_M * intrusion(clear.clamp(-0.5, CLEAR_CAP_M), SHIELD_MARGIN_M)
 
     # the lookahead head's interface for reading predicted obstacle clearances (evaluation.failures --replay)
