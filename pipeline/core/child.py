@@ -3,7 +3,8 @@
 Used by ``icrowdnav train-all`` (one training variant per job). The job runs ``python -m <module> <args>`` with its
 output appended to a log file and returns the exit status instead of raising, so one failed job does not stop the
 others. The child is ended with its parent (``PR_SET_PDEATHSIG``): a Ray task cancelled or killed mid-job, or a
-local worker stopped by Ctrl-C, leaves no process behind. This module imports nothing heavy, so a Ray worker
+local worker stopped by Ctrl-C, leaves no process behind; :func:`die_with_parent` does the same for the workers of
+every local process pool (:func:`pipeline.core.executor.map_jobs`, the recorder's, the teacher's). This module imports nothing heavy, so a Ray worker
 that runs the job starts in a fraction of a second instead of importing torch and the simulator first.
 """
 
@@ -35,6 +36,18 @@ class ChildJob:
 def _die_with_parent() -> None:
     """In the child, before exec: SIGTERM when the parent (the pool worker or Ray task) dies."""
     ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """A process-pool worker's initializer (``initargs=(os.getpid(),)`` in the parent): SIGTERM to the worker when
+    ``parent_pid`` dies (Linux; elsewhere nothing). Without it a killed run's workers outlive it: they finish the
+    episodes already queued to them — writing into the output a resumed run is writing too — then wait forever on a
+    queue nobody feeds. A parent that died before the worker armed the signal is caught by its parent id changing."""
+    if not sys.platform.startswith("linux"):
+        return
+    _die_with_parent()
+    if os.getppid() != parent_pid:  # the parent was gone before the signal was armed
+        os.kill(os.getpid(), signal.SIGTERM)
 
 
 def run_child(job: ChildJob) -> dict:

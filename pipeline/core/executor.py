@@ -54,6 +54,7 @@ from typing import Any, TypeVar
 from tqdm import tqdm
 
 from pipeline.core.artifacts import atomic_write_bytes, pid_alive
+from pipeline.core.child import die_with_parent
 from pipeline.core.errors import ConfigError, CorruptArtifactError, ICrowdNavError
 
 log = logging.getLogger("icrowdnav")
@@ -369,7 +370,8 @@ def map_jobs(fn: Callable[[J], Any], jobs: Sequence[J], workers: int, desc: str,
             if on_result is not None:
                 on_result(i, out[-1])
         return out
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context(start)) as pool:
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context(start), initializer=die_with_parent,
+                             initargs=(os.getpid(),)) as pool:  # a killed run leaves no worker behind
         out = []
         for i, r in enumerate(tqdm(pool.map(fn, jobs, chunksize=1), total=len(jobs), desc=desc, unit=unit,
                                    disable=not progress, dynamic_ncols=True)):
