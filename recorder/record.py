@@ -39,10 +39,16 @@ from tqdm import tqdm
 
 from pipeline.core import layout
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text
-from pipeline.core.child import die_with_parent
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError, StoppedError
-from pipeline.core.executor import Executor, check_executor, check_ray_files, map_jobs, receive_file
+from pipeline.core.executor import (
+    Executor,
+    check_executor,
+    check_ray_files,
+    map_jobs,
+    process_pool,
+    receive_file,
+)
 from pipeline.core.manifest import hash_file
 from recorder.drive import DRIVERS, drive_episode
 from recorder.mcap.reader import episode_summary
@@ -170,10 +176,9 @@ def body(cfg: RecordConfig, out: Path) -> dict:
             "success_rate": round(sum(r["outcome"] == "success" for r in rows.values()) / len(rows), 4)}
 
 
-def _init_worker(stop: mp.synchronize.Event, parent_pid: int) -> None:
-    """Pool workers: ignore Ctrl-C while idle (the main process coordinates the stop), die on SIGTERM, and get
-    SIGTERM when the main process dies (:func:`pipeline.core.child.die_with_parent`: a killed ``record`` leaves no
-    worker recording on).
+def _init_worker(stop: mp.synchronize.Event) -> None:
+    """Pool workers (:func:`pipeline.core.executor.process_pool`: SIGTERM when the main process dies): ignore Ctrl-C
+    while idle (the main process coordinates the stop) and die on SIGTERM.
 
     While a worker records, :func:`_worker` installs :func:`recorder.mcap.signals.graceful_signals`, so SIGTERM or
     SIGINT then abort the open episode cleanly (a valid ``*.mcap.partial``).
@@ -182,7 +187,6 @@ def _init_worker(stop: mp.synchronize.Event, parent_pid: int) -> None:
     _STOP = stop
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    die_with_parent(parent_pid)
 
 
 def _stop_pool(pool: ProcessPoolExecutor, stop: mp.synchronize.Event, grace_s: float = 3.0) -> None:
@@ -257,8 +261,7 @@ def _run_jobs(cfg: RecordConfig, todo: list[Job], out: Path, rows: dict, jobs: l
         # the pool is created outside graceful_signals: forked workers must not inherit its handlers
         ctx = mp.get_context("fork")
         stop = ctx.Event()
-        pool = ProcessPoolExecutor(cfg.workers, mp_context=ctx, initializer=_init_worker,
-                                   initargs=(stop, os.getpid()))
+        pool = process_pool(cfg.workers, "fork", initializer=_init_worker, initargs=(stop,))
         try:
             with graceful_signals():
                 pending = {pool.submit(_worker, (cfg.sim, j, out, cfg.driver)) for j in todo}

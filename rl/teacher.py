@@ -22,10 +22,8 @@ steps for crowds — the paper's GPU budget, kept in the ``paper`` profile.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -34,9 +32,9 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from pipeline.core.child import die_with_parent
 from pipeline.core.device import autocast
 from pipeline.core.errors import ConfigError, InputMissingError
+from pipeline.core.executor import process_pool
 from rl.lookahead import LINEAR_TERMS, PED_TERMS, SCORE_SCALE
 from rl.policy import LOOKAHEAD_KEY, act, build_policy
 from rl.vec_env import BatchedSubprocVecEnv
@@ -163,7 +161,7 @@ def collect_expert(sim_cfg: SimConfig, pairs: list[tuple[str, float]], episodes:
 
     jobs = [(sim_cfg, *pairs[k % len(pairs)], seed + k, gamma) for k in range(episodes)]
     parts = []
-    with ProcessPoolExecutor(max(1, workers), initializer=die_with_parent, initargs=(os.getpid(),)) as pool:
+    with process_pool(max(1, workers)) as pool:
         for part in tqdm(pool.map(expert_episode, jobs), total=len(jobs), desc="teacher: expert episodes",
                          unit="ep", disable=not progress, dynamic_ncols=True):
             parts.append(part)
@@ -176,9 +174,7 @@ def collect_expert(sim_cfg: SimConfig, pairs: list[tuple[str, float]], episodes:
 _WORKER_POLICY: dict[str, Any] = {}
 
 
-def _init_dagger_worker(parent_pid: int, kind: str, obs_space, net: dict[str, Any],
-                        state: dict[str, torch.Tensor]) -> None:
-    die_with_parent(parent_pid)
+def _init_dagger_worker(kind: str, obs_space, net: dict[str, Any], state: dict[str, torch.Tensor]) -> None:
     torch.set_num_threads(1)
     policy = build_policy(kind, None, obs_space, net)
     policy.load_state_dict(state)
@@ -247,9 +243,9 @@ def collect_dagger(policy, net: dict[str, Any], sim_cfg: SimConfig, pairs: list[
 
     state = {k: v.detach().to("cpu", copy=True) for k, v in policy.state_dict().items()}  # the workers act on CPU
     jobs = [(sim_cfg, *pairs[k % len(pairs)], seed + k, beta, gamma) for k in range(episodes)]
-    init = (os.getpid(), "teacher", policy.observation_space, net, state)
+    init = ("teacher", policy.observation_space, net, state)
     parts = []
-    with ProcessPoolExecutor(max(1, workers), initializer=_init_dagger_worker, initargs=init) as pool:
+    with process_pool(max(1, workers), initializer=_init_dagger_worker, initargs=init) as pool:
         for part in tqdm(pool.map(expert_dagger_episode, jobs), total=len(jobs), desc=desc, unit="ep",
                          disable=not progress, dynamic_ncols=True):
             parts.append(part)

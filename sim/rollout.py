@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing as mp
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import ClassVar, Literal
@@ -36,6 +34,7 @@ import sim  # noqa: F401  (registers the env)
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import BaseStageConfig, check_run_name
 from pipeline.core.errors import ConfigError
+from pipeline.core.executor import process_pool
 from sim.env import SimConfig
 from sim.expert import run_expert_episode
 from sim.metrics import aggregate, episode_metrics, metrics_table_markdown
@@ -135,7 +134,7 @@ def body(cfg: RolloutConfig, out: Path) -> dict:
         for j in tqdm(jobs, desc=desc, unit="ep"):
             rows.append(_episode_job(j))
     else:
-        with ProcessPoolExecutor(cfg.workers, mp_context=mp.get_context("fork")) as pool:
+        with process_pool(cfg.workers, "fork") as pool:
             for r in tqdm(pool.map(_episode_job, jobs), total=len(jobs), desc=desc, unit="ep"):
                 rows.append(r)
     atomic_write_json(out / "seeds.json", {"seeds": seeds, "scenes": cfg.scenes, "densities": cfg.densities})

@@ -4,7 +4,7 @@ Used by ``icrowdnav train-all`` (one training variant per job). The job runs ``p
 output appended to a log file and returns the exit status instead of raising, so one failed job does not stop the
 others. The child is ended with its parent (``PR_SET_PDEATHSIG``): a Ray task cancelled or killed mid-job, or a
 local worker stopped by Ctrl-C, leaves no process behind; :func:`die_with_parent` does the same for the workers of
-every local process pool (:func:`pipeline.core.executor.map_jobs`, the recorder's, the teacher's). This module imports nothing heavy, so a Ray worker
+every local process pool (:func:`pipeline.core.executor.process_pool`). This module imports nothing heavy, so a Ray worker
 that runs the job starts in a fraction of a second instead of importing torch and the simulator first.
 """
 

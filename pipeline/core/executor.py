@@ -344,6 +344,22 @@ class Executor:
             yield
 
 
+def _init_pool_worker(parent_pid: int, initializer: Callable[..., None] | None, initargs: tuple) -> None:
+    die_with_parent(parent_pid)
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def process_pool(workers: int, start: str = "fork", initializer: Callable[..., None] | None = None,
+                 initargs: tuple = ()) -> ProcessPoolExecutor:
+    """The project's local process pool: ``workers`` processes started with ``start`` that get SIGTERM when this
+    process dies (:func:`pipeline.core.child.die_with_parent`: a killed run leaves no worker writing on), then run
+    ``initializer(*initargs)``. Every local pool is made here (``map_jobs``, the recorder's, the teacher's and the
+    baselines' expert pools)."""
+    return ProcessPoolExecutor(workers, mp_context=mp.get_context(start), initializer=_init_pool_worker,
+                               initargs=(os.getpid(), initializer, initargs))
+
+
 def map_jobs(fn: Callable[[J], Any], jobs: Sequence[J], workers: int, desc: str, progress: bool = True,
              unit: str = "ep", executor: Executor | None = None,
              on_result: Callable[[int, Any], None] | None = None, start: str = "fork",
@@ -370,8 +386,7 @@ def map_jobs(fn: Callable[[J], Any], jobs: Sequence[J], workers: int, desc: str,
             if on_result is not None:
                 on_result(i, out[-1])
         return out
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context(start), initializer=die_with_parent,
-                             initargs=(os.getpid(),)) as pool:  # a killed run leaves no worker behind
+    with process_pool(workers, start) as pool:
         out = []
         for i, r in enumerate(tqdm(pool.map(fn, jobs, chunksize=1), total=len(jobs), desc=desc, unit=unit,
                                    disable=not progress, dynamic_ncols=True)):

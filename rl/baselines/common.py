@@ -31,10 +31,7 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing as mp
-import os
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -44,8 +41,8 @@ import torch
 from tqdm import tqdm
 
 from pipeline.core.artifacts import atomic_write_text
-from pipeline.core.child import die_with_parent
 from pipeline.core.errors import CorruptArtifactError
+from pipeline.core.executor import process_pool
 from rl.policy import read_policy_json
 from rl.teacher import discounted, stage_pairs_all
 from sim.env import CrowdNavEnv, SimConfig
@@ -188,8 +185,7 @@ def collect_expert_episodes(sim_cfg: SimConfig, pairs: list[tuple[str, float]], 
         it = map(_expert_episode, jobs)
         parts = list(tqdm(it, total=len(jobs), desc=desc, unit="ep", disable=not progress, dynamic_ncols=True))
     else:
-        with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"), initializer=die_with_parent,
-                                 initargs=(os.getpid(),)) as pool:
+        with process_pool(workers, "fork") as pool:
             parts = list(tqdm(pool.map(_expert_episode, jobs), total=len(jobs), desc=desc, unit="ep",
                               disable=not progress, dynamic_ncols=True))
     data = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

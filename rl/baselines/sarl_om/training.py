@@ -6,7 +6,6 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import multiprocessing as mp
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -20,6 +19,7 @@ from torch import nn
 
 from pipeline.core.artifacts import atomic_write_with
 from pipeline.core.errors import CorruptArtifactError
+from pipeline.core.executor import process_pool
 from rl.baselines.common import collect_expert_episodes, save_baseline, save_curve_point, training_pairs
 from rl.baselines.sarl_om.configuration import KEYS, NAME, RUNTIME_FIELDS, Config
 from rl.baselines.sarl_om.lookahead import Lookahead
@@ -329,8 +329,7 @@ def train(cfg, out: Path, log) -> dict[str, Any]:
     t_start = time.time() - c["wall_s"]  # wall time accumulates over resumed runs
     pool = None
     if cfg.workers > 1 and c["iteration"] < oc.rl_iterations:
-        pool = ProcessPoolExecutor(cfg.workers, mp_context=mp.get_context("fork"), initializer=_init_worker,
-                                   initargs=(cfg.sim, oc, model.spec))
+        pool = process_pool(cfg.workers, "fork", initializer=_init_worker, initargs=(cfg.sim, oc, model.spec))
     else:
         _init_worker(cfg.sim, oc, model.spec)
         torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
