@@ -9,8 +9,9 @@ Usage::
 
 ``KEY`` is any dotted config key (``--sim.camera.width_px 320``, as in lerobot's draccus CLI); dashes may replace
 underscores (``--max-episode-s 30``). Every user error (:class:`ICrowdNavError`) is printed as exactly one line
-``error: <message>`` on stderr, with exit status 2; a run stopped by Ctrl-C exits 130 (SIGTERM: 143 where the
-stage catches it, as recording does).
+``error: <message>`` on stderr, with exit status 2. A stage run stopped by Ctrl-C or SIGTERM unwinds (its pool
+stopped, an in-place output keeping what it finished: :mod:`pipeline.core.signals`) and says so in one ``error:``
+line, exiting 130 or 143.
 
 The values are decoded into the stage's config dataclass by draccus (:mod:`pipeline.core.config`), and the help
 of each key comes from its field's comment or docstring as draccus reads it. The argv split itself
@@ -45,8 +46,9 @@ from pipeline.core.config import (
     nested_dataclass,
     profiles_dir,
 )
-from pipeline.core.errors import ConfigError, reports_errors
-from pipeline.core.stage import Stage, run_stage_ex
+from pipeline.core.errors import ConfigError, StoppedError, reports_errors
+from pipeline.core.signals import exit_code, signal_name, sigterm_raises
+from pipeline.core.stage import Stage, mode_of, run_stage_ex
 
 PROG = "icrowdnav"
 
@@ -291,8 +293,16 @@ def run_stage_cli(stage: Stage, argv: Sequence[str], command: list[str] | None =
         print(format_stage_help(stage))
         return 0
     cfg = load_config(stage.config_cls, stage.name, parsed.profile, parsed.overrides, parsed.config_file)
-    manifest, ran = run_stage_ex(stage, cfg, command)
-    print(_summary(stage, Path(stage.output_dir(cfg)), manifest.counts, ran))
+    out = Path(stage.output_dir(cfg))
+    try:
+        with sigterm_raises():
+            manifest, ran = run_stage_ex(stage, cfg, command)
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (sigterm_raises): one line saying what is left
+        # an in-place stage writes into its output (kept); otherwise, and with --overwrite, a staging copy (removed)
+        kept = (f"what it finished is kept in {out}; rerun with --resume to continue"
+                if stage.in_place and mode_of(cfg) != "overwrite" else f"nothing was published to {out}")
+        raise StoppedError(f"{stage.name} stopped by {signal_name(e)}: {kept}", exit_code(e)) from e
+    print(_summary(stage, out, manifest.counts, ran))
     return 0
 
 
@@ -328,8 +338,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     Returns:
         The exit status: 0 on success, 2 on a user error (one ``error:`` line on stderr), 130 on Ctrl-C and 143
-        on SIGTERM where the stage stops cleanly (recording: one ``error:`` line saying what is finished), 130 on
-        Ctrl-C anywhere else.
+        on SIGTERM during a stage (one ``error:`` line saying what is kept), 130 on Ctrl-C anywhere else.
     """
     args = list(sys.argv[1:] if argv is None else argv)
     setup_logging()

@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import logging
 import multiprocessing as mp
-import os
 import shutil
 import signal
 import tempfile
@@ -48,6 +47,7 @@ from pipeline.core.executor import (
     map_jobs,
     process_pool,
     receive_file,
+    stop_pool,
 )
 from pipeline.core.manifest import hash_file
 from recorder.drive import DRIVERS, drive_episode
@@ -194,17 +194,7 @@ def _stop_pool(pool: ProcessPoolExecutor, stop: mp.synchronize.Event, grace_s: f
     reach), cancel queued ones, ask running workers to abort theirs (SIGTERM: a valid ``*.mcap.partial``), and
     kill whatever is still alive after ``grace_s`` (its open episode stays ``.partial``; ``--resume`` redoes it)."""
     stop.set()
-    procs = list(getattr(pool, "_processes", {}).values())  # CPython's executor keeps its workers here
-    pool.shutdown(wait=False, cancel_futures=True)
-    for p in procs:
-        if p.is_alive():
-            os.kill(p.pid, signal.SIGTERM)
-    deadline = time.monotonic() + grace_s
-    for p in procs:
-        p.join(timeout=max(0.0, deadline - time.monotonic()))
-        if p.is_alive():
-            p.kill()
-            p.join(timeout=1.0)
+    stop_pool(pool, grace_s)
 
 
 def _record_task(args: tuple) -> dict:

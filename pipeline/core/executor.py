@@ -40,6 +40,7 @@ import logging
 import multiprocessing as mp
 import os
 import shutil
+import signal
 import socket
 import tempfile
 import time
@@ -345,6 +346,9 @@ class Executor:
 
 
 def _init_pool_worker(parent_pid: int, initializer: Callable[..., None] | None, initargs: tuple) -> None:
+    # a worker dies on SIGTERM even when forked from a run that turns it into an exception
+    # (pipeline.core.signals.sigterm_raises): otherwise a job would catch it and the worker take the next one
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     die_with_parent(parent_pid)
     if initializer is not None:
         initializer(*initargs)
@@ -358,6 +362,22 @@ def process_pool(workers: int, start: str = "fork", initializer: Callable[..., N
     baselines' expert pools)."""
     return ProcessPoolExecutor(workers, mp_context=mp.get_context(start), initializer=_init_pool_worker,
                                initargs=(os.getpid(), initializer, initargs))
+
+
+def stop_pool(pool: ProcessPoolExecutor, grace_s: float = 3.0) -> None:
+    """Stops a :func:`process_pool` now, not after its queue (a run stopped by Ctrl-C or SIGTERM): cancels the jobs
+    not begun, SIGTERMs the workers (running jobs abort) and kills whatever is still alive after ``grace_s``."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())  # CPython's executor keeps its workers here
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            os.kill(p.pid, signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    for p in procs:
+        p.join(timeout=max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join(timeout=1.0)
 
 
 def map_jobs(fn: Callable[[J], Any], jobs: Sequence[J], workers: int, desc: str, progress: bool = True,
@@ -386,11 +406,16 @@ def map_jobs(fn: Callable[[J], Any], jobs: Sequence[J], workers: int, desc: str,
             if on_result is not None:
                 on_result(i, out[-1])
         return out
-    with process_pool(workers, start) as pool:
+    pool = process_pool(workers, start)
+    try:
         out = []
         for i, r in enumerate(tqdm(pool.map(fn, jobs, chunksize=1), total=len(jobs), desc=desc, unit=unit,
                                    disable=not progress, dynamic_ncols=True)):
             out.append(r)
             if on_result is not None:
                 on_result(i, r)
-        return out
+    except BaseException:  # a failed job, Ctrl-C or SIGTERM: the queued jobs are not run first
+        stop_pool(pool)
+        raise
+    pool.shutdown(wait=True)
+    return out

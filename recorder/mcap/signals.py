@@ -1,8 +1,8 @@
 """SIGTERM/SIGINT as an :class:`Interrupted` exception, and the critical sections in which it waits.
 
-:func:`graceful_signals` turns SIGTERM/SIGINT into :class:`Interrupted` so that writers are closed cleanly (the
-writer itself installs no signal handler); :func:`critical` marks the writer's calls into the mcap library, which
-a signal never interrupts.
+:func:`graceful_signals` turns SIGTERM/SIGINT into :class:`Interrupted` (:mod:`pipeline.core.signals`) so that
+writers are closed cleanly (the writer itself installs no signal handler); :func:`critical` marks the writer's calls
+into the mcap library, which a signal never interrupts.
 """
 
 from __future__ import annotations
@@ -14,29 +14,9 @@ import threading
 from collections.abc import Iterator
 from types import FrameType
 
+from pipeline.core.signals import Interrupted
+
 log = logging.getLogger("icrowdnav")
-
-
-class Interrupted(KeyboardInterrupt):  # noqa: N818 - named like KeyboardInterrupt, which it extends
-    """SIGTERM or SIGINT arrived inside :func:`graceful_signals`.
-
-    Derives from :class:`KeyboardInterrupt` so that ``except Exception`` does not swallow it and code that already
-    handles Ctrl-C handles SIGTERM the same way.
-
-    Attributes:
-        signum: The signal number.
-        exit_code: ``128 + signum``, the conventional exit status after that signal.
-    """
-
-    def __init__(self, signum: int) -> None:
-        self.signum = int(signum)
-        self.exit_code = 128 + self.signum
-        super().__init__(f"interrupted by {signal.Signals(signum).name}")
-
-    def __reduce__(self) -> tuple:
-        """Pickles by signal number (a pool worker's exception travels to the main process)."""
-        return type(self), (self.signum,)
-
 
 _tls = threading.local()  # per thread: depth of critical() blocks and a deferred signal
 

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -12,7 +15,9 @@ import pytest
 import yaml
 
 from pipeline import cli
+from pipeline.core.artifacts import pid_alive
 from pipeline.core.config import PROFILES_ENV, BaseStageConfig
+from pipeline.core.executor import map_jobs
 from pipeline.core.stage import Stage
 
 REPO = Path(__file__).resolve().parents[2]
@@ -54,6 +59,28 @@ FAKE_STAGE = Stage(
     inputs=lambda cfg: [cfg.input_path] if cfg.input_path else [],
     body=fake_body,
 )
+
+
+def _busy_job(job: tuple[Path, int]) -> int:
+    """3 s of busy work; notes its worker's pid when it starts and when it ends."""
+    out, i = job
+    (out / f"start_{i}").write_text(str(os.getpid()))
+    t = time.monotonic()
+    while time.monotonic() - t < 3.0:
+        pass
+    (out / f"end_{i}").write_text(str(os.getpid()))
+    return i
+
+
+def busy_body(cfg: FakeConfig, out: Path) -> dict[str, int]:
+    map_jobs(_busy_job, [(out, i) for i in range(12)], 2, "busy", progress=False)
+    return {"jobs": 12}
+
+
+# an in-place stage (like record, train, eval) whose body keeps two pool workers busy
+BUSY_STAGE = Stage(name="busy", config_cls=FakeConfig, help="busy pool jobs for the signal tests",
+                   output_dir=lambda cfg: cfg.data_dir / "busy", inputs=lambda cfg: [], body=busy_body,
+                   resumable=True, in_place=True)
 
 
 def hello(argv: list[str]) -> int:
@@ -213,3 +240,41 @@ def test_python_dash_m_pipeline() -> None:
     )
     assert proc.returncode == 0, proc.stderr
     assert "commands:" in proc.stdout and "rollout" in proc.stdout
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the workers' pids are read from the run's files")
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signalled_stage_stops_its_pool_and_says_what_is_kept(tmp_path: Path, sig: signal.Signals,
+                                                                  status: int) -> None:
+    """SIGTERM to the run (not its process group: what ``kill PID``, a scheduler or a CI timeout sends) unwinds it
+    like Ctrl-C: the pool's workers are stopped with it, no queued job is begun, and one ``error:`` line names the
+    signal and where the finished work is kept (before, SIGTERM ended the run with no line)."""
+    code = ("import sys\nfrom pipeline import cli\n"
+            "cli.VERBS['busy'] = 'tests.pipeline.test_cli:BUSY_STAGE'\n"
+            "raise SystemExit(cli.main(['busy', '--data-dir', sys.argv[1]]))")
+    env = {**os.environ, PROFILES_ENV: str(tmp_path / "profiles")}
+    proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], cwd=REPO, env=env, text=True,
+                            stderr=subprocess.PIPE)
+    out = tmp_path / "busy"
+    workers: set[int] = set()
+    try:
+        t = time.monotonic()
+        while len(workers) < 2 and time.monotonic() - t < 120:
+            workers = {int(x) for p in out.glob("start_*") if (x := p.read_text())} if out.is_dir() else set()
+            time.sleep(0.05)
+        assert len(workers) == 2, "two pool workers did not start"
+        os.kill(proc.pid, sig)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == status, err
+        lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
+        assert lines == [f"error: busy stopped by {sig.name}: what it finished is kept in {out}; rerun with "
+                         "--resume to continue"], err
+        assert "Traceback" not in err
+        # stop_pool joins its workers before the line is printed: none is left, none ran on
+        assert not [p for p in workers if pid_alive(p)]
+        assert not list(out.glob("end_*")) and len(list(out.glob("start_*"))) == 2
+    finally:
+        proc.kill()
+        for p in workers:
+            if pid_alive(p):
+                os.kill(p, signal.SIGKILL)
