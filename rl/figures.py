@@ -1,12 +1,18 @@
-"""Training curves of a ``train`` run (from its ``train_log.csv``) as one PNG, and the DAgger runs of several
-students side by side::
+"""Training curves of a ``train`` run (from its ``train_log.csv``) as one PNG, and the DAgger runs — or the PPO
+fine-tunings — of several students side by side::
 
     python -m rl.figures data/checkpoints/policy/no_bev other/checkpoints/policy/no_bev:more_frames --out dagger.png
+    python -m rl.figures --ppo run_a/checkpoints/policy/no_bev:lr5e-5 run_b/checkpoints/policy/no_bev:lr1e-5 --out ppo.png
 
 Each argument is a student checkpoint (``CKPT[:LABEL]``, the label defaulting to the folder's parent and name) whose
 ``metrics.json`` holds the ``dagger`` iterations its ``train`` wrote. The figure plots, against the frames pooled so
 far, each iteration's held-out cross-entropy (the student of the iteration before, on the new iteration's frames,
 before cloning on them), the same loss after the cloning, and the rollout success rate of the mixed policy.
+
+With ``--ppo`` it plots, against env steps, what stable-baselines3 logged of each student's PPO fine-tuning
+(``tb/finetune_*``, written when ``finetune.ppo_steps`` > 0): the mean episode return and length of the stochastic
+rollouts, the policy's entropy, the critic's explained variance, the approximate KL and clip fraction of each update
+— with the end of the critic warm-up (the actor frozen before it) marked.
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.core.artifacts import require_input
-from pipeline.core.errors import CorruptArtifactError, reports_errors
+from pipeline.core.errors import CorruptArtifactError, InputMissingError, reports_errors
 from sim.viz import save_figure
 
 # the keys of a metrics.json "dagger" iteration that the comparison plots (rl.stage._train_student writes them)
@@ -150,6 +156,78 @@ def plot_dagger(runs: list[tuple[str, list[dict[str, Any]]]], out: Path) -> None
     plt.close(fig)
 
 
+# SB3's PPO scalars the fine-tuning figure plots: (tag, panel title, sign): entropy_loss is minus the entropy
+PPO_TAGS = (("rollout/ep_rew_mean", "mean episode return (stochastic rollouts)", 1.0),
+            ("rollout/ep_len_mean", "mean episode length [steps]", 1.0),
+            ("train/entropy_loss", "policy entropy [nats]", -1.0),
+            ("train/explained_variance", "critic: explained variance", 1.0),
+            ("train/approx_kl", "approximate KL per update", 1.0),
+            ("train/clip_fraction", "clip fraction per update", 1.0))
+
+
+def ppo_finetune_log(ckpt: Path) -> tuple[dict[str, list[tuple[int, float]]], int]:
+    """What SB3 logged of ``ckpt``'s PPO fine-tuning (every ``tb/finetune_*`` run, resumed parts in step order):
+    ``{tag: [(env step, value)]}`` for the :data:`PPO_TAGS`, and the critic warm-up's steps (``policy.json``).
+
+    Raises:
+        InputMissingError: no ``tb/finetune_*`` event files (trained with ``finetune.ppo_steps`` 0).
+        CorruptArtifactError: the logs hold none of the tags, or ``policy.json`` is unreadable.
+    """
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    ckpt = Path(ckpt)
+    runs = sorted(p for p in (ckpt / "tb").glob("finetune_*") if p.is_dir()) if (ckpt / "tb").is_dir() else []
+    if not runs:
+        raise InputMissingError(f"{ckpt / 'tb'}: no PPO fine-tuning logs (finetune_*): expected a student trained "
+                                "with finetune.ppo_steps > 0")
+    series: dict[str, dict[int, float]] = defaultdict(dict)
+    for run in runs:
+        acc = EventAccumulator(str(run), size_guidance={"scalars": 0})
+        acc.Reload()
+        have = set(acc.Tags().get("scalars", []))
+        for tag, _, sign in PPO_TAGS:
+            for e in acc.Scalars(tag) if tag in have else []:
+                series[tag][int(e.step)] = sign * float(e.value)  # a resumed part rewrites its steps: the last wins
+    if not series:
+        raise CorruptArtifactError(f"{ckpt / 'tb'}: the fine-tuning logs hold none of {[t for t, _, _ in PPO_TAGS]}")
+    path = require_input(ckpt / "policy.json", "policy description", "written by `icrowdnav train`")
+    try:
+        warmup = int(json.loads(path.read_text()).get("produced_by", {}).get("ppo_critic_warmup_steps", 0))
+    except (ValueError, UnicodeDecodeError, AttributeError, TypeError) as e:
+        raise CorruptArtifactError(f"{path}: field 'produced_by.ppo_critic_warmup_steps': expected an integer "
+                                   f"({e})") from e
+    return {tag: sorted(v.items()) for tag, v in series.items()}, warmup
+
+
+def plot_ppo(runs: list[tuple[str, dict[str, list[tuple[int, float]]], int]], out: Path) -> None:
+    """One panel per :data:`PPO_TAGS` entry, one line per ``(label, log, warmup)`` (:func:`ppo_finetune_log`),
+    the end of each run's critic warm-up dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 3, figsize=(13.0, 6.4))
+    for k, (label, log, warmup) in enumerate(runs):
+        color = f"C{k}"
+        for ax, (tag, _, _) in zip(axes.flat, PPO_TAGS, strict=True):
+            if log.get(tag):
+                xs, ys = zip(*log[tag], strict=True)
+                ax.plot(xs, ys, marker="." if len(xs) < 40 else None, color=color,
+                        label=f"{label} (warm-up {warmup:,})")
+            if warmup:
+                ax.axvline(warmup, color=color, ls="--", lw=0.8, alpha=0.6)
+    for ax, (_, title, _) in zip(axes.flat, PPO_TAGS, strict=True):
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("env steps of fine-tuning (dashed: the actor starts to learn)", fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle("PPO fine-tuning of distilled students (the paper's reward)", fontsize=10)
+    fig.tight_layout()
+    save_figure(fig, out, 110)
+    plt.close(fig)
+
+
 def parse_ckpt(arg: str) -> tuple[Path, str]:
     """``CKPT[:LABEL]``: a checkpoint folder and its label (default: the folder's parent and name)."""
     path, sep, label = arg.rpartition(":")
@@ -164,7 +242,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m rl.figures", description=__doc__.split("\n\n")[0])
     ap.add_argument("ckpts", nargs="+", help="student checkpoints: CKPT or CKPT:LABEL")
     ap.add_argument("--out", type=Path, required=True, help="the PNG to write")
+    ap.add_argument("--ppo", action="store_true", help="their PPO fine-tuning (tb/finetune_*), not their DAgger runs")
     args = ap.parse_args(argv)
+    if args.ppo:
+        logs = [(label, *ppo_finetune_log(path)) for path, label in map(parse_ckpt, args.ckpts)]
+        plot_ppo(logs, args.out)
+        print(f"{len(logs)} PPO fine-tunings -> {args.out}")
+        return 0
     runs = [(label, dagger_iterations(path)) for path, label in map(parse_ckpt, args.ckpts)]
     plot_dagger(runs, args.out)
     print(f"{len(runs)} DAgger runs -> {args.out}")

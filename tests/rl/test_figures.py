@@ -1,11 +1,12 @@
-"""``python -m rl.figures``: the DAgger runs of several students in one figure; bad checkpoints are named errors."""
+"""``python -m rl.figures``: the DAgger runs (or PPO fine-tunings) of several students in one figure; bad checkpoints are
+named errors."""
 
 import json
 
 import pytest
 
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
-from rl.figures import DAGGER_KEYS, dagger_iterations, main, parse_ckpt
+from rl.figures import DAGGER_KEYS, dagger_iterations, main, parse_ckpt, ppo_finetune_log
 
 
 def _student(path, n_iters=3, **drop):
@@ -51,3 +52,40 @@ def test_a_teacher_a_missing_key_and_a_missing_file_are_named(tmp_path, capsys):
     out = tmp_path / "never.png"
     assert main([str(teacher), "--out", str(out)]) == 2
     assert "error:" in capsys.readouterr().err and not out.exists()
+
+
+def _finetuned(path, parts=((0, 4), (4, 8)), warmup=2048):
+    """A student checkpoint whose PPO fine-tuning SB3 logged in ``len(parts)`` runs (a resumed one: finetune_0, _1)."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    path.mkdir(parents=True)
+    for k, (a, b) in enumerate(parts):
+        w = SummaryWriter(str(path / "tb" / f"finetune_{k}"))
+        for i in range(a, b):
+            step = 512 * (i + 1)
+            w.add_scalar("rollout/ep_rew_mean", 10.0 - i, step)
+            w.add_scalar("train/entropy_loss", -2.5 - 0.1 * i, step)
+            w.add_scalar("train/approx_kl", 0.0 if step <= warmup else 0.02, step)
+        w.close()
+    (path / "policy.json").write_text(json.dumps({"produced_by": {"ppo_finetune_steps": 512 * parts[-1][1],
+                                                                  "ppo_critic_warmup_steps": warmup}}))
+    return path
+
+
+def test_ppo_finetunings_side_by_side_resumed_parts_in_step_order(tmp_path, capsys):
+    a, b = _finetuned(tmp_path / "a" / "no_bev"), _finetuned(tmp_path / "b" / "no_bev", parts=((0, 6),), warmup=0)
+    log, warmup = ppo_finetune_log(a)
+    assert warmup == 2048 and [s for s, _ in log["rollout/ep_rew_mean"]] == [512 * (i + 1) for i in range(8)]
+    assert log["train/entropy_loss"][0] == (512, pytest.approx(2.5))  # plotted as the entropy itself
+    out = tmp_path / "ppo.png"
+    assert main(["--ppo", f"{a}:slow", f"{b}:fast", "--out", str(out)]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "2 PPO fine-tunings" in capsys.readouterr().out
+
+
+def test_a_student_never_finetuned_is_named(tmp_path, capsys):
+    plain = _student(tmp_path / "plain")
+    with pytest.raises(InputMissingError, match=r"plain/tb: no PPO fine-tuning logs"):
+        ppo_finetune_log(plain)
+    out = tmp_path / "never.png"
+    assert main(["--ppo", str(plain), "--out", str(out)]) == 2
+    assert "no PPO fine-tuning logs" in capsys.readouterr().err and not out.exists()
