@@ -266,6 +266,21 @@ def freeze_actor(policy: ActorCriticPolicy) -> list[torch.nn.Parameter]:
     return frozen
 
 
+def _detached_inputs(module: torch.nn.Module, args: tuple) -> tuple:
+    return tuple(a.detach() for a in args)
+
+
+def detach_critic(policy: ActorCriticPolicy) -> None:
+    """The value branch reads the shared extractor's features detached (a forward pre-hook on
+    ``mlp_extractor.value_net``; no weight changes, so checkpoints stay interchangeable): the value loss trains the
+    critic's own layers and nothing the actor decides from. For PPO from a cloned student, whose extractor the value
+    loss would otherwise rewrite (``train.finetune.critic_features``). Idempotent."""
+    net = policy.mlp_extractor.value_net
+    if not getattr(net, "_icrowdnav_detached", False):
+        net.register_forward_pre_hook(_detached_inputs)
+        net._icrowdnav_detached = True
+
+
 def obs_to_tensor(obs: dict[str, np.ndarray], batch: bool = False) -> dict[str, torch.Tensor]:
     """A (batched) observation dict as float tensors."""
     return {k: torch.as_tensor(np.asarray(v, np.float32)) if batch else

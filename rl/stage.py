@@ -94,6 +94,7 @@ from rl.observe import (
 from rl.policy import (
     build_policy,
     describe,
+    detach_critic,
     load_policy,
     policy_class,
     policy_kwargs,
@@ -159,6 +160,7 @@ class TeacherConfig:
 
 
 BC_SCHEDULES = ("pool", "new")  # DaggerConfig.bc_schedule
+CRITIC_FEATURES = ("shared", "detached")  # FinetuneConfig.critic_features
 
 
 @dataclass
@@ -207,6 +209,10 @@ class FinetuneConfig:
     # the first env steps train only the value head, the actor frozen (as DRL-VO's): DAgger clones the actor only, so
     # the distilled student's critic has never seen a return (rl.callbacks.learn_with_critic_warmup)
     critic_warmup_steps: int = 4096
+    # shared: the value loss trains the shared extractor too (the paper's joint optimisation, from scratch there);
+    # detached: the critic reads the extractor's features without sending gradients into them, so only the policy
+    # gradient moves what the cloned actor decides from (rl.policy.detach_critic)
+    critic_features: str = "shared"
     n_envs: int = 2
     # target_kl 0.02 stops an update's epochs once the policy has moved that far (as DRL-VO's, which PPO straight
     # after cloning destroyed: docs/notes/2026-11-drl-vo-ppo-after-cloning.md)
@@ -334,6 +340,9 @@ class TrainConfig(BaseStageConfig):
                        ("finetune.critic_warmup_steps", self.finetune.critic_warmup_steps)):
             if v < 0:
                 raise ConfigError(f"train.{key}: expected an integer >= 0, got {v}")
+        if self.finetune.critic_features not in CRITIC_FEATURES:
+            raise ConfigError(f"train.finetune.critic_features: expected one of {list(CRITIC_FEATURES)}, got "
+                              f"{self.finetune.critic_features!r}")
         if d.soft_tau < 0:
             raise ConfigError(f"train.dagger.soft_tau: expected >= 0, got {d.soft_tau}")
         if d.bc_schedule not in BC_SCHEDULES:
@@ -712,6 +721,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         policy, steps, rate = _finetune(cfg, out, policy, net, pairs, enc_dir, device, int_dir)
         produced["ppo_finetune_steps"] = steps
         produced["ppo_critic_warmup_steps"] = min(cfg.finetune.critic_warmup_steps, steps)
+        produced["ppo_critic_features"] = cfg.finetune.critic_features
         summary["finetune"] = {"steps": steps, "steps_per_s": rate}
     save_policy(out, policy, describe("student", cfg.variant, space, net, **extra,
                                       intention=str(int_dir) if int_dir else None, produced_by=produced))
@@ -910,6 +920,8 @@ def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, e
         model = PPO(policy_class("student", net), venv, policy_kwargs=policy_kwargs("student", cfg.variant, net),
                     seed=cfg.seed, device=device, verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(f.ppo))
         model.policy.load_state_dict(policy.state_dict())
+    if f.critic_features == "detached":  # a hook, not a weight: set again on a resumed model
+        detach_critic(model.policy)
     done = model.num_timesteps
     t0 = time.perf_counter()
     learn_with_critic_warmup(model, f.ppo_steps, f.critic_warmup_steps, tb_log_name="finetune",

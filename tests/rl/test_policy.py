@@ -42,3 +42,33 @@ def test_a_checkpoint_bundle_holds_what_the_policy_acts_with_and_finds_it_where_
     assert desc["encoder"] == str(local.parent.parent / "bev") and desc["intention"] == str(local.parent.parent /
                                                                                             "intention")
     check_checkpoint_weights(local)
+
+
+def test_a_detached_critic_sends_no_gradient_into_the_shared_extractor():
+    """``train.finetune.critic_features: detached`` (rl.policy.detach_critic): the same values, but the value loss
+    reaches only the critic's own layers; the policy gradient still trains the shared extractor."""
+    from rl.policy import build_policy, detach_critic, obs_to_tensor
+    from rl.teacher import SceneMixEnv
+    from sim.env import CameraConfig, SimConfig
+
+    env = SceneMixEnv(SimConfig(max_episode_s=4.0, camera=CameraConfig(width_px=64, height_px=48)), [("hallway", 0.1)])
+    obs, _ = env.reset(seed=0)
+    env.close()
+    grads, values = {}, {}
+    for mode in ("shared", "detached"):
+        torch.manual_seed(0)
+        policy = build_policy("teacher", None, env.observation_space, {"encoder": "set"})
+        if mode == "detached":
+            detach_critic(policy)
+            detach_critic(policy)  # idempotent: one hook
+        value, log_prob, _ = policy.evaluate_actions(obs_to_tensor(obs), torch.tensor([3]))
+        values[mode] = value.detach()
+        value.sum().backward(retain_graph=True)
+        ext = [p.grad for p in policy.features_extractor.parameters()]
+        grads[mode] = (any(g is not None and g.abs().sum() > 0 for g in ext),
+                       all(p.grad is not None for p in policy.value_net.parameters()))
+        policy.zero_grad()
+        log_prob.sum().backward()
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.features_extractor.parameters())
+    assert torch.equal(values["shared"], values["detached"])
+    assert grads == {"shared": (True, True), "detached": (False, True)}

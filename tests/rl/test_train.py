@@ -358,19 +358,22 @@ def test_new_frames_schedule_and_a_final_fresh_cloning(tmp_path, teacher_dir, ca
     assert f"Final cloning (dagger/final): a fresh student on {fin['frames']:,} frames" in capsys.readouterr().out
 
 
-def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir, monkeypatch):
+@pytest.mark.parametrize("critic", ["shared", "detached"])
+def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir, monkeypatch, critic):
     """PPO fine-tuning of a student killed in its second rollout continues from its checkpoint: the checkpoint holds
     the first update (written when the next rollout starts, so no counted step is left untrained), the resumed run
     loads it, does not redo DAgger, and ends at the budget with one update per rollout, as an uninterrupted run.
     (Not byte-equal to one: SB3 resets the envs when it loads a model, so the second rollout sees other states.)
-    The first rollout is the critic warm-up: its update moves the value branch only; the resumed run moves the actor."""
+    The first rollout is the critic warm-up: its update moves the value branch only; the resumed run moves the actor.
+    ``critic_features: detached`` holds on the resumed model too (its hook is set again after loading)."""
     import stable_baselines3
 
     from pipeline.verbs.train import run
 
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
     sizes = {"head": "mlp", "finetune.ppo_steps": 64, "finetune.n_envs": 1, "finetune.checkpoint_steps": 32,
-             "finetune.critic_warmup_steps": 32, "finetune.ppo": "{n_steps: 32, batch_size: 32, n_epochs: 1}"}
+             "finetune.critic_warmup_steps": 32, "finetune.ppo": "{n_steps: 32, batch_size: 32, n_epochs: 1}",
+             "finetune.critic_features": critic}
     out = tmp_path / "checkpoints" / "policy" / "no_bev"
 
     class Killed(Exception):
@@ -399,12 +402,13 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
 
     assert moved(saved) == {True}  # the warm-up's update: the critic only
     dagger_done = (out / "dagger" / "iter_1" / "done.json").stat().st_mtime_ns
-    loaded = []
+    loaded, models = [], []
     load = stable_baselines3.PPO.load
 
     def recording_load(*args, **kwargs):
         model = load(*args, **kwargs)
         loaded.append((model.num_timesteps, model._n_updates))
+        models.append(model)
         return model
 
     monkeypatch.setattr(stable_baselines3.PPO, "load", recording_load)
@@ -424,6 +428,8 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
     assert {"rollout/ep_rew_mean", "rollout/ep_len_mean"} <= tags
     produced = json.loads((out / "policy.json").read_text())["produced_by"]
     assert (produced["ppo_finetune_steps"], produced["ppo_critic_warmup_steps"]) == (64, 32)
+    assert produced["ppo_critic_features"] == critic
+    assert bool(models[0].policy.mlp_extractor.value_net._forward_pre_hooks) == (critic == "detached")
 
 
 def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
@@ -761,6 +767,9 @@ def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
         _train_cfg(tmp_path, "full", **{"dagger.linear_cost": "goal"})
     with pytest.raises(ConfigError, match=r"train.dagger.bc_precision: expected one of auto, fp32, bf16, got 'half'"):
         _train_cfg(tmp_path, "full", **{"dagger.bc_precision": "half"})
+    with pytest.raises(ConfigError, match=r"train.finetune.critic_features: expected one of \['shared', 'detached'\], "
+                                          r"got 'frozen'"):
+        _train_cfg(tmp_path, "full", **{"finetune.critic_features": "frozen"})
 
 
 def test_an_mlp_student_trained_with_the_shield_rolls_out_and_loads_with_it(tmp_path, teacher_dir):
