@@ -149,6 +149,8 @@ class TeacherConfig:
     dagger_epochs: int = 4  # cloning epochs on the aggregate after each iteration
     ppo_steps: int = 200_000  # PPO env steps after the warm start (0 = the teacher is the cloned expert)
     critic_warmup_steps: int = 0  # first PPO steps train only the value head (the actor is frozen)
+    # shared | detached: whether the value loss trains the shared extractor too (as FinetuneConfig.critic_features)
+    critic_features: str = "shared"
     n_envs: int = 8  # vectorised envs
     subprocess: bool = True  # rl.vec_env.BatchedSubprocVecEnv (a worker per core) instead of DummyVecEnv
     ppo: dict[str, float] = field(default_factory=lambda: {"n_steps": 512, "batch_size": 512, "n_epochs": 6,
@@ -340,9 +342,10 @@ class TrainConfig(BaseStageConfig):
                        ("finetune.critic_warmup_steps", self.finetune.critic_warmup_steps)):
             if v < 0:
                 raise ConfigError(f"train.{key}: expected an integer >= 0, got {v}")
-        if self.finetune.critic_features not in CRITIC_FEATURES:
-            raise ConfigError(f"train.finetune.critic_features: expected one of {list(CRITIC_FEATURES)}, got "
-                              f"{self.finetune.critic_features!r}")
+        for key, v in (("teacher.critic_features", t.critic_features),
+                       ("finetune.critic_features", self.finetune.critic_features)):
+            if v not in CRITIC_FEATURES:
+                raise ConfigError(f"train.{key}: expected one of {list(CRITIC_FEATURES)}, got {v!r}")
         if d.soft_tau < 0:
             raise ConfigError(f"train.dagger.soft_tau: expected >= 0, got {d.soft_tau}")
         if d.bc_schedule not in BC_SCHEDULES:
@@ -567,6 +570,8 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                         device=device, verbose=0, tensorboard_log=str(out / "tb"), **ppo_kwargs(t.ppo))
             model.policy.load_state_dict(policy.state_dict())
         attach_lookahead_cache(model)
+        if t.critic_features == "detached":  # a hook, not a weight: set again on a resumed model
+            detach_critic(model.policy)
         done = model.num_timesteps
         t0 = time.perf_counter()
         cb = [curriculum_callback(t.curriculum, t.ppo_steps), checkpoint_callback(out / "ppo", model, 20_000),
@@ -580,7 +585,9 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     summary["ppo_steps"] = ppo_steps
     desc = describe("teacher", None, probe.observation_space, net, sim_scan_range_m=cfg.sim.scan_range_m,
                     produced_by={"expert_labelled_frames": imitation_frames, "dagger_iterations": t.dagger_iterations,
-                                 "ppo_steps": ppo_steps})
+                                 "ppo_steps": ppo_steps,
+                                 **({"ppo_critic_warmup_steps": min(t.critic_warmup_steps, ppo_steps),
+                                     "ppo_critic_features": t.critic_features} if ppo_steps else {})})
     save_policy(out, policy, desc)
     return summary
 

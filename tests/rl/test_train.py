@@ -640,18 +640,20 @@ def test_mirror_batch_reflects_every_lateral_quantity():
 
 def test_teacher_stage_end_to_end_on_tiny_sizes(tmp_path):
     """The teacher stage on the smoke sizes: expert cloning with the lookahead's convex linear fit, one DAgger
-    iteration, PPO with a critic warm-up (actor frozen for the first 256 steps), the acceptance run, provenance."""
+    iteration, PPO with a critic warm-up (actor frozen for the first 256 steps) and the critic detached from the
+    shared extractor (``teacher.critic_features``), the acceptance run, provenance."""
     from pipeline.verbs.train import run
     from rl.stage import TrainConfig
 
     cfg = load_config(TrainConfig, "train", "smoke", {
         "data_dir": str(tmp_path), "variant": "teacher", "acceptance.scenes": "hallway", "acceptance.episodes": "1",
-        "workers": "1", "threads": "1", "progress": "false"})
+        "workers": "1", "threads": "1", "progress": "false", "teacher.critic_features": "detached"})
     assert cfg.teacher.net["encoder"] == "lookahead" and cfg.teacher.critic_warmup_steps == 256
     run(cfg)
     out = tmp_path / "checkpoints" / "policy" / "teacher"
     desc = json.loads((out / "policy.json").read_text())
     assert desc["net"]["encoder"] == "lookahead" and desc["produced_by"]["ppo_steps"] >= 512
+    assert (desc["produced_by"]["ppo_critic_warmup_steps"], desc["produced_by"]["ppo_critic_features"]) == (256, "detached")
     m = json.loads((out / "metrics.json").read_text())
     assert [s["stage"] for s in m["imitation"]] == [0, 1]
     assert all(s["linear_fit"]["ce_after"] <= s["linear_fit"]["ce_before"] for s in m["imitation"])
@@ -770,6 +772,8 @@ def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
     with pytest.raises(ConfigError, match=r"train.finetune.critic_features: expected one of \['shared', 'detached'\], "
                                           r"got 'frozen'"):
         _train_cfg(tmp_path, "full", **{"finetune.critic_features": "frozen"})
+    with pytest.raises(ConfigError, match=r"train.teacher.critic_features: expected one of"):
+        _train_cfg(tmp_path, "full", **{"teacher.critic_features": "none"})
 
 
 def test_an_mlp_student_trained_with_the_shield_rolls_out_and_loads_with_it(tmp_path, teacher_dir):
