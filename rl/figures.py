@@ -9,10 +9,11 @@ Each argument is a student checkpoint (``CKPT[:LABEL]``, the label defaulting to
 far, each iteration's held-out cross-entropy (the student of the iteration before, on the new iteration's frames,
 before cloning on them), the same loss after the cloning, and the rollout success rate of the mixed policy.
 
-With ``--ppo`` it plots, against env steps, what stable-baselines3 logged of each student's PPO fine-tuning
-(``tb/finetune_*``, written when ``finetune.ppo_steps`` > 0): the mean episode return and length of the stochastic
-rollouts, the policy's entropy, the critic's explained variance, the approximate KL and clip fraction of each update
-— with the end of the critic warm-up (the actor frozen before it) marked.
+With ``--ppo`` it plots, against env steps, what stable-baselines3 logged of each checkpoint's PPO — a student's
+fine-tuning (``tb/finetune_*``, when ``finetune.ppo_steps`` > 0) or a teacher's PPO after DAgger (``tb/ppo_*``): the
+mean episode return and length of the stochastic rollouts, the policy's entropy, the critic's explained variance, the
+approximate KL and clip fraction of each update — with the end of the critic warm-up (the actor frozen before it)
+marked.
 """
 
 from __future__ import annotations
@@ -165,21 +166,27 @@ PPO_TAGS = (("rollout/ep_rew_mean", "mean episode return (stochastic rollouts)",
             ("train/clip_fraction", "clip fraction per update", 1.0))
 
 
-def ppo_finetune_log(ckpt: Path) -> tuple[dict[str, list[tuple[int, float]]], int]:
-    """What SB3 logged of ``ckpt``'s PPO fine-tuning (every ``tb/finetune_*`` run, resumed parts in step order):
-    ``{tag: [(env step, value)]}`` for the :data:`PPO_TAGS`, and the critic warm-up's steps (``policy.json``).
+def ppo_log(ckpt: Path) -> tuple[dict[str, list[tuple[int, float]]], int]:
+    """What SB3 logged of ``ckpt``'s PPO — a student's fine-tuning (``tb/finetune_*``) or a teacher's PPO after DAgger
+    (``tb/ppo_*``), resumed parts in step order: ``{tag: [(env step, value)]}`` for the :data:`PPO_TAGS`, and the
+    critic warm-up's steps (``policy.json``).
 
     Raises:
-        InputMissingError: no ``tb/finetune_*`` event files (trained with ``finetune.ppo_steps`` 0).
+        InputMissingError: no such event files (trained with ``finetune.ppo_steps`` / ``teacher.ppo_steps`` 0).
         CorruptArtifactError: the logs hold none of the tags, or ``policy.json`` is unreadable.
     """
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     ckpt = Path(ckpt)
-    runs = sorted(p for p in (ckpt / "tb").glob("finetune_*") if p.is_dir()) if (ckpt / "tb").is_dir() else []
+    tb = ckpt / "tb"
+    runs = []
+    for pattern in ("finetune_*", "ppo_*"):
+        runs = sorted(p for p in tb.glob(pattern) if p.is_dir()) if tb.is_dir() else []
+        if runs:
+            break
     if not runs:
-        raise InputMissingError(f"{ckpt / 'tb'}: no PPO fine-tuning logs (finetune_*): expected a student trained "
-                                "with finetune.ppo_steps > 0")
+        raise InputMissingError(f"{tb}: no PPO logs (finetune_* or ppo_*): expected a student trained with "
+                                "finetune.ppo_steps > 0 or a teacher with teacher.ppo_steps > 0")
     series: dict[str, dict[int, float]] = defaultdict(dict)
     for run in runs:
         acc = EventAccumulator(str(run), size_guidance={"scalars": 0})
@@ -189,7 +196,7 @@ def ppo_finetune_log(ckpt: Path) -> tuple[dict[str, list[tuple[int, float]]], in
             for e in acc.Scalars(tag) if tag in have else []:
                 series[tag][int(e.step)] = sign * float(e.value)  # a resumed part rewrites its steps: the last wins
     if not series:
-        raise CorruptArtifactError(f"{ckpt / 'tb'}: the fine-tuning logs hold none of {[t for t, _, _ in PPO_TAGS]}")
+        raise CorruptArtifactError(f"{tb}: the PPO logs hold none of {[t for t, _, _ in PPO_TAGS]}")
     path = require_input(ckpt / "policy.json", "policy description", "written by `icrowdnav train`")
     try:
         warmup = int(json.loads(path.read_text()).get("produced_by", {}).get("ppo_critic_warmup_steps", 0))
@@ -200,7 +207,7 @@ def ppo_finetune_log(ckpt: Path) -> tuple[dict[str, list[tuple[int, float]]], in
 
 
 def plot_ppo(runs: list[tuple[str, dict[str, list[tuple[int, float]]], int]], out: Path) -> None:
-    """One panel per :data:`PPO_TAGS` entry, one line per ``(label, log, warmup)`` (:func:`ppo_finetune_log`),
+    """One panel per :data:`PPO_TAGS` entry, one line per ``(label, log, warmup)`` (:func:`ppo_log`),
     the end of each run's critic warm-up dashed."""
     import matplotlib
 
@@ -217,12 +224,14 @@ def plot_ppo(runs: list[tuple[str, dict[str, list[tuple[int, float]]], int]], ou
                         label=f"{label} (warm-up {warmup:,})")
             if warmup:
                 ax.axvline(warmup, color=color, ls="--", lw=0.8, alpha=0.6)
-    for ax, (_, title, _) in zip(axes.flat, PPO_TAGS, strict=True):
+    for ax, (tag, title, _) in zip(axes.flat, PPO_TAGS, strict=True):
         ax.set_title(title, fontsize=9)
-        ax.set_xlabel("env steps of fine-tuning (dashed: the actor starts to learn)", fontsize=8)
+        ax.set_xlabel("env steps of PPO (dashed: the actor starts to learn)", fontsize=8)
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=7)
-    fig.suptitle("PPO fine-tuning of distilled students (the paper's reward)", fontsize=10)
+        if not any(log.get(tag) for _, log, _ in runs):  # e.g. a teacher's unmonitored envs log no episode returns
+            ax.text(0.5, 0.5, f"not logged ({tag})", ha="center", va="center", fontsize=8, transform=ax.transAxes)
+    next(ax for ax in axes.flat if ax.get_legend_handles_labels()[0]).legend(fontsize=7)
+    fig.suptitle("PPO from distilled policies (the paper's reward)", fontsize=10)
     fig.tight_layout()
     save_figure(fig, out, 110)
     plt.close(fig)
@@ -242,12 +251,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m rl.figures", description=__doc__.split("\n\n")[0])
     ap.add_argument("ckpts", nargs="+", help="student checkpoints: CKPT or CKPT:LABEL")
     ap.add_argument("--out", type=Path, required=True, help="the PNG to write")
-    ap.add_argument("--ppo", action="store_true", help="their PPO fine-tuning (tb/finetune_*), not their DAgger runs")
+    ap.add_argument("--ppo", action="store_true", help="their PPO (tb/finetune_*, a teacher's tb/ppo_*), not DAgger")
     args = ap.parse_args(argv)
     if args.ppo:
-        logs = [(label, *ppo_finetune_log(path)) for path, label in map(parse_ckpt, args.ckpts)]
+        logs = [(label, *ppo_log(path)) for path, label in map(parse_ckpt, args.ckpts)]
         plot_ppo(logs, args.out)
-        print(f"{len(logs)} PPO fine-tunings -> {args.out}")
+        print(f"{len(logs)} PPO runs -> {args.out}")
         return 0
     runs = [(label, dagger_iterations(path)) for path, label in map(parse_ckpt, args.ckpts)]
     plot_dagger(runs, args.out)

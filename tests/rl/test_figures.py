@@ -1,4 +1,4 @@
-"""``python -m rl.figures``: the DAgger runs (or PPO fine-tunings) of several students in one figure; bad checkpoints are
+"""``python -m rl.figures``: the DAgger runs (or PPO runs) of several checkpoints in one figure; bad checkpoints are
 named errors."""
 
 import json
@@ -6,7 +6,7 @@ import json
 import pytest
 
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
-from rl.figures import DAGGER_KEYS, dagger_iterations, main, parse_ckpt, ppo_finetune_log
+from rl.figures import DAGGER_KEYS, dagger_iterations, main, parse_ckpt, ppo_log
 
 
 def _student(path, n_iters=3, **drop):
@@ -54,13 +54,13 @@ def test_a_teacher_a_missing_key_and_a_missing_file_are_named(tmp_path, capsys):
     assert "error:" in capsys.readouterr().err and not out.exists()
 
 
-def _finetuned(path, parts=((0, 4), (4, 8)), warmup=2048):
-    """A student checkpoint whose PPO fine-tuning SB3 logged in ``len(parts)`` runs (a resumed one: finetune_0, _1)."""
+def _finetuned(path, parts=((0, 4), (4, 8)), warmup=2048, run="finetune"):
+    """A checkpoint whose PPO SB3 logged in ``len(parts)`` runs (a resumed one: finetune_0, _1; a teacher's: ppo_*)."""
     from torch.utils.tensorboard import SummaryWriter
 
     path.mkdir(parents=True)
     for k, (a, b) in enumerate(parts):
-        w = SummaryWriter(str(path / "tb" / f"finetune_{k}"))
+        w = SummaryWriter(str(path / "tb" / f"{run}_{k}"))
         for i in range(a, b):
             step = 512 * (i + 1)
             w.add_scalar("rollout/ep_rew_mean", 10.0 - i, step)
@@ -72,20 +72,22 @@ def _finetuned(path, parts=((0, 4), (4, 8)), warmup=2048):
     return path
 
 
-def test_ppo_finetunings_side_by_side_resumed_parts_in_step_order(tmp_path, capsys):
-    a, b = _finetuned(tmp_path / "a" / "no_bev"), _finetuned(tmp_path / "b" / "no_bev", parts=((0, 6),), warmup=0)
-    log, warmup = ppo_finetune_log(a)
+def test_ppo_runs_side_by_side_resumed_parts_in_step_order(tmp_path, capsys):
+    a, b = _finetuned(tmp_path / "a" / "no_bev"), _finetuned(tmp_path / "b" / "teacher", parts=((0, 6),), warmup=0,
+                                                              run="ppo")
+    log, warmup = ppo_log(a)
     assert warmup == 2048 and [s for s, _ in log["rollout/ep_rew_mean"]] == [512 * (i + 1) for i in range(8)]
     assert log["train/entropy_loss"][0] == (512, pytest.approx(2.5))  # plotted as the entropy itself
+    assert [s for s, _ in ppo_log(b)[0]["rollout/ep_rew_mean"]] == [512 * (i + 1) for i in range(6)]  # a teacher's
     out = tmp_path / "ppo.png"
     assert main(["--ppo", f"{a}:slow", f"{b}:fast", "--out", str(out)]) == 0
-    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "2 PPO fine-tunings" in capsys.readouterr().out
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "2 PPO runs" in capsys.readouterr().out
 
 
 def test_a_student_never_finetuned_is_named(tmp_path, capsys):
     plain = _student(tmp_path / "plain")
-    with pytest.raises(InputMissingError, match=r"plain/tb: no PPO fine-tuning logs"):
-        ppo_finetune_log(plain)
+    with pytest.raises(InputMissingError, match=r"plain/tb: no PPO logs"):
+        ppo_log(plain)
     out = tmp_path / "never.png"
     assert main(["--ppo", str(plain), "--out", str(out)]) == 2
-    assert "no PPO fine-tuning logs" in capsys.readouterr().err and not out.exists()
+    assert "no PPO logs" in capsys.readouterr().err and not out.exists()
