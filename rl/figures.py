@@ -179,9 +179,9 @@ def ppo_log(ckpt: Path) -> tuple[dict[str, list[tuple[int, float]]], int]:
 
     ckpt = Path(ckpt)
     tb = ckpt / "tb"
-    runs = []
-    for pattern in ("finetune_*", "ppo_*"):
-        runs = sorted(p for p in tb.glob(pattern) if p.is_dir()) if tb.is_dir() else []
+    runs: list[Path] = []
+    for pattern in ("finetune_*", "ppo_*"):  # a student's fine-tuning, else a teacher's PPO
+        runs = sorted(p for p in tb.glob(pattern) if p.is_dir())
         if runs:
             break
     if not runs:

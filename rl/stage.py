@@ -162,7 +162,7 @@ class TeacherConfig:
 
 
 BC_SCHEDULES = ("pool", "new")  # DaggerConfig.bc_schedule
-CRITIC_FEATURES = ("shared", "detached")  # FinetuneConfig.critic_features
+CRITIC_FEATURES = ("shared", "detached")  # TeacherConfig.critic_features, FinetuneConfig.critic_features
 
 
 @dataclass
