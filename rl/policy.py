@@ -15,7 +15,9 @@ written before this (absolute paths) reads unchanged.
 
 from __future__ import annotations
 
+import functools
 import json
+import math
 import os
 import re
 from pathlib import Path
@@ -279,6 +281,28 @@ def detach_critic(policy: ActorCriticPolicy) -> None:
     if not getattr(net, "_icrowdnav_detached", False):
         net.register_forward_pre_hook(_detached_inputs)
         net._icrowdnav_detached = True
+
+
+def _scaled_output(factor: float, module: torch.nn.Module, args: tuple, output: torch.Tensor) -> torch.Tensor:
+    return output * factor
+
+
+def set_sampling_temperature(policy: ActorCriticPolicy, temperature: float) -> None:
+    """The policy's action distribution becomes ``softmax(logits / temperature)`` (a forward hook on the action head
+    ``action_net``; no weight changes, so checkpoints stay interchangeable and the most likely action — what
+    acceptance, evaluation and the driver take — is the same). PPO then samples its rollouts from, and scores its
+    updates on, that distribution: below 1 it explores closer to the deterministic policy (a cloned student's head
+    is far more diffuse than its teacher's targets; ``train.finetune.sampling_temperature``). Not saved with the
+    weights: set again on a resumed model. Setting it again replaces the hook; 1 removes it."""
+    if not (math.isfinite(temperature) and temperature > 0):
+        raise ValueError(f"sampling temperature: expected a finite number > 0, got {temperature}")
+    net = policy.action_net
+    handle = getattr(net, "_icrowdnav_temperature", None)
+    if handle is not None:
+        handle.remove()
+        net._icrowdnav_temperature = None
+    if temperature != 1.0:
+        net._icrowdnav_temperature = net.register_forward_hook(functools.partial(_scaled_output, 1.0 / temperature))
 
 
 def obs_to_tensor(obs: dict[str, np.ndarray], batch: bool = False) -> dict[str, torch.Tensor]:

@@ -101,6 +101,7 @@ from rl.policy import (
     read_policy_json,
     relative_to,
     save_policy,
+    set_sampling_temperature,
 )
 from rl.teacher import (
     FITTED_PREFIXES,
@@ -215,6 +216,10 @@ class FinetuneConfig:
     # detached: the critic reads the extractor's features without sending gradients into them, so only the policy
     # gradient moves what the cloned actor decides from (rl.policy.detach_critic)
     critic_features: str = "shared"
+    # PPO samples from softmax(logits / T) (rl.policy.set_sampling_temperature; the argmax, which acceptance and the
+    # benchmark take, is unchanged): below 1 its rollouts drive closer to the cloned student's deterministic policy,
+    # whose head is far more diffuse than the teacher's targets (docs/notes/2026-12-student-ppo-109k.md)
+    sampling_temperature: float = 1.0
     n_envs: int = 2
     # target_kl 0.02 stops an update's epochs once the policy has moved that far (as DRL-VO's, which PPO straight
     # after cloning destroyed: docs/notes/2026-11-drl-vo-ppo-after-cloning.md)
@@ -346,6 +351,9 @@ class TrainConfig(BaseStageConfig):
                        ("finetune.critic_features", self.finetune.critic_features)):
             if v not in CRITIC_FEATURES:
                 raise ConfigError(f"train.{key}: expected one of {list(CRITIC_FEATURES)}, got {v!r}")
+        if not (math.isfinite(self.finetune.sampling_temperature) and self.finetune.sampling_temperature > 0):
+            raise ConfigError(f"train.finetune.sampling_temperature: expected a finite number > 0, got "
+                              f"{self.finetune.sampling_temperature}")
         if d.soft_tau < 0:
             raise ConfigError(f"train.dagger.soft_tau: expected >= 0, got {d.soft_tau}")
         if d.bc_schedule not in BC_SCHEDULES:
@@ -729,6 +737,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         produced["ppo_finetune_steps"] = steps
         produced["ppo_critic_warmup_steps"] = min(cfg.finetune.critic_warmup_steps, steps)
         produced["ppo_critic_features"] = cfg.finetune.critic_features
+        produced["ppo_sampling_temperature"] = cfg.finetune.sampling_temperature
         summary["finetune"] = {"steps": steps, "steps_per_s": rate}
     save_policy(out, policy, describe("student", cfg.variant, space, net, **extra,
                                       intention=str(int_dir) if int_dir else None, produced_by=produced))
@@ -929,6 +938,7 @@ def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, e
         model.policy.load_state_dict(policy.state_dict())
     if f.critic_features == "detached":  # a hook, not a weight: set again on a resumed model
         detach_critic(model.policy)
+    set_sampling_temperature(model.policy, f.sampling_temperature)  # likewise
     done = model.num_timesteps
     t0 = time.perf_counter()
     learn_with_critic_warmup(model, f.ppo_steps, f.critic_warmup_steps, tb_log_name="finetune",

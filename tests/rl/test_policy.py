@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import pytest
 import torch
 from safetensors.torch import save_file
 
@@ -72,3 +73,38 @@ def test_a_detached_critic_sends_no_gradient_into_the_shared_extractor():
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.features_extractor.parameters())
     assert torch.equal(values["shared"], values["detached"])
     assert grads == {"shared": (True, True), "detached": (False, True)}
+
+
+def test_a_sampling_temperature_sharpens_the_distribution_but_keeps_the_argmax():
+    """``train.finetune.sampling_temperature`` (rl.policy.set_sampling_temperature): the distribution PPO samples
+    and scores is softmax(logits / T), the most likely action and the weights unchanged; set again, it replaces the
+    hook; 1 removes it; a bad value is refused."""
+    from rl.policy import build_policy, obs_to_tensor, set_sampling_temperature
+    from rl.teacher import SceneMixEnv
+    from sim.env import CameraConfig, SimConfig
+
+    env = SceneMixEnv(SimConfig(max_episode_s=4.0, camera=CameraConfig(width_px=64, height_px=48)), [("hallway", 0.1)])
+    obs, _ = env.reset(seed=0)
+    env.close()
+    torch.manual_seed(0)
+    policy = build_policy("teacher", None, env.observation_space, {"encoder": "set"}).eval()
+    x = obs_to_tensor(obs)
+    weights = {k: v.clone() for k, v in policy.state_dict().items()}
+    with torch.no_grad():
+        base = policy.get_distribution(x).distribution.logits
+        for t in (0.5, 0.25):
+            set_sampling_temperature(policy, t)
+            dist = policy.get_distribution(x).distribution
+            assert torch.allclose(dist.logits, torch.log_softmax(base / t, -1), atol=1e-5)
+            assert len(policy.action_net._forward_hooks) == 1  # replaced, not stacked
+            _, log_prob, entropy = policy.evaluate_actions(x, torch.tensor([3]))  # what PPO's update scores
+            assert torch.allclose(log_prob, torch.log_softmax(base / t, -1)[:, 3], atol=1e-5)
+            assert float(entropy) < float(torch.distributions.Categorical(logits=base).entropy())
+            assert int(dist.logits.argmax()) == int(base.argmax())
+        set_sampling_temperature(policy, 1.0)
+        assert not policy.action_net._forward_hooks
+        assert torch.allclose(policy.get_distribution(x).distribution.logits, torch.log_softmax(base, -1), atol=1e-6)
+    assert all(torch.equal(v, weights[k]) for k, v in policy.state_dict().items())
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="sampling temperature: expected a finite number > 0"):
+            set_sampling_temperature(policy, bad)

@@ -1,6 +1,7 @@
 """Teacher, DAgger and the train stage on tiny sizes (real envs, real rendering, real files)."""
 
 import json
+import re
 import shutil
 import tempfile
 from dataclasses import replace
@@ -358,14 +359,15 @@ def test_new_frames_schedule_and_a_final_fresh_cloning(tmp_path, teacher_dir, ca
     assert f"Final cloning (dagger/final): a fresh student on {fin['frames']:,} frames" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("critic", ["shared", "detached"])
-def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir, monkeypatch, critic):
+@pytest.mark.parametrize("critic,temperature", [("shared", 1.0), ("detached", 0.5)])
+def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir, monkeypatch, critic, temperature):
     """PPO fine-tuning of a student killed in its second rollout continues from its checkpoint: the checkpoint holds
     the first update (written when the next rollout starts, so no counted step is left untrained), the resumed run
     loads it, does not redo DAgger, and ends at the budget with one update per rollout, as an uninterrupted run.
     (Not byte-equal to one: SB3 resets the envs when it loads a model, so the second rollout sees other states.)
     The first rollout is the critic warm-up: its update moves the value branch only; the resumed run moves the actor.
-    ``critic_features: detached`` holds on the resumed model too (its hook is set again after loading)."""
+    ``critic_features: detached`` and ``sampling_temperature`` hold on the resumed model too (their hooks are set
+    again after loading)."""
     import stable_baselines3
 
     from pipeline.verbs.train import run
@@ -373,7 +375,7 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
     sizes = {"head": "mlp", "finetune.ppo_steps": 64, "finetune.n_envs": 1, "finetune.checkpoint_steps": 32,
              "finetune.critic_warmup_steps": 32, "finetune.ppo": "{n_steps: 32, batch_size: 32, n_epochs: 1}",
-             "finetune.critic_features": critic}
+             "finetune.critic_features": critic, "finetune.sampling_temperature": temperature}
     out = tmp_path / "checkpoints" / "policy" / "no_bev"
 
     class Killed(Exception):
@@ -430,6 +432,8 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
     assert (produced["ppo_finetune_steps"], produced["ppo_critic_warmup_steps"]) == (64, 32)
     assert produced["ppo_critic_features"] == critic
     assert bool(models[0].policy.mlp_extractor.value_net._forward_pre_hooks) == (critic == "detached")
+    assert produced["ppo_sampling_temperature"] == temperature
+    assert len(models[0].policy.action_net._forward_hooks) == (temperature != 1.0)
 
 
 def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
@@ -774,6 +778,11 @@ def test_student_net_carries_the_obstacle_shield_of_its_config(tmp_path):
         _train_cfg(tmp_path, "full", **{"finetune.critic_features": "frozen"})
     with pytest.raises(ConfigError, match=r"train.teacher.critic_features: expected one of"):
         _train_cfg(tmp_path, "full", **{"teacher.critic_features": "none"})
+    for bad, message in (("0", "train.finetune.sampling_temperature: expected a finite number > 0, got 0.0"),
+                         ("-0.5", "train.finetune.sampling_temperature: expected a finite number > 0, got -0.5"),
+                         ("nan", "config key 'finetune.sampling_temperature': expected a finite number, got nan")):
+        with pytest.raises(ConfigError, match=re.escape(message)):
+            _train_cfg(tmp_path, "full", **{"finetune.sampling_temperature": bad})
 
 
 def test_an_mlp_student_trained_with_the_shield_rolls_out_and_loads_with_it(tmp_path, teacher_dir):
