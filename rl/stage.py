@@ -948,6 +948,7 @@ def _finetune(cfg: TrainConfig, out: Path, policy, net: dict[str, Any], pairs, e
     save_ppo(model, last)
     venv.close()
     model.policy.set_training_mode(False)
+    set_sampling_temperature(model.policy, 1.0)  # the policy returned acts as the one saved (and loaded) does
     return model.policy, int(model.num_timesteps), rate
 
 

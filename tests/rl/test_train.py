@@ -414,8 +414,20 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
         return model
 
     monkeypatch.setattr(stable_baselines3.PPO, "load", recording_load)
+    from rl import stage
+
+    temperatures = []  # (the policy it was set on, T): PPO's own, then back to 1 on the policy it returns
+
+    def recording_temperature(policy, t):
+        temperatures.append((policy, t))
+        set_temperature(policy, t)
+
+    set_temperature = stage.set_sampling_temperature
+    monkeypatch.setattr(stage, "set_sampling_temperature", recording_temperature)
     run(_train_cfg(tmp_path, "no_bev", resume="true", **sizes))
     assert loaded == [(32, 1)]
+    assert [(p is models[0].policy, t) for p, t in temperatures] == [(True, temperature), (True, 1.0)]
+    assert not models[0].policy.action_net._forward_hooks  # the returned policy acts as the saved one
     assert (out / "dagger" / "iter_1" / "done.json").stat().st_mtime_ns == dagger_done
     final = load(out / "ppo" / "last.zip", device="cpu")
     assert (final.num_timesteps, final._n_updates) == (64, 2)
@@ -433,7 +445,6 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
     assert produced["ppo_critic_features"] == critic
     assert bool(models[0].policy.mlp_extractor.value_net._forward_pre_hooks) == (critic == "detached")
     assert produced["ppo_sampling_temperature"] == temperature
-    assert len(models[0].policy.action_net._forward_hooks) == (temperature != 1.0)
 
 
 def test_lookahead_student_distils_through_dagger(tmp_path, teacher_dir):
