@@ -249,7 +249,10 @@ def test_a_signalled_stage_stops_its_pool_and_says_what_is_kept(tmp_path: Path, 
     """SIGTERM to the run (not its process group: what ``kill PID``, a scheduler or a CI timeout sends) unwinds it
     like Ctrl-C: the pool's workers are stopped with it, no queued job is begun, and one ``error:`` line names the
     signal and where the finished work is kept (before, SIGTERM ended the run with no line)."""
-    code = ("import sys\nfrom pipeline import cli\n"
+    # SIGINT as a terminal's run has it: a shell without job control starts a background command (`cmd &` in a
+    # script, as a CI runner may) with SIGINT ignored, and Python keeps an inherited SIG_IGN
+    code = ("import signal, sys\nfrom pipeline import cli\n"
+            "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
             "cli.VERBS['busy'] = 'tests.pipeline.test_cli:BUSY_STAGE'\n"
             "raise SystemExit(cli.main(['busy', '--data-dir', sys.argv[1]]))")
     env = {**os.environ, PROFILES_ENV: str(tmp_path / "profiles")}
