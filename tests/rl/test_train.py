@@ -417,12 +417,12 @@ def test_student_ppo_finetune_resumes_from_its_last_update(tmp_path, teacher_dir
     from rl import stage
 
     temperatures = []  # (the policy it was set on, T): PPO's own, then back to 1 on the policy it returns
+    set_temperature = stage.set_sampling_temperature
 
     def recording_temperature(policy, t):
         temperatures.append((policy, t))
         set_temperature(policy, t)
 
-    set_temperature = stage.set_sampling_temperature
     monkeypatch.setattr(stage, "set_sampling_temperature", recording_temperature)
     run(_train_cfg(tmp_path, "no_bev", resume="true", **sizes))
     assert loaded == [(32, 1)]
