@@ -51,6 +51,13 @@ tracked, and the chosen arcs were predicted clear of everyone (``predicted_clear
 motion was wrong, or the person walked into the robot).
 
 ``--scene NAME`` keeps only one scene's episodes (e.g. a run whose other scenes changed since).
+
+``--against BASE[:METHOD]`` pairs the run's episodes of ``--method`` with those of another run on the same seeds
+(``BASE``'s episodes of ``METHOD``, default ``--method``; e.g. a student before and after fine-tuning, or two
+variants) separately where the straight line is blocked and where it is clear: each side's SR and the exact
+McNemar test on who alone succeeded (:func:`paired_by_line`) — whether a gain is in the detours or in the open.
+Both runs' layouts decide the split; episodes that do not pair, or a line blocked in one run and clear in the
+other (different scene files), are a named error.
 """
 
 from __future__ import annotations
@@ -67,9 +74,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from evaluation.compare import read_protocol, read_rows
+from evaluation.compare import pair_key, read_protocol, read_rows
 from evaluation.harness import Job, cached_driver, make_env, reset_options
 from evaluation.methods import MethodSpec, resolve_methods
+from evaluation.stats import mcnemar_exact
 from pipeline.core.artifacts import atomic_write_json, atomic_write_text, json_safe
 from pipeline.core.config import from_dict, read_yaml_mapping
 from pipeline.core.errors import (
@@ -163,13 +171,15 @@ def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: f
             rows = [r for r in rows if r.get(key) == want]
             if not rows:
                 raise InputMissingError(f"{run}: no episode of {key} {want!r} (it holds {held})")
-    records, counts, blocked = [], {}, {}
+    records, counts, blocked, episodes = [], {}, {}, []
     with Layouts(run) as layouts:
         for r in rows:
             cell = f"{r['scene']}@{float(r['density']):g}"
             c = counts.setdefault(r["method"], {}).setdefault(cell, Counter())
             ok, line = r["success"] > 0.5, line_blocked(run, r, layouts, blocked)
             c.update(episodes=1, successes=int(ok), **{BLOCKED: int(line), BLOCKED_OK: int(line and ok)})
+            episodes.append({"method": r["method"], "scene": r["scene"], "density": float(r["density"]),
+                             "seed": int(r["seed"]), "success": int(ok), BLOCKED: bool(line)})
             if ok:
                 continue
             trace = _load_trace(trace_path(run, r))
@@ -185,7 +195,47 @@ def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: f
                             **info})
     return {"run": str(run), "near_m": near_m, "tail_s": tail_s,
             "counts": {m: {cell: dict(c) for cell, c in cs.items()} for m, cs in counts.items()},
-            "failures": records}
+            "failures": records, "episodes": episodes}
+
+
+def paired_by_line(res: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
+    """Two :func:`analyse` results of one method each (``res`` the run, ``base`` the one it is held against),
+    paired on (scene, density, seed): for the episodes whose straight line is blocked, those where it is clear, and
+    all, each side's SR and the exact McNemar test (``a_only``: only ``base`` succeeded)."""
+    def one(r: dict[str, Any]) -> dict[tuple, dict[str, Any]]:
+        methods = sorted({e["method"] for e in r["episodes"]})
+        if len(methods) != 1:
+            raise ConfigError(f"{r['run']}: pairing by line needs one method, the run holds {methods} (--method)")
+        return {pair_key(e): e for e in r["episodes"]}
+
+    mine, theirs = one(res), one(base)
+    alone = sorted(set(mine) ^ set(theirs))
+    if alone:
+        raise InputMissingError(f"{res['run']} against {base['run']}: {len(alone)} episodes have no pair on the other "
+                                f"side, e.g. {alone[0]} (the same protocol, cells and seeds are needed)")
+    keys = sorted(mine)
+    differ = [k for k in keys if mine[k][BLOCKED] != theirs[k][BLOCKED]]
+    if differ:
+        raise CorruptArtifactError(f"{res['run']} against {base['run']}: the straight line of {len(differ)} paired "
+                                   f"episodes is blocked in one run's layout and clear in the other's, e.g. "
+                                   f"{differ[0]} (scene files changed between the runs)")
+    out = {"run": res["run"], "base": base["run"], "groups": {}}
+    for name, sel in (("line blocked", True), ("line clear", False), ("all", None)):
+        ks = [k for k in keys if sel is None or mine[k][BLOCKED] == sel]
+        a, b = [theirs[k]["success"] for k in ks], [mine[k]["success"] for k in ks]
+        out["groups"][name] = {**mcnemar_exact(a, b), "sr_base": float(np.mean(a)) if ks else math.nan,
+                               "sr_run": float(np.mean(b)) if ks else math.nan}
+    return out
+
+
+def paired_markdown(paired: dict[str, Any]) -> str:
+    lines = ["", f"Paired with {paired['base']} on the same seeds (exact McNemar on who alone succeeded)", "",
+             "| episodes | pairs | SR base | SR this run | only base / only this run | p |", "|---|---|---|---|---|---|"]
+    for name, g in paired["groups"].items():
+        p = "—" if math.isnan(g["p_value"]) else f"{g['p_value']:.3g}"
+        lines.append(f"| {name} | {g['n']} | {g['sr_base']:.3f} | {g['sr_run']:.3f} | {g['a_only']} / {g['b_only']} "
+                     f"| {p} |")
+    return "\n".join(lines) + "\n"
 
 
 def line_blocked(run: Path, row: dict[str, Any], layouts: Layouts, cache: dict[tuple, bool]) -> bool:
@@ -522,6 +572,9 @@ def main(argv: list[str] | None = None) -> int:
                                                                            "(default: the machine's CPUs)")
     ap.add_argument("--data-dir", type=Path, default=None, help="where --replay finds the checkpoints (default: the "
                                                                     "run's data dir, <run>/../..)")
+    ap.add_argument("--against", default=None, metavar="BASE[:METHOD]",
+                    help="pair --method's episodes with this run's (of METHOD, default --method) on the same seeds, "
+                         "where the straight line is blocked and where it is clear")
     args = ap.parse_args(argv)
     out = args.out or args.run / "failures"
     for name, low in (("figures", 0), ("replay", 0), ("replay_peds", 0), ("workers", 1)):
@@ -529,6 +582,11 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError(f"--{name.replace('_', '-')}: expected an integer >= {low}, got {getattr(args, name)}")
     res = analyse(args.run, args.method, args.near_m, args.tail_s, args.scene)
     text = markdown(res)
+    if args.against:
+        base_run, _, base_method = args.against.partition(":")
+        base = analyse(Path(base_run), base_method or args.method, args.near_m, args.tail_s, args.scene)
+        res["against"] = paired_by_line(res, base)
+        text += paired_markdown(res["against"])
     if args.replay:
         res["replays"] = replay_hits(args.run, res, args.replay, args.data_dir, args.workers, progress=True)
         text += replay_markdown(res["replays"])

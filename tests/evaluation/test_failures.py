@@ -103,6 +103,34 @@ def test_a_timeouts_view_holds_its_start_and_goal_a_hits_stays_around_the_end():
     assert failures.view_bounds(trace, whole_span=True) == pytest.approx((-2.0, 10.0, -3.0, 3.0))
 
 
+def _analysed(run: str, outcomes: list[tuple[int, bool, bool]], method: str = "full") -> dict:
+    """What :func:`analyse` returns of a run, reduced to its episodes: (seed, success, line blocked) each."""
+    return {"run": run, "episodes": [{"method": method, "scene": "warehouse", "density": 0.1, "seed": seed,
+                                      "success": int(ok), "line_blocked": line} for seed, ok, line in outcomes]}
+
+
+def test_two_runs_are_paired_where_the_line_is_blocked_and_where_it_is_clear():
+    """Seeds 0-3 need a detour, 4-9 do not; the run gains two detours and loses one open episode against its base."""
+    line = [s < 4 for s in range(10)]
+    base = _analysed("base", [(s, ok, line[s]) for s, ok in enumerate([0, 0, 0, 1, 1, 1, 1, 1, 0, 1])])
+    run = _analysed("run", [(s, ok, line[s]) for s, ok in enumerate([1, 1, 0, 1, 1, 1, 1, 0, 0, 1])], "no_bev")
+    res = failures.paired_by_line(run, base)
+    blocked, clear, total = (res["groups"][k] for k in ("line blocked", "line clear", "all"))
+    assert (blocked["n"], blocked["sr_base"], blocked["sr_run"], blocked["a_only"], blocked["b_only"]) == (
+        4, 0.25, 0.75, 0, 2)
+    assert (clear["n"], clear["a_only"], clear["b_only"]) == (6, 1, 0) and clear["p_value"] == pytest.approx(1.0)
+    assert (total["n"], total["a_only"], total["b_only"]) == (10, 1, 2)
+    table = failures.paired_markdown(res)
+    assert "| line blocked | 4 | 0.250 | 0.750 | 0 / 2 | 0.5 |" in table and "Paired with base" in table
+    with pytest.raises(InputMissingError, match=r"1 episodes have no pair .*\('warehouse', 0.1, 9\)"):
+        failures.paired_by_line(_analysed("run", [(s, 1, line[s]) for s in range(9)]), base)
+    with pytest.raises(CorruptArtifactError, match=r"blocked in one run's layout and clear in the other's"):
+        failures.paired_by_line(_analysed("run", [(s, 1, not line[s]) for s in range(10)]), base)
+    two = {"run": "two", "episodes": run["episodes"] + base["episodes"]}
+    with pytest.raises(ConfigError, match=r"needs one method, the run holds \['full', 'no_bev'\]"):
+        failures.paired_by_line(two, base)
+
+
 @pytest.fixture(scope="module")
 def timed_out_run(tmp_path_factory):
     """The expert with a 2 s time limit in the lobby: both episodes time out (real failures, real traces)."""
@@ -143,6 +171,10 @@ def test_cli_writes_its_tables_and_refuses_bad_input(timed_out_run, tmp_path, ca
     assert "no episode of method 'dwa'" in capsys.readouterr().err and not (tmp_path / "g").exists()
     assert main([str(timed_out_run), "--replay", "1", "--workers", "0", "--out", str(tmp_path / "h")]) == 2
     assert "--workers: expected an integer >= 1, got 0" in capsys.readouterr().err and not (tmp_path / "h").exists()
+    assert main([str(timed_out_run), "--figures", "0", "--out", str(tmp_path / "i"), "--method", "expert",
+                 "--against", f"{timed_out_run}:expert"]) == 0
+    assert "| line clear | 2 | 0.000 | 0.000 | 0 / 0 | — |" in capsys.readouterr().out
+    assert json.loads((tmp_path / "i" / "failures.json").read_text())["against"]["groups"]["all"]["n"] == 2
 
 
 @pytest.mark.slow
