@@ -343,7 +343,14 @@ def _mutate(path: str, value):
     return data
 
 
-_DELETE = object()
+class _Deleted:
+    """The value that removes a field (a stable repr: test ids must be the same in every pytest-xdist worker)."""
+
+    def __repr__(self) -> str:
+        return "<deleted>"
+
+
+_DELETE = _Deleted()
 
 BAD = [
     ("colour", [0.1, 0.2, 0.3], "'colour'"),
