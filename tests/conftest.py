@@ -25,19 +25,6 @@ TINY_SEEDS = (0, 1)
 REPO_ID = "icrowdnav/tiny"
 
 
-def pytest_configure(config: pytest.Config) -> None:
-    """Under pytest-xdist (``make test``), each worker's torch and OpenMP get its share of the CPUs — the workers'
-    torch tests would otherwise each spin one thread per CPU on CPUs the other workers use. Set in the environment
-    too, for the commands the tests start; a test that sets its own thread count still does."""
-    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
-    if workers > 1:
-        import torch
-
-        threads = max(1, (os.cpu_count() or 1) // workers)
-        os.environ["OMP_NUM_THREADS"] = str(threads)
-        torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="session", autouse=True)
 def _sb3_logs_in_the_session_tmp(tmp_path_factory) -> None:
     """Tests that build an SB3 model without a logger of their own: SB3 makes a folder for its default logger in the
