@@ -15,8 +15,6 @@ EVAL_ARGS ?=
 PRETRAIN_ARGS ?=
 TRAIN_ARGS ?=
 TRAIN_VARIANTS ?= teacher full no_i2 no_bev drl_vo sarl_om vint
-# pytest-xdist workers for `make test` (auto: one per CPU; 0: in this process, one test at a time)
-TEST_WORKERS ?= auto
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export HF_HUB_OFFLINE := 1
@@ -71,9 +69,8 @@ all: install record pretrain train eval
 smoke: install
 	$(MAKE) --no-print-directory record pretrain train eval PROFILE=smoke DATA_DIR=$(DATA_DIR)/smoke ARGS=--overwrite
 
-# each test file runs whole on one worker (--dist loadfile), so a module's fixtures are built once
 test: install
-	$(PY) -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -q -p no:cacheprovider
 
 bench: install
 	$(PY) -m pipeline bench --profile $(PROFILE) --data-dir $(DATA_DIR)
