@@ -344,7 +344,7 @@ def _mutate(path: str, value):
 
 
 class _Deleted:
-    """The value that removes a field (a stable repr: test ids must be the same in every pytest-xdist worker)."""
+    """The value that removes a field; its repr is stable, so the test ids are the same in every process."""
 
     def __repr__(self) -> str:
         return "<deleted>"
