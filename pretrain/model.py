@@ -29,7 +29,6 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
-import torchvision
 from torch import nn
 
 from pipeline.core.errors import ConfigError
@@ -103,7 +102,11 @@ class EncoderConfig:
 
 
 def _resnet18_trunk(stages: int) -> nn.Sequential:
-    m = torchvision.models.resnet18(weights=None)
+    # lazy: torchvision's import pulls in torch._dynamo (≈ 4 s on the 2-core VM) — paid only where a trunk is built,
+    # not by every process that reads checkpoints, targets or the grid
+    from torchvision.models import resnet18
+
+    m = resnet18(weights=None)
     layers: list[nn.Module] = [m.conv1, m.bn1, m.relu, m.maxpool, m.layer1, m.layer2, m.layer3, m.layer4]
     return nn.Sequential(*layers[: 4 + stages])
 

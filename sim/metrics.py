@@ -32,7 +32,6 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
-from scipy import stats as sps
 
 from sim.geometry import wrap_angle
 from sim.trace import EpisodeTrace
@@ -210,6 +209,8 @@ def wilson_interval(successes: float, n: int, confidence: float = 0.95) -> tuple
     """
     if n <= 0:
         return math.nan, math.nan
+    from scipy import stats as sps  # lazy: seconds to import; only intervals and tests use it
+
     z = float(sps.norm.ppf(0.5 + confidence / 2.0))
     p = successes / n
     denom = 1.0 + z * z / n
@@ -240,6 +241,8 @@ def summarize(values: Sequence[float], binary: bool = False, confidence: float =
     if binary:
         low, high = wilson_interval(float(v.sum()), n, confidence)
     elif n > 1:
+        from scipy import stats as sps  # lazy: as in wilson_interval
+
         half = float(sps.t.ppf(0.5 + confidence / 2.0, df=n - 1)) * std / math.sqrt(n)
         low, high = mean - half, mean + half
     else:
@@ -296,6 +299,8 @@ def paired_test(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:
     mean_diff = float(d.mean()) if n else math.nan
     p_value = math.nan
     if n >= 5 and np.any(d != 0):
+        from scipy import stats as sps  # lazy: as in wilson_interval
+
         p_value = float(sps.wilcoxon(d).pvalue)
     return {"mean_diff": mean_diff, "p_value": p_value, "n": n}
 

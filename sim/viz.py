@@ -4,8 +4,9 @@ Frames: world frame of the scene, metres, yaw in radians counter-clockwise from 
 ``H x W x 3`` uint8 **RGB** with world +y pointing up: pixel column ``floor((x - xmin) * px_per_m)``, row
 ``floor((ymax - y) * px_per_m)`` (see :meth:`TopDownRenderer.world_to_pixel`).
 
-matplotlib is used through :class:`matplotlib.figure.Figure` and the Agg canvas directly, so importing this module
-neither needs a display nor changes pyplot's global backend.
+matplotlib is used through :class:`matplotlib.figure.Figure` and the Agg canvas directly, so drawing neither needs a
+display nor changes pyplot's global backend; it is imported by :func:`plot_episode_topdown` only (≈ 1 s that every
+process importing the simulator's episode tools would otherwise pay).
 """
 
 from __future__ import annotations
@@ -19,13 +20,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from matplotlib import colormaps
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.cm import ScalarMappable
-from matplotlib.collections import LineCollection
-from matplotlib.colors import Normalize
-from matplotlib.figure import Figure
-from matplotlib.patches import Circle, Polygon, Wedge
 
 from pipeline.core.artifacts import FILE_MODE
 from sim.geometry import Box, Cylinder
@@ -130,6 +124,14 @@ def plot_episode_topdown(
     Raises:
         ValueError: a snapshot step is outside ``0..T`` or the trace is invalid.
     """
+    from matplotlib import colormaps  # lazy: matplotlib only when a figure is drawn
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.collections import LineCollection
+    from matplotlib.colors import Normalize
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle, Polygon, Wedge
+
     trace.validate()
     path = Path(path)
     t_steps = trace.n_steps

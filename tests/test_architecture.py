@@ -86,3 +86,24 @@ def test_no_private_names_across_modules():
 def test_first_party_imports_are_at_module_top_or_say_why():
     hidden = [(a, b) for a, b, _, top, line in IMPORTS if not top and "# lazy:" not in line]
     assert not hidden, f"first-party imports inside functions without a '# lazy: <why>' comment: {hidden}"
+
+
+# Modules whose import takes seconds and that only some code paths need: figures (matplotlib), statistics
+# (scipy.stats) and the ResNet trunk (torchvision, which pulls in torch._dynamo). Every fresh process pays for what
+# its entry module imports — a Ray worker, a spawned pool, a child of train-all, the CLI — so the modules such
+# processes start from import them lazily (docs/results.md, Performance: process start-up).
+HEAVY = ("torchvision", "matplotlib", "scipy.stats")
+WORKER_ENTRIES = ("rl.dagger", "evaluation.harness", "pipeline.verbs.train", "pipeline.verbs.pretrain",
+                  "pipeline.verbs.pretrain_intention", "pipeline.verbs.record", "pipeline.verbs.export")
+
+
+def test_worker_entry_modules_leave_the_heavy_imports_to_the_code_that_needs_them():
+    import subprocess
+    import sys
+
+    code = ("import importlib, sys\n"
+            f"for m in {WORKER_ENTRIES!r}: importlib.import_module(m)\n"
+            f"print(','.join(h for h in {HEAVY!r} if h in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1:] in ([], [""]), f"imported at module level: {out.stdout.strip()}"
