@@ -36,6 +36,11 @@ are kept, ours are replaced) and prints every figure. Figures (single process, t
   numbers per parquet row of each, which the load time follows (see :mod:`recorder.bench`);
 * ``bev_*`` — the BEV encoder with the profile's ``pretrain.encoder`` architecture, one thread: lift vs its
   reference, streaming step vs recomputing the window (see :mod:`pretrain.bench`);
+* ``startup_s_<module>`` — a fresh interpreter's wall time to import the module a stage's worker process starts from
+  (``rl.dagger``: DAgger rollouts on Ray, ``evaluation.harness``: evaluation episodes on Ray; a child of
+  ``train-all`` or the CLI pays the same), median of ``startup_runs`` runs alternated with the reference
+  ``startup_s_torch`` (``import torch`` alone, the floor every such process pays); ``startup_over_torch_<module>``
+  the ratio (:func:`measure_startup`);
 * ``teacher_env_steps_per_s`` (vs one in-process env), ``policy_inference_hz`` (streaming vs recomputing the
   window) and ``dagger_ms_per_frame`` (a DAgger rollout frame by phase; its encoder in fp32 vs bf16) — see
   :mod:`rl.bench`.
@@ -47,6 +52,7 @@ import argparse
 import json
 import os
 import platform
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -94,11 +100,14 @@ class BenchConfig(BaseStageConfig):
                                                       "inference figures (rl.bench)"})
     ray: bool = field(default=True, metadata={"help": "also record the recorder figures' episodes on Ray (1 and 2 "
                                                        "local nodes)"})
+    startup_runs: int = field(default=3, metadata={"help": "fresh interpreters per start-up figure (0: skip them)"})
 
     def validate(self) -> None:
         super().validate()
         if self.seconds_per_figure <= 0:
             raise ConfigError(f"seconds_per_figure: expected > 0, got {self.seconds_per_figure}")
+        if self.startup_runs < 0:
+            raise ConfigError(f"startup_runs: expected >= 0, got {self.startup_runs}")
 
 
 def _env_rate(cfg: BenchConfig, seconds: float, **overrides) -> tuple[float, object]:
@@ -189,7 +198,34 @@ def measure(cfg: BenchConfig) -> dict[str, float]:
         out.update(measure_frame_pool())
     if cfg.record_episodes > 0:
         out.update(measure_recorder(cfg))
+    if cfg.startup_runs > 0:
+        out.update(measure_startup(STARTUP_MODULES, cfg.startup_runs))
     return {k: round(float(v), 3) for k, v in out.items()}
+
+
+# the modules a stage's fresh worker process imports first (module docstring, ``startup_s_*``)
+STARTUP_MODULES = ("rl.dagger", "evaluation.harness")
+
+
+def measure_startup(modules: Sequence[str], runs: int) -> dict[str, float]:
+    """Wall seconds of a fresh interpreter (this one's executable, the repository on its path) importing each of
+    ``modules``, against importing torch alone, ``runs`` rounds alternating the commands; medians and ratios."""
+    import subprocess
+    import sys
+    import time
+
+    root = Path(__file__).resolve().parents[2]
+    names = ("torch", *modules)
+    walls: dict[str, list[float]] = {n: [] for n in names}
+    for _ in range(runs):
+        for n in names:
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-c", f"import {n}"], cwd=root, check=True, capture_output=True)
+            walls[n].append(time.perf_counter() - t0)
+    med = {n: float(np.median(w)) for n, w in walls.items()}
+    out = {f"startup_s_{n.replace('.', '_')}": med[n] for n in names}
+    out.update({f"startup_over_torch_{n.replace('.', '_')}": med[n] / med["torch"] for n in modules})
+    return out
 
 
 def measure_recorder(cfg: BenchConfig) -> dict[str, float]:

@@ -54,7 +54,9 @@ def graceful_signals(signums: tuple[int, ...] = (signal.SIGTERM, signal.SIGINT))
     ``exc.exit_code``. A signal that arrives while the writer is inside the mcap library (adding a frame,
     finishing) is deferred until that call returns, so no chunk is torn. The first signal raises; further signals
     while unwinding are logged and ignored, so cleanup is not cut short (SIGKILL still works). Previous handlers
-    are restored on exit. Outside the main thread (where Python cannot install handlers) this is a no-op.
+    are restored on exit. A signal ignored when the block starts (``SIG_IGN``: a job started under ``nohup`` or with
+    ``&`` from a script has SIGINT ignored) is left ignored. Outside the main thread (where Python cannot install
+    handlers) this is a no-op.
 
     The writer installs no handler itself: recording code wraps its loop in this context manager, e.g.::
 
@@ -89,7 +91,9 @@ def graceful_signals(signums: tuple[int, ...] = (signal.SIGTERM, signal.SIGINT))
         log.warning("received %s: stopping (open episode files are closed as *.partial)", name)
         raise Interrupted(signum)
 
-    previous = {s: signal.signal(s, handler) for s in signums}
+    # a signal the process was started ignoring (SIGINT under nohup or ``&`` in a script) stays ignored, as Python
+    # itself leaves it and as the other stages do
+    previous = {s: signal.signal(s, handler) for s in signums if signal.getsignal(s) is not signal.SIG_IGN}
     try:
         yield
     finally:

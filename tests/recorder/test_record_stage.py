@@ -24,6 +24,7 @@ import yaml
 
 from pipeline import cli
 from recorder.mcap.reader import count_frames, episode_summary, read_episode
+from tests.terminal import sigint_as_in_a_terminal
 
 REPO = Path(__file__).resolve().parents[2]
 SCENE_ARGS = ["--scenes", "hallway", "--densities", "0.05", "--sim.camera.width-px", "64",
@@ -96,7 +97,8 @@ def start_record(data: Path, args: list[str], log_dir: Path) -> tuple[subprocess
     stderr = log_dir / "stderr.txt"
     with open(log_dir / "stdout.txt", "w") as fo, open(stderr, "w") as fe:
         p = subprocess.Popen([sys.executable, "-m", "pipeline", "record", "--data-dir", str(data), *args],
-                             cwd=REPO, env=env, stdout=fo, stderr=fe, start_new_session=True)
+                             cwd=REPO, env=env, stdout=fo, stderr=fe, start_new_session=True,
+                             preexec_fn=sigint_as_in_a_terminal)  # SIGINT tests: Ctrl-C as in a terminal
     return p, stderr
 
 

@@ -21,6 +21,7 @@ from recorder.mcap.recovery import recover
 from recorder.mcap.signals import Interrupted, critical, graceful_signals
 from tests.recorder.helpers_mcap import record_episode
 from tests.recorder.mcap.common import CHUNK, MSGS_PER_FRAME, REPO, assert_frames_equal, sha256
+from tests.terminal import sigint_as_in_a_terminal
 
 
 def test_graceful_signals_raise_interrupted_and_restore_handlers() -> None:
@@ -31,16 +32,38 @@ def test_graceful_signals_raise_interrupted_and_restore_handlers() -> None:
     assert ei.value.signum == signal.SIGTERM and ei.value.exit_code == 128 + signal.SIGTERM
     assert isinstance(ei.value, KeyboardInterrupt)
     assert signal.getsignal(signal.SIGTERM) is before
-    # inside a critical section (what the writer uses around mcap calls) the signal waits for the section's end
+    # inside a critical section (what the writer uses around mcap calls) the signal waits for the section's end;
+    # SIGINT as a terminal's run has it, whatever started pytest (tests/terminal.py)
     steps = []
-    with pytest.raises(Interrupted), graceful_signals():
-        with critical():
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.05)
-            steps.append("finished the write")
-        steps.append("not reached")
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(Interrupted), graceful_signals():
+            with critical():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)
+                steps.append("finished the write")
+            steps.append("not reached")
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert steps == ["finished the write"]
 
+
+
+def test_a_signal_ignored_when_the_block_starts_stays_ignored() -> None:
+    """A job started with SIGINT ignored (``nohup``, ``&`` from a script) is not stopped by one, as Python and the
+    other stages leave it; SIGTERM still stops it, and the ignoring is in place again after the block."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with pytest.raises(Interrupted) as ei, graceful_signals():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # ignored: nothing raised here
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1.0)
+        assert ei.value.signum == signal.SIGTERM
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 class _Proc:
     """The helper recorder in a subprocess, with its stdout lines read by a thread."""
@@ -49,7 +72,7 @@ class _Proc:
         self.p = subprocess.Popen(
             [sys.executable, "-m", "tests.recorder.helpers_mcap", str(out), "--episodes", str(episodes),
              "--frame-sleep", "0.03", "--chunk-size", str(CHUNK)],
-            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=sigint_as_in_a_terminal)
         self.lines: list[str] = []
         self.q: queue.Queue[str | None] = queue.Queue()
         threading.Thread(target=self._pump, daemon=True).start()
