@@ -50,9 +50,11 @@ import torch.nn.functional as F
 
 from pipeline.core.errors import ConfigError
 from pipeline.core.timing import PhaseClock
+from pretrain.checkpoint import load_heads
 from pretrain.geometry import Camera, LiftGeometry, lift_splat, sample_depth
 from pretrain.intention import IntentionForecaster, load_forecaster
 from pretrain.model import TARGETS, BEVEncoder, BEVStream, EncoderConfig, PretextHeads
+from pretrain.quantize import load_frozen_encoder
 from rl.networks import variant_keys
 from rl.perceive import CameraView, Perception
 
@@ -335,8 +337,6 @@ def load_student_encoder(variant: str, encoder_ckpt: Path | None, device: torch.
         return None
     if encoder_ckpt is None:
         raise ConfigError(f"variant {variant!r} needs a pretrained encoder checkpoint (encoder_ckpt)")
-    from pretrain.quantize import load_frozen_encoder  # lazy: torchvision (~3 s)
-
     return load_frozen_encoder(Path(encoder_ckpt), precision, device)
 
 
@@ -348,8 +348,6 @@ def load_student_heads(variant: str, head: str, map_cost: bool, encoder_ckpt: Pa
         return None
     if encoder is None or encoder_ckpt is None:
         raise ConfigError(f"variant {variant!r} with map_cost needs a pretrained encoder checkpoint (encoder_ckpt)")
-    from pretrain.checkpoint import load_heads  # lazy: torchvision (~3 s) only when an encoder is loaded
-
     heads = load_heads(Path(encoder_ckpt), encoder)
     for p in heads.parameters():
         p.requires_grad_(False)

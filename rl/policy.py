@@ -31,6 +31,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
 from pipeline.core.executor import Bundle
+from pretrain.checkpoint import ENCODER_WEIGHTS, load_safetensors, read_weights, save_safetensors
 from rl.networks import StudentExtractor, StudentLookaheadExtractor, TakeScores, teacher_extractor_class
 
 POLICY_JSON = "policy.json"
@@ -134,8 +135,6 @@ def describe(kind: str, variant: str | None, obs_space: gym.spaces.Dict, net: di
 
 def save_policy(out: Path, policy: ActorCriticPolicy, desc: dict[str, Any]) -> None:
     """Writes ``policy.safetensors`` and ``policy.json`` into ``out`` (each atomically)."""
-    from pretrain.checkpoint import save_safetensors  # lazy: torchvision (~3 s) only when weights are read
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     save_safetensors(policy, out / POLICY_WEIGHTS, {"kind": str(desc["kind"]), "variant": str(desc["variant"])})
@@ -203,8 +202,6 @@ def load_policy(ckpt: Path, shield_s: float | None = None) -> tuple[ActorCriticP
     Raises:
         InputMissingError: the directory or a file is missing. CorruptArtifactError: unreadable or mismatching.
     """
-    from pretrain.checkpoint import load_safetensors  # lazy: torchvision (~3 s) only when weights are read
-
     ckpt = Path(ckpt)
     desc = read_policy_json(ckpt)
     if shield_s is not None:
@@ -246,8 +243,6 @@ def check_checkpoint_weights(ckpt: Path) -> None:
     Raises:
         InputMissingError / CorruptArtifactError: naming the file.
     """
-    from pretrain.checkpoint import ENCODER_WEIGHTS, read_weights  # lazy: torchvision (~3 s) to read weights
-
     ckpt = Path(ckpt)
     desc = read_policy_json(ckpt)
     read_weights(ckpt / POLICY_WEIGHTS)

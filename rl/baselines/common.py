@@ -43,6 +43,7 @@ from tqdm import tqdm
 from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError
 from pipeline.core.executor import process_pool
+from pretrain.checkpoint import load_safetensors, save_safetensors
 from rl.policy import read_policy_json
 from rl.teacher import discounted, stage_pairs_all
 from sim.env import CrowdNavEnv, SimConfig
@@ -59,9 +60,6 @@ POLICY_WEIGHTS = "policy.safetensors"
 def save_baseline(out: Path, name: str, model: torch.nn.Module, net: dict[str, Any], inputs: dict[str, Any],
                   produced_by: dict[str, Any], **extra: Any) -> None:
     """Writes ``policy.safetensors`` and ``policy.json`` (each atomically) for baseline ``name``."""
-    # lazily: pretrain.checkpoint takes ~3 s to import (torchvision, via pretrain.model)
-    from pretrain.checkpoint import save_safetensors  # lazy: torchvision (~3 s) only when weights are read
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     save_safetensors(model, out / POLICY_WEIGHTS, {"kind": "baseline", "variant": name})
@@ -109,9 +107,6 @@ def load_baseline(ckpt: Path, name: str, build: Callable[[dict[str, Any]], torch
                   ) -> tuple[torch.nn.Module, dict[str, Any]]:
     """The model of baseline ``name`` saved in ``ckpt`` (eval mode) and its description; ``build(net)`` makes the
     network from ``policy.json``'s ``net``."""
-    # lazily: pretrain.checkpoint takes ~3 s to import (torchvision, via pretrain.model)
-    from pretrain.checkpoint import load_safetensors  # lazy: torchvision (~3 s) only when weights are read
-
     ckpt = Path(ckpt)
     desc = read_policy_json(ckpt)
     if desc.get("kind") != "baseline" or desc.get("variant") != name:

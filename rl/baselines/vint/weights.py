@@ -8,6 +8,7 @@ from typing import Any
 import torch
 
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
+from pretrain.checkpoint import read_weights
 from rl.baselines.vint.model import ViNTStyle
 
 _BN = ("weight", "bias", "running_mean", "running_var", "num_batches_tracked")
@@ -31,8 +32,6 @@ def efficientnet_pytorch_b0_keys() -> list[str]:
 def _read_state_dict(path: Path) -> dict[str, torch.Tensor]:
     if not path.is_file():
         raise InputMissingError(f"released ViNT weights {path} do not exist (train.vint.init_weights)")
-    from pretrain.checkpoint import read_weights  # lazy: torchvision (~3 s) only when weights are read
-
     # unreadable / damaged / non-finite -> one error naming the file
     sd: Any = read_weights(path, hint="the released vint.pth pickles the whole module: convert it with the authors' "
                                       "code to a state dict first (see rl.baselines.vint)")
