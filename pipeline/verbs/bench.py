@@ -52,6 +52,9 @@ import argparse
 import json
 import os
 import platform
+import subprocess
+import sys
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -210,10 +213,6 @@ STARTUP_MODULES = ("rl.dagger", "evaluation.harness")
 def measure_startup(modules: Sequence[str], runs: int) -> dict[str, float]:
     """Wall seconds of a fresh interpreter (this one's executable, the repository on its path) importing each of
     ``modules``, against importing torch alone, ``runs`` rounds alternating the commands; medians and ratios."""
-    import subprocess
-    import sys
-    import time
-
     root = Path(__file__).resolve().parents[2]
     names = ("torch", *modules)
     walls: dict[str, list[float]] = {n: [] for n in names}

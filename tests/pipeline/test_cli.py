@@ -19,6 +19,7 @@ from pipeline.core.artifacts import pid_alive
 from pipeline.core.config import PROFILES_ENV, BaseStageConfig
 from pipeline.core.executor import map_jobs
 from pipeline.core.stage import Stage
+from tests.terminal import sigint_as_in_a_terminal
 
 REPO = Path(__file__).resolve().parents[2]
 BODY_CALLS: list[Path] = []
@@ -249,15 +250,12 @@ def test_a_signalled_stage_stops_its_pool_and_says_what_is_kept(tmp_path: Path, 
     """SIGTERM to the run (not its process group: what ``kill PID``, a scheduler or a CI timeout sends) unwinds it
     like Ctrl-C: the pool's workers are stopped with it, no queued job is begun, and one ``error:`` line names the
     signal and where the finished work is kept (before, SIGTERM ended the run with no line)."""
-    # SIGINT as a terminal's run has it: a shell without job control starts a background command (`cmd &` in a
-    # script, as a CI runner may) with SIGINT ignored, and Python keeps an inherited SIG_IGN
-    code = ("import signal, sys\nfrom pipeline import cli\n"
-            "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+    code = ("import sys\nfrom pipeline import cli\n"
             "cli.VERBS['busy'] = 'tests.pipeline.test_cli:BUSY_STAGE'\n"
             "raise SystemExit(cli.main(['busy', '--data-dir', sys.argv[1]]))")
     env = {**os.environ, PROFILES_ENV: str(tmp_path / "profiles")}
     proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], cwd=REPO, env=env, text=True,
-                            stderr=subprocess.PIPE)
+                            stderr=subprocess.PIPE, preexec_fn=sigint_as_in_a_terminal)  # Ctrl-C as in a terminal
     out = tmp_path / "busy"
     workers: set[int] = set()
     try:

@@ -48,7 +48,6 @@ def test_graceful_signals_raise_interrupted_and_restore_handlers() -> None:
     assert steps == ["finished the write"]
 
 
-
 def test_a_signal_ignored_when_the_block_starts_stays_ignored() -> None:
     """A job started with SIGINT ignored (``nohup``, ``&`` from a script) is not stopped by one, as Python and the
     other stages leave it; SIGTERM still stops it, and the ignoring is in place again after the block."""
@@ -64,6 +63,7 @@ def test_a_signal_ignored_when_the_block_starts_stays_ignored() -> None:
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, previous)
+
 
 class _Proc:
     """The helper recorder in a subprocess, with its stdout lines read by a thread."""
