@@ -8,7 +8,8 @@ data dir.
         --labels intention,cv
 
 Each argument is a file of per-episode rows — ``acceptance_episodes.jsonl`` (end of ``train``) or an eval run's
-``episodes.jsonl`` / ``scenarios/episodes.jsonl`` — or a directory holding one (``acceptance_episodes.jsonl``, then
+``episodes.jsonl`` / ``scenarios/episodes.jsonl``, or such a file gzipped (``docs/runs/``: the rows of the runs
+docs/results.md cites, kept in git so that a later run can be paired with them) — or a directory holding one (``acceptance_episodes.jsonl``, then
 ``episodes.jsonl``), or an eval run that has not finished (its ``rows/`` so far, with a warning). Rows are matched
 by (scene, density, seed); per cell, pooled over the cells of each density and of each scene (where the runs hold
 more than one), and pooled over all cells: SR of each, the exact McNemar test, the SR difference detectable at 80 % power with these pairs, and the Wilcoxon test of the
@@ -31,6 +32,7 @@ pairs, so the exact McNemar test on the summed discordant counts::
 from __future__ import annotations
 
 import argparse
+import gzip
 import json
 import logging
 from pathlib import Path
@@ -76,7 +78,7 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
     if not path.is_file():
         raise InputMissingError(f"no per-episode rows at {path}")
     rows = []
-    for k, line in enumerate(path.read_text().splitlines(), 1):
+    for k, line in enumerate(row_text(path).splitlines(), 1):
         if not line.strip():
             continue
         try:
@@ -87,6 +89,17 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
     if not rows:
         raise InputMissingError(f"{path}: no rows")
     return rows
+
+
+def row_text(path: Path) -> str:
+    """The text of a rows file; a ``.gz`` one (an archived run's rows: ``docs/runs/``) decompressed, a damaged one a
+    named error."""
+    if path.suffix != ".gz":
+        return path.read_text()
+    try:
+        return gzip.decompress(path.read_bytes()).decode()
+    except (OSError, EOFError, UnicodeDecodeError) as e:  # gzip.BadGzipFile is an OSError
+        raise CorruptArtifactError(f"{path}: not a gzip file of JSON rows ({type(e).__name__}: {e})") from None
 
 
 def unfinished_run_rows(run: Path) -> list[dict[str, Any]]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import json
 
 import pytest
@@ -84,6 +85,23 @@ def test_bad_inputs_are_named_errors(tmp_path, capsys):
     assert compare.main([str(good), str(other)]) == 2
     assert "share no" in capsys.readouterr().err
     assert compare.main([str(good), str(good), "--labels", "same,same"]) == 2
+
+
+def test_archived_gzipped_rows_compare_as_the_plain_file(tmp_path, capsys):
+    """docs/runs/ keeps the rows of the runs docs/results.md cites gzipped, so a later run on another machine can be
+    paired with them: a ``.jsonl.gz`` reads as its plain file; a damaged one is a named error."""
+    a = _write(tmp_path / "a.jsonl", _rows([1] * 20 + [1] * 10))
+    b = _write(tmp_path / "b.jsonl", _rows([1] * 20 + [0] * 10))
+    b_gz = tmp_path / "b.jsonl.gz"
+    b_gz.write_bytes(gzip.compress(b.read_bytes()))
+    assert compare.read_rows(b_gz) == compare.read_rows(b)
+    assert compare.main([str(a), str(b_gz), "--labels", "new,archived"]) == 0
+    assert "| office_lobby@0.1 | 30 | 1.00 | 0.67 | 10 / 0 |" in capsys.readouterr().out
+    (tmp_path / "torn.jsonl.gz").write_bytes(b_gz.read_bytes()[:-20])
+    with pytest.raises(CorruptArtifactError, match="torn.jsonl.gz: not a gzip file of JSON rows"):
+        compare.read_rows(tmp_path / "torn.jsonl.gz")
+    assert compare.main([str(a), str(tmp_path / "torn.jsonl.gz")]) == 2
+    assert "torn.jsonl.gz" in capsys.readouterr().err
 
 
 def test_an_unfinished_eval_run_compares_on_its_finished_benchmark_episodes(tmp_path, caplog):
