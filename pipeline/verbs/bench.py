@@ -293,7 +293,9 @@ def _record_on_ray(cfg: BenchConfig, tmp: Path) -> dict[str, float]:
 
 
 def main(argv: list[str]) -> int:
-    """CLI: ``icrowdnav bench [--profile P] [--data-dir D] [--seconds-per-figure S]``."""
+    """performance figures, each fast path against a simple reference in the same run -> DATA_DIR/bench/bench.json
+
+    ``icrowdnav bench [--profile P] [--data-dir D] [--seconds-per-figure S]``."""
     ap = argparse.ArgumentParser(prog="icrowdnav bench", description=__doc__.split("\n")[0])
     ap.add_argument("--profile", default="default")
     ap.add_argument("--data-dir", default="data")

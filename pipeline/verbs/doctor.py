@@ -19,6 +19,7 @@ from recorder.doctor_mcap import main as mcap_main
 
 
 def main(argv: list[str]) -> int:
+    """check a recording (MCAP episodes) or a LeRobot dataset: one line per problem naming the file"""
     if not argv or argv[0] in ("-h", "--help"):
         print(__doc__)
         return 0 if argv else 2

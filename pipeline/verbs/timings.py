@@ -95,6 +95,7 @@ def markdown(rows: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str]) -> int:
+    """the wall time of every finished stage in a data dir (its manifests), and where each DAgger loop's time went"""
     if argv and argv[0] in ("-h", "--help"):
         print(__doc__)
         return 0

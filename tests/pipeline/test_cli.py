@@ -210,6 +210,42 @@ def test_top_level_help_lists_verbs(capsys: pytest.CaptureFixture[str]) -> None:
     assert "commands:" in capsys.readouterr().out
 
 
+def test_the_verb_list_reads_help_lines_without_importing_the_verbs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Listing the verbs must not import their modules (each loads its stage's libraries: ~10 s for all): a verb
+    module that raises when imported still lists its ``Stage(help=...)`` and its function's docstring line."""
+    (tmp_path / "probe_verb_module.py").write_text(
+        "from pipeline.core.stage import Stage\n"
+        "raise RuntimeError('imported to list the verbs')\n"
+        "STAGE = Stage(name='probe', config_cls=None, help='the probe stage help', output_dir=None, inputs=None,\n"
+        "              body=None)\n"
+        "def main(argv):\n"
+        "    \"\"\"the probe function help\n\n    More lines.\"\"\"\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setitem(cli.VERBS, "probe", "probe_verb_module:STAGE")
+    monkeypatch.setitem(cli.VERBS, "probe-fn", "probe_verb_module:main")
+    monkeypatch.setitem(cli.VERBS, "probe-missing", "probe_verb_module:NOTHING")
+    listing = cli.format_verbs()
+    assert "the probe stage help" in listing and "the probe function help" in listing
+    assert "More lines" not in listing
+    assert "probe_verb_module" not in sys.modules
+    # an object the source does not name literally is imported: here that raises, so the verb shows unavailable
+    line = next(row for row in listing.splitlines() if row.strip().startswith("probe-missing"))
+    assert "(unavailable: imported to list the verbs)" in line
+    assert "probe_verb_module" not in sys.modules  # the failed import left nothing behind
+
+
+@pytest.mark.slow
+def test_every_verb_lists_the_help_line_its_object_has() -> None:
+    """The help line read from a verb module's source is the one its imported object carries."""
+    for name, target in cli.VERBS.items():
+        if name in ("fake", "hello", "ghost"):  # this file's test verbs
+            continue
+        obj = cli.resolve_verb(name)
+        expected = obj.help if isinstance(obj, Stage) else (obj.__doc__ or "").strip().splitlines()[0]
+        assert cli.static_verb_help(target) == expected, name
+
+
 def test_unknown_and_unavailable_verbs(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["nope"]) == 2
     err = capsys.readouterr().err.splitlines()
