@@ -9,8 +9,8 @@ data dir.
 
 Each argument is a file of per-episode rows — ``acceptance_episodes.jsonl`` (end of ``train``) or an eval run's
 ``episodes.jsonl`` / ``scenarios/episodes.jsonl``, or such a file gzipped (``docs/runs/``: the rows of the runs
-docs/results.md cites, kept in git so that a later run can be paired with them) — or a directory holding one (``acceptance_episodes.jsonl``, then
-``episodes.jsonl``), or an eval run that has not finished (its ``rows/`` so far, with a warning). Rows are matched
+docs/results.md cites, kept in git so that a later run can be paired with them) — or a directory holding one
+(``acceptance_episodes.jsonl``, then ``episodes.jsonl``), or an eval run that has not finished (its ``rows/`` so far, with a warning). Rows are matched
 by (scene, density, seed); per cell, pooled over the cells of each density and of each scene (where the runs hold
 more than one), and pooled over all cells: SR of each, the exact McNemar test, the SR difference detectable at 80 % power with these pairs, and the Wilcoxon test of the
 time in private zones (TPZ); pooled over the pairs, each failure outcome the two runs' rows both carry (collision,
