@@ -34,7 +34,10 @@ class ChildJob:
 
 
 def _die_with_parent() -> None:
-    """In the child, before exec: SIGTERM when the parent (the pool worker or Ray task) dies."""
+    """In the child, before exec: SIGTERM when the parent (the pool worker or Ray task) dies. SIGTERM is unblocked
+    too: a signal mask is inherited through fork and exec, and a run started by a process or thread that blocks
+    SIGTERM would otherwise leave the death signal pending and the child running on."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
     ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 

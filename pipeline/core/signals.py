@@ -52,8 +52,10 @@ def exit_code(exc: BaseException) -> int:
 @contextlib.contextmanager
 def sigterm_raises() -> Iterator[None]:
     """Inside the block, SIGTERM raises :class:`Interrupted` in the main thread (once: a second SIGTERM while the
-    run unwinds is ignored, so its cleanup is not cut short; SIGKILL still works). The previous handler is restored
-    on exit. Outside the main thread (where Python cannot install handlers) this does nothing."""
+    run unwinds is ignored, so its cleanup is not cut short; SIGKILL still works). SIGTERM is unblocked inside the
+    block (a mask inherited from whatever started the process would keep ``kill`` from reaching the run); the
+    previous handler and mask are restored on exit. Outside the main thread (where Python cannot install handlers)
+    this does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -66,7 +68,10 @@ def sigterm_raises() -> Iterator[None]:
         raise Interrupted(signum)
 
     previous = signal.signal(signal.SIGTERM, handler)
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, [])  # the current mask, unchanged
     try:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})  # a SIGTERM pending since before raises here
         yield
     finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)

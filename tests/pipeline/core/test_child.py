@@ -30,6 +30,9 @@ def job(i):
     (OUT / f"end_{i}").write_text(str(os.getpid()))
     return i
 if __name__ == "__main__":
+    if sys.argv[2:] == ["sigterm-blocked"]:  # as if started by a process or thread that blocks SIGTERM
+        import signal
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
     map_jobs(job, list(range(12)), 2, "jobs", progress=False)
 """
 
@@ -51,7 +54,17 @@ def _workers(out: Path, timeout_s: float = 60.0) -> set[int]:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
 def test_killing_the_run_ends_its_pool_workers_at_once(tmp_path, sig):
-    main = subprocess.Popen([sys.executable, "-c", _RUN, str(tmp_path)], cwd=ROOT)
+    _kill_the_run(tmp_path, sig)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_the_workers_die_with_a_run_started_with_sigterm_blocked(tmp_path):
+    """The mask is inherited through fork: a worker that kept SIGTERM blocked would finish its jobs first."""
+    _kill_the_run(tmp_path, signal.SIGKILL, "sigterm-blocked")
+
+
+def _kill_the_run(tmp_path: Path, sig: signal.Signals, *args: str) -> None:
+    main = subprocess.Popen([sys.executable, "-c", _RUN, str(tmp_path), *args], cwd=ROOT)
     try:
         workers = _workers(tmp_path)
         os.kill(main.pid, sig)
@@ -70,7 +83,10 @@ def test_killing_the_run_ends_its_pool_workers_at_once(tmp_path, sig):
                 os.kill(p, signal.SIGKILL)
 
 
-def test_a_worker_whose_parent_is_already_gone_ends_itself():
+@pytest.mark.parametrize("blocked", [False, True], ids=["", "sigterm-blocked"])
+def test_a_worker_whose_parent_is_already_gone_ends_itself(blocked):
     code = "from pipeline.core.child import die_with_parent\ndie_with_parent(-1)\nprint('survived')"
+    if blocked:
+        code = "import signal\nsignal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})\n" + code
     res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert res.returncode == -signal.SIGTERM and "survived" not in res.stdout
