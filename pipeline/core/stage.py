@@ -279,15 +279,17 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
     inputs = hash_inputs(input_paths, data_dir)
     verify_inputs(input_paths, inputs, data_dir)
 
-    if mode == "new" and out.exists():
+    if mode in ("new", "resume") and out.exists():
+        # an up-to-date output is left byte for byte, with --resume too (its config.yaml is an input of the next
+        # stage, which would rebuild); a stale or unfinished one is continued by a resume, else handled here
         reason = staleness(stage, cfg, out, inputs) if out.is_dir() else f"{out} is not a directory"
         if reason is None:
             log.info("%s: up to date (%s)", stage.name, out)
             return Manifest.read(out / MANIFEST_NAME), False
-        if atomic_resume and out.is_dir():
+        if mode == "new" and atomic_resume and out.is_dir():
             log.info("%s: --resume: rebuilding %s (%s)", stage.name, out, reason)
             mode = "overwrite"
-        elif not out.is_dir() or any(out.iterdir()):
+        elif mode == "new" and (not out.is_dir() or any(out.iterdir())):
             resume_hint = " or --resume to continue it" if stage.resumable else ""
             raise OutputExistsError(
                 f"output directory {out} already exists and is not up to date ({reason}); "

@@ -283,8 +283,27 @@ def test_resume(cfg: ToyStageConfig) -> None:
     resume = apply_dict(cfg, {"resume": True}, "test")
     run_stage(TOY_RESUMABLE, resume)
     assert CALLS == [cfg.data_dir / "toy"]  # resumable stages write in place
+    (cfg.data_dir / "toy" / MANIFEST_NAME).unlink()  # as a kill before the end leaves it
     run_stage(TOY_RESUMABLE, resume)
-    assert len(CALLS) == 2  # resume always runs the body (it skips finished work itself)
+    assert len(CALLS) == 2  # an unfinished output: the body continues it (it skips finished work itself)
+    run_stage(TOY_RESUMABLE, apply_dict(resume, {"episodes": 3}, "test"))
+    assert len(CALLS) == 3  # a stale one too
+
+
+def test_resume_leaves_a_finished_output_byte_for_byte(cfg: ToyStageConfig) -> None:
+    """`make all ARGS=--resume` after a kill: the stages that had finished are not rewritten, since a rewritten
+    config.yaml (now saying `resume: true`) is an input of the next stage and would make it rebuild."""
+    run_stage(TOY_RESUMABLE, cfg)
+    out = cfg.data_dir / "toy"
+    after = dataclasses.replace(TOY, name="toy_after", output_dir=lambda c: c.data_dir / "toy_after")
+    after_cfg = apply_dict(cfg, {"input_path": str(out)}, "test")
+    run_stage(after, after_cfg)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    _, ran = run_stage_ex(TOY_RESUMABLE, apply_dict(cfg, {"resume": True}, "test"))
+    assert not ran and len(CALLS) == 2
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    _, ran = run_stage_ex(after, apply_dict(after_cfg, {"resume": True}, "test"))
+    assert not ran and len(CALLS) == 2  # the next stage is still up to date
 
 
 def test_resume_of_an_atomic_stage_keeps_an_up_to_date_output_and_rebuilds_a_stale_one(cfg) -> None:
@@ -448,7 +467,10 @@ def test_a_resumed_output_counts_every_invocation_in_its_wall(cfg: ToyStageConfi
 
     m = run_stage(dataclasses.replace(TOY_IN_PLACE, body=body_taking(60.0)), resume)
     assert (m.duration_s, m.wall_total_s, m.invocations) == (60.0, 60.0, 1) and not ledger.exists()
-    m = run_stage(dataclasses.replace(TOY_IN_PLACE, body=body_taking(3.0)), resume)  # nothing left to do
+    m = run_stage(dataclasses.replace(TOY_IN_PLACE, body=body_taking(3.0)), resume)  # finished: left as it is
+    assert (m.duration_s, m.wall_total_s, m.invocations) == (60.0, 60.0, 1)
+    resume = apply_dict(resume, {"episodes": 3}, "test")  # one more episode: the finished output is continued
+    m = run_stage(dataclasses.replace(TOY_IN_PLACE, body=body_taking(3.0)), resume)
     assert (m.duration_s, m.wall_total_s, m.invocations) == (3.0, 63.0, 2)
     assert Manifest.read(out / MANIFEST_NAME).wall_total_s == 63.0
 
@@ -456,6 +478,7 @@ def test_a_resumed_output_counts_every_invocation_in_its_wall(cfg: ToyStageConfi
     stage_mod._begin_invocation(out)
     start = json.loads(ledger.read_text())["start_unix"]
     os.utime(out / "summary.txt", (start + 40.0, start + 40.0))
+    (out / MANIFEST_NAME).unlink()  # the killed run had not finished
     m = run_stage(dataclasses.replace(TOY_IN_PLACE, body=body_taking(5.0)), resume)
     assert (m.duration_s, m.invocations) == (5.0, 4) and m.wall_total_s == pytest.approx(63.0 + 40.0 + 5.0, abs=0.01)
     assert not ledger.exists()
