@@ -10,15 +10,16 @@ data dir.
 Each argument is a file of per-episode rows — ``acceptance_episodes.jsonl`` (end of ``train``) or an eval run's
 ``episodes.jsonl`` / ``scenarios/episodes.jsonl``, or such a file gzipped (``docs/runs/``: the rows of the runs
 docs/results.md cites, kept in git so that a later run can be paired with them) — or a directory holding one
-(``acceptance_episodes.jsonl``, then ``episodes.jsonl``), or an eval run that has not finished (its ``rows/`` so far, with a warning). Rows are matched
-by (scene, density, seed); per cell, pooled over the cells of each density and of each scene (where the runs hold
-more than one), and pooled over all cells: SR of each, the exact McNemar test, the SR difference detectable at 80 % power with these pairs, and the Wilcoxon test of the
-time in private zones (TPZ); pooled over the pairs, each failure outcome the two runs' rows both carry (collision,
-pedestrian and obstacle collision, timeout: the exact McNemar test on who alone failed that way) and the mean jerk
-of each. A run of several methods (an eval run of ``--methods '[a, b]'``) is compared on one of them:
-``--methods <first run's>,<second run's>`` (the same run may then be given twice). Two eval runs whose episodes were
-timed (:mod:`evaluation.cost`) are also compared on what their paired episodes cost per env step — e.g. a student
-with its encoder in fp32 and in int8, both runs started together. Prints Markdown; ``--json`` writes the numbers.
+(``acceptance_episodes.jsonl``, then ``episodes.jsonl``), or an eval run that has not finished (its ``rows/`` so far,
+with a warning). Rows are matched by (scene, density, seed); per cell, pooled over the cells of each density and of
+each scene (where the runs hold more than one), and pooled over all cells: SR of each, the exact McNemar test, the SR
+difference detectable at 80 % power with these pairs, and the Wilcoxon test of the time in private zones (TPZ); pooled
+over the pairs, each failure outcome the two runs' rows both carry (collision, pedestrian and obstacle collision,
+timeout: the exact McNemar test on who alone failed that way) and the mean jerk of each. A run of several methods (an
+eval run of ``--methods '[a, b]'``) is compared on one of them: ``--methods <first run's>,<second run's>`` (the same
+run may then be given twice). Two eval runs whose episodes were timed (:mod:`evaluation.cost`) are also compared on
+what their paired episodes cost per env step — e.g. a student with its encoder in fp32 and in int8, both runs started
+together. Prints Markdown; ``--json`` writes the numbers.
 
 A comparison replicated over independent trainings (e.g. ``full`` against ``w/o BEV`` in two chains trained with
 different seeds, each evaluated on the same benchmark seeds) adds each further pair of runs with ``--also A B``

@@ -286,7 +286,7 @@ def run_stage_ex(stage: Stage, cfg: Any, command: list[str] | None = None) -> tu
         if reason is None:
             log.info("%s: up to date (%s)", stage.name, out)
             return Manifest.read(out / MANIFEST_NAME), False
-        if mode == "new" and atomic_resume and out.is_dir():
+        if atomic_resume and out.is_dir():  # (an atomic stage's resume runs as "new")
             log.info("%s: --resume: rebuilding %s (%s)", stage.name, out, reason)
             mode = "overwrite"
         elif mode == "new" and (not out.is_dir() or any(out.iterdir())):
