@@ -26,10 +26,12 @@ is the robot), which the tests check.
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import torch
 from torch import nn
+from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from pipeline.core.errors import ConfigError
 
@@ -65,6 +67,16 @@ def mlp(sizes: list[int], last_act: bool = True) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def attention_kernel(x: torch.Tensor):
+    """The scaled-dot-product kernel our attention trains with on ``x``'s device: on the CPU, with gradients, torch's
+    plain (math) kernel rather than its flash kernel — over a person's 17 joints and a crowd of <= 11 keys the flash
+    kernel's backward under bfloat16 autocast (the students' cloning, ``train.dagger.bc_precision``) is ≈ 3-4x slower
+    and took 28 % of a `full` cloning epoch (docs/results.md, Performance); same maths, another summation order.
+    Inference (no gradients: the driver, the acceptance and eval) and other devices keep torch's own choice, which
+    is faster there (0.89 vs 1.02 ms for one frame's I²Former on one thread)."""
+    return sdpa_kernel(SDPBackend.MATH) if x.device.type == "cpu" and torch.is_grad_enabled() else nullcontext()
+
+
 def normalise_state(state: torch.Tensor) -> torch.Tensor:
     """``s`` divided by :data:`STATE_SCALE` (a fixed constant, so no statistic has to travel with a checkpoint)."""
     return state / state.new_tensor(STATE_SCALE)
@@ -96,7 +108,8 @@ class IntentFormer(nn.Module):
 
     def forward(self, joints: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """``P x 17 x d`` joint embeddings, ``P x 17`` detected joints (>= 1 per person) → ``P x d``."""
-        a, _ = self.mhsa(joints, joints, joints, key_padding_mask=~valid, need_weights=False)
+        with attention_kernel(joints):
+            a, _ = self.mhsa(joints, joints, joints, key_padding_mask=~valid, need_weights=False)
         f = self.ln1(a + joints)
         f = self.ln2(self.ffn(f) + f)
         return self.pool(f, valid)
@@ -119,7 +132,8 @@ class InteractFormer(nn.Module):
         keys = torch.cat([self.empty.expand(b, 1, -1), people], 1)
         valid = torch.cat([present.new_ones(b, 1), present], 1)
         q = robot.unsqueeze(1)
-        a, _ = self.mhca(q, keys, keys, key_padding_mask=~valid, need_weights=False)
+        with attention_kernel(q):
+            a, _ = self.mhca(q, keys, keys, key_padding_mask=~valid, need_weights=False)
         z = self.ln1(a + q)
         z = self.ln2(self.ffn(z) + z)
         return z.squeeze(1)

@@ -164,3 +164,35 @@ def test_teacher_extractor_scales_inputs():
     assert torch.allclose(f[0, :5], torch.tensor([1.0, 0, 1.0, 1, 0]))
     assert torch.allclose(f[0, 5:11], torch.tensor([1.0, -1.0, 1.0, 0.0, 0.3, 1.0]))
     assert torch.allclose(f[0, -72:], torch.ones(72))
+
+
+def test_the_cpu_training_kernel_gives_the_default_kernels_outputs_and_gradients(monkeypatch):
+    """With gradients on the CPU the attention runs torch's math kernel (faster backward under bf16 autocast); it
+    must compute what torch's own choice computes — outputs and every parameter's gradient — and inference must
+    keep torch's own choice."""
+    import contextlib
+
+    import pretrain.i2former as i2
+
+    poses, mask, state = _batch(b=8, k=5)
+
+    def outputs_and_grads():
+        torch.manual_seed(0)
+        m = I2Former(I2FormerConfig(dim=32, heads=4))
+        z = m(poses, mask, state)
+        z.square().sum().backward()
+        return z.detach(), {n: p.grad.clone() for n, p in m.named_parameters()}
+
+    z_math, g_math = outputs_and_grads()
+    used = []
+    monkeypatch.setattr(i2, "attention_kernel", lambda x: used.append(x) or contextlib.nullcontext())
+    z_default, g_default = outputs_and_grads()
+    assert used  # the patched kernel choice was the one consulted
+    assert torch.allclose(z_math, z_default, atol=1e-5)
+    assert g_math.keys() == g_default.keys()
+    for name, g in g_math.items():
+        assert torch.allclose(g, g_default[name], atol=1e-5, rtol=1e-4), name
+    monkeypatch.undo()
+    with torch.no_grad():
+        assert isinstance(i2.attention_kernel(poses), contextlib.nullcontext)
+    assert not isinstance(i2.attention_kernel(poses), contextlib.nullcontext)  # CPU, gradients on: the math kernel
