@@ -19,10 +19,10 @@ The calibration is deterministic given the float weights and the calibration fra
 randomness), and so is the quantized encoder built from it.
 
 The third inference precision, ``bf16`` (:class:`BF16BEVEncoder`), needs no calibration: the same two dense parts
-run under bfloat16 autocast (the convolutions in bfloat16 on a CPU with AVX512-BF16 or AMX, or a GPU), the geometry
-and the output in float32 — the encoder :mod:`pretrain.train` runs with ``pretrain.precision bf16``. Its error
-against float32 is ≈ 0.3 % of ``s_bev``'s norm (int8: several times more), at ≈ 1.4× the float32 speed on one CPU
-thread (int8 ≈ 2×; docs/results.md, Performance).
+run in bfloat16 (BatchNorms folded into their convolutions, bfloat16 channels-last weights; on a CPU with
+AVX512-BF16 or AMX, or a GPU), the geometry and the output in float32. Its error against float32 is ≈ 0.3 % of
+``s_bev``'s norm (int8: several times more), at ≈ 2× the float32 speed on one CPU thread (docs/results.md,
+Performance).
 """
 
 from __future__ import annotations
@@ -37,6 +37,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.fx.experimental.optimization import fuse as fx_fuse
+from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 with warnings.catch_warnings():  # torch >= 2.9 announces on import that FX quantization moves to torchao
     warnings.simplefilter("ignore")
@@ -128,17 +130,63 @@ class _FrozenCopy(BEVEncoder):
 
 class BF16BEVEncoder(_FrozenCopy):
     """A :class:`BEVEncoder` whose image branch and dense fusion (the parts :class:`QuantizedBEVEncoder` runs in
-    int8) run under bfloat16 autocast on their inputs' device; lifting, splatting, warping and ``s_bev`` stay float32
+    int8) run in bfloat16 on their inputs' device; lifting, splatting, warping and ``s_bev`` stay float32
     (:meth:`BEVEncoder.image_features` and :meth:`BEVEncoder.fuse_aligned` return float32). Inference only; the
-    weights are the float encoder's, unchanged."""
+    weights (``state_dict``) are the float encoder's, unchanged.
+
+    The two parts are prepared once, on their first call: every BatchNorm folded into the convolution before it
+    (torch's ``fuse_conv_bn_eval``; FX's ``fuse`` for the trunk, whose modules each run once), the weights cast to
+    bfloat16 and laid out channels-last. Against the same parts under bfloat16 autocast (this class before) that
+    removes a weight cast per convolution per call and every BatchNorm: the streaming step 1.4x (one episode) and
+    1.6x (a DAgger rollout's episode and its mirror) faster on a CPU thread, with a smaller error against float32
+    (0.34 vs 0.40 % of ``s_bev``'s norm; docs/results.md, Performance)."""
+
+    def __init__(self, encoder: BEVEncoder) -> None:
+        super().__init__(encoder)
+        # built on first use, outside the module tree: state_dict and .to() see the float encoder only
+        self._bf16: dict[str, nn.Module] = {}
+
+    def _part(self, name: str, build, *example: torch.Tensor) -> nn.Module:
+        part = self._bf16.get(name)
+        if part is None:
+            part = self._bf16[name] = build(*example).to(dtype=torch.bfloat16, memory_format=torch.channels_last)
+        return part
+
+    def _image_net(self, x: torch.Tensor) -> nn.Module:
+        net = ImageNet(self).eval()
+        with torch.no_grad():
+            net.resize = tuple(net.neck(net.trunk(x[:1])).shape[-2:]) != net.lift_hw
+        return fx_fuse(net)
 
     def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
-        with torch.autocast(rgb.device.type, dtype=torch.bfloat16):
-            return super().image_features(rgb)
+        x = self.normalize(rgb).contiguous(memory_format=torch.channels_last)
+        net = self._part("image", self._image_net, x)
+        return net(x.to(torch.bfloat16)).float().contiguous()
 
     def fuse_aligned(self, aligned: torch.Tensor, newest: torch.Tensor) -> torch.Tensor:
-        with torch.autocast(aligned.device.type, dtype=torch.bfloat16):
-            return super().fuse_aligned(aligned, newest)
+        net = self._part("dense", lambda: fold_batch_norms(DenseFuse(self).eval()))
+        return net(aligned.to(torch.bfloat16), newest.to(torch.bfloat16)).float()
+
+
+def fold_batch_norms(module: nn.Module) -> nn.Module:
+    """``module`` (in eval mode) with every ``Conv2d`` → ``BatchNorm2d`` pair inside an ``nn.Sequential`` replaced
+    by the one convolution that computes both (torch's ``fuse_conv_bn_eval``), in place. For modules that call a
+    submodule more than once (:class:`DenseFuse`'s causal blocks), where FX's graph-level ``fuse`` would fold a
+    shared BatchNorm once per call."""
+    for child in module.children():
+        fold_batch_norms(child)
+    if isinstance(module, nn.Sequential):
+        parts, out = list(module), []
+        while parts:
+            m = parts.pop(0)
+            if isinstance(m, nn.Conv2d) and parts and isinstance(parts[0], nn.BatchNorm2d):
+                m = fuse_conv_bn_eval(m, parts.pop(0))
+            out.append(m)
+        for key in list(module._modules):
+            del module._modules[key]
+        for k, m in enumerate(out):
+            module.add_module(str(k), m)
+    return module
 
 
 def _prepare(module: nn.Module, example: tuple[torch.Tensor, ...], mapping=None) -> nn.Module:

@@ -22,6 +22,7 @@ from pretrain.quantize import (
     DenseFuse,
     QuantizedBEVEncoder,
     check_precision,
+    fold_batch_norms,
     int8_iou_losses,
     load_frozen_encoder,
     load_int8_encoder,
@@ -55,6 +56,31 @@ def test_the_traceable_dense_part_equals_the_encoders(encoder):
     with torch.no_grad():
         assert torch.allclose(DenseFuse(encoder).eval()(aligned, newest), encoder.fuse_aligned(aligned, newest),
                               atol=1e-5, rtol=1e-5)
+
+
+def test_folding_the_batch_norms_keeps_the_dense_parts_outputs(encoder):
+    """fold_batch_norms (the bf16 encoder's preparation) computes what the unfolded parts compute — DenseFuse calls
+    each causal block once per frame pair, so a BatchNorm folded once per call would show here — with no BatchNorm
+    left."""
+    import copy
+
+    enc = copy.deepcopy(encoder)
+    g = torch.Generator().manual_seed(5)
+    for m in enc.modules():  # statistics far from the identity, so a missed or doubled fold changes the output
+        if isinstance(m, (torch.nn.BatchNorm2d, torch.nn.BatchNorm3d)):
+            m.running_mean.copy_(torch.randn(m.num_features, generator=g))
+            m.running_var.copy_(torch.rand(m.num_features, generator=g) + 0.5)
+            m.weight.data.copy_(torch.randn(m.num_features, generator=g))
+    c = enc.cfg.bev_channels
+    aligned = torch.relu(torch.randn(2, enc.frames, c, *enc.fuse_grid.shape, generator=g))
+    newest = torch.relu(torch.randn(2, c, *enc.grid.shape, generator=g))
+    dense = DenseFuse(enc).eval()
+    with torch.no_grad():
+        ref = dense(aligned, newest)
+        folded = fold_batch_norms(dense)
+        assert torch.allclose(folded(aligned, newest), ref, atol=1e-4, rtol=1e-4)
+    left = [m for m in folded.modules() if isinstance(m, torch.nn.BatchNorm2d)]
+    assert left == [folded.norm]  # the one after the skip's sum, which follows no convolution
 
 
 def test_int8_encoder_is_close_to_float_and_streams_like_the_batch_forward(encoder):
@@ -199,6 +225,11 @@ def test_bf16_encoder_is_close_to_float_streams_and_returns_float32(encoder, tmp
     assert isinstance(loaded, BF16BEVEncoder)
     with torch.no_grad():
         assert torch.equal(loaded(rgb[:, :t], depth[:, :t], poses[:, :t]), batch_b)
+    sd = b16.state_dict()  # the bfloat16 parts it prepared on first use stay outside the module tree
+    assert sd.keys() == ref.keys() and all(torch.equal(sd[k], ref[k]) for k in sd)
+    norms = {k: [m for m in part.modules() if isinstance(m, torch.nn.BatchNorm2d)] for k, part in b16._bf16.items()}
+    assert norms == {"image": [], "dense": [b16._bf16["dense"].norm]}  # folded but the one after a sum
+    assert all(p.dtype == torch.bfloat16 for part in b16._bf16.values() for p in part.parameters())
     with pytest.raises(ConfigError, match="int8 runs on the CPU only"):  # checked before anything is loaded
         load_frozen_encoder(tmp_path / "missing", "int8", "cuda")
 
