@@ -141,7 +141,7 @@ class EvalConfig(BaseStageConfig):
                 "per episode, instead of the argmax (none = argmax, as trained policies are normally evaluated)"})
     encoder_precision: str | None = field(default=None, metadata={
         "help": "the students' frozen encoder at this precision instead of the one each was trained with: fp32 | "
-                "bf16 (bfloat16 autocast) | int8 (its int8 version) | auto (bf16 where this machine's CPU has native "
+                "bf16 (its convolutions in bfloat16) | int8 (its int8 version) | auto (bf16 where this machine's CPU has native "
                 "bfloat16, else fp32), pretrain.quantize; none = as trained"})
     seed_base: int = field(default=20_000, metadata={"help": "episode seeds are seed_base + seed + k"})
     workers: int = 2

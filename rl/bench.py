@@ -567,7 +567,7 @@ def measure_inference(sim_cfg: Any, scene: str, density: float, seed: int, encod
         def stream_lookahead_int8() -> None:
             act(look, look_q(obs))
 
-        # and with the encoder under bfloat16 autocast (pretrain.quantize.BF16BEVEncoder), where bf16 is native
+        # and with the encoder's bfloat16 version (pretrain.quantize.BF16BEVEncoder), where bf16 is native
         look_b = observer_for_env(env, "full", BF16BEVEncoder(enc), head="lookahead") if native_bf16("cpu") else None
         if look_b is not None:
             look_b(obs)

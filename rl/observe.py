@@ -331,7 +331,7 @@ class StudentEnv(gym.Wrapper):
 def load_student_encoder(variant: str, encoder_ckpt: Path | None, device: torch.device | str = "cpu",
                          precision: str = "fp32") -> BEVEncoder | None:
     """The frozen encoder a variant needs on ``device`` (None for ``no_bev``, whose occupancy map needs no
-    network); ``precision`` ``bf16`` | ``int8``: its bfloat16-autocast or int8 version (:mod:`pretrain.quantize`;
+    network); ``precision`` ``bf16`` | ``int8``: its bfloat16 or int8 version (:mod:`pretrain.quantize`;
     int8 on a CPU only, bf16 where bfloat16 is native)."""
     if "bev" not in variant_keys(variant):
         return None

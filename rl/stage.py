@@ -262,8 +262,8 @@ class TrainConfig(BaseStageConfig):
 
     variant: str = "full"  # teacher | full | no_i2 | no_bev | a learned baseline: drl_vo | sarl_om | vint
     encoder: str = "bev"  # pretrained encoder: DATA_DIR/checkpoints/<encoder>/
-    # the students' frozen encoder in DAgger, fine-tuning, acceptance and eval: fp32 | bf16 (its convolutions under
-    # bfloat16 autocast: ~1.4x on a CPU with AVX512-BF16/AMX, or a GPU) | int8 (its int8 version, calibrated by
+    # the students' frozen encoder in DAgger, fine-tuning, acceptance and eval: fp32 | bf16 (its convolutions in
+    # bfloat16, BatchNorms folded: ~2x on a CPU with AVX512-BF16/AMX, or a GPU) | int8 (its int8 version, calibrated by
     # pretrain: ~2x faster on a CPU; CPU only; docs/results.md, Performance) | auto (bf16 where the device has native
     # bfloat16, else fp32); saved in policy.json as the precision it resolved to
     encoder_precision: str = "fp32"

@@ -142,7 +142,7 @@ def test_frame_pool_figures_against_the_concatenating_reference():
 
 def test_inference_benchmark_times_the_int8_encoder_against_the_float_one():
     """measure_inference: the float student, its recompute reference and the int8 encoder's student, same run (and
-    the bfloat16-autocast encoder's, on a CPU with native bfloat16)."""
+    the bfloat16 encoder's, on a CPU with native bfloat16)."""
     from pipeline.core.config import load_config
     from pipeline.core.device import native_bf16
     from pretrain.stage import PretrainConfig

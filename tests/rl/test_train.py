@@ -945,7 +945,7 @@ def test_an_int8_student_trains_records_its_precision_and_acts_with_the_int8_enc
     assert json.loads((out / "policy.json").read_text())["encoder_precision"] == "int8"
     assert isinstance(PolicyDriver(out).encoder, QuantizedBEVEncoder)
     assert not isinstance(PolicyDriver(out, encoder_precision="fp32").encoder, QuantizedBEVEncoder)  # eval's override
-    if native_bf16("cpu"):  # the bfloat16-autocast encoder needs no calibration file
+    if native_bf16("cpu"):  # the bfloat16 encoder needs no calibration file
         assert isinstance(PolicyDriver(out, encoder_precision="bf16").encoder, BF16BEVEncoder)
     auto = PolicyDriver(out, encoder_precision="auto").encoder  # eval.encoder_precision auto: bf16 where native
     assert isinstance(auto, BF16BEVEncoder) == native_bf16("cpu") and not isinstance(auto, QuantizedBEVEncoder)
