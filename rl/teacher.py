@@ -524,6 +524,19 @@ def lookahead_feature_cache(policy, data: dict[str, np.ndarray], mirror: bool, n
     return out[0], (out[1] if mirror else None)
 
 
+def extend_feature_cache(cache: tuple[np.ndarray, np.ndarray | None] | None,
+                         more: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, np.ndarray | None]:
+    """``cache`` (:func:`lookahead_feature_cache` of some frames; None: no frames yet) followed by ``more`` (the same
+    of the frames appended after them): what :func:`lookahead_feature_cache` gives for all of them, whose features
+    are computed per frame."""
+    if cache is None:
+        return more
+    if (cache[1] is None) != (more[1] is None):
+        raise ValueError("extend_feature_cache: both caches need the mirrored features, or neither")
+    return (np.concatenate([cache[0], more[0]]),
+            None if cache[1] is None else np.concatenate([cache[1], more[1]]))
+
+
 def policy_logits_values(policy, obs: dict[str, torch.Tensor],
                          action_features: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Action logits and values of an SB3 ``ActorCriticPolicy`` (discrete actions) in one forward pass

@@ -24,7 +24,9 @@ from rl.teacher import (
     _fit_nonpositive,
     behaviour_clone,
     collect_expert,
+    extend_feature_cache,
     fit_lookahead_linear,
+    lookahead_feature_cache,
     mirror_batch,
     teacher_net,
 )
@@ -179,6 +181,29 @@ def test_linear_fit_and_cloning_lower_the_cross_entropy(space):
                            frozen=("features_extractor.lookahead.linear.",))
     assert torch.equal(policy.features_extractor.lookahead.linear.weight, frozen)  # the fitted cost stays
     assert rows[-1]["bc_loss"] <= fit["ce_after"] + 0.3
+
+
+def test_a_feature_cache_extended_stage_by_stage_is_the_whole_aggregates(space):
+    """The teacher's DAgger appends each stage's features to the aggregate's instead of recomputing them all:
+    bit for bit what one pass over the aggregate gives, in chunks that fall anywhere (a run resumed mid-way starts
+    from the aggregate's cache, then appends)."""
+    data = collect_expert(replace(SIM, max_episode_s=4.0), [("hallway", 0.1)], 2, 0, 0.99, 1, progress=False)
+    data = {k: v for k, v in data.items() if np.ndim(v)}  # the frames (not the run's success rate)
+    policy = _policy(space)
+    n = len(data["action"])
+    cut = [0, n // 3, n // 3 + 5, n]  # three stages, the middle one short
+    part = [{k: v[a:b] for k, v in data.items()} for a, b in zip(cut[:-1], cut[1:], strict=True)]
+    whole = lookahead_feature_cache(policy, data, mirror=True, chunk=16)
+    staged = None
+    for p in part:
+        staged = extend_feature_cache(staged, lookahead_feature_cache(policy, p, mirror=True, chunk=16))
+    first_two = {k: v[:cut[2]] for k, v in data.items()}
+    resumed = extend_feature_cache(lookahead_feature_cache(policy, first_two, mirror=True, chunk=16),
+                                   lookahead_feature_cache(policy, part[2], mirror=True, chunk=16))
+    for got in (staged, resumed):
+        assert all(np.array_equal(a, b) for a, b in zip(got, whole, strict=True))
+    with pytest.raises(ValueError, match="mirrored features"):
+        extend_feature_cache(whole, lookahead_feature_cache(policy, part[2], mirror=False))
 
 
 def test_ppo_rollout_feature_cache_changes_nothing_but_speed():
