@@ -14,19 +14,26 @@ import numpy as np
 class GlobalPath:
     """The global planner's path on the static map: the shortest path from the robot to the target on the
     occupancy grid inflated by the robot radius, and a pure-pursuit sub-goal ``lookahead_m`` along it. Replanned
-    when the target changes or the robot strays ``replan_m`` from the path (``reset`` for each new episode)."""
+    when the robot strays ``replan_m`` from the path (``reset`` for each new episode). Each target keeps its own
+    path: a long-horizon run asks for the final goal's (the env's own observation) and the current waypoint's
+    (:class:`sim.wrappers.FollowWaypoints`) every step, and one shared path replanned at each switch — a Dijkstra
+    over the whole floor, ≈ 20 ms on the office floor — was 72 % of such a step (docs/results.md, Performance)."""
+
+    KEEP = 8  # paths kept for other targets than the current one (a run's waypoints and its goal)
 
     def __init__(self, lookahead_m: float = 2.0, replan_m: float = 0.75) -> None:
         self.lookahead_m = lookahead_m
         self.replan_m = replan_m
-        self.path: np.ndarray | None = None
+        self.path: np.ndarray | None = None  # the current target's path
         self.target: np.ndarray | None = None
+        self._kept: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = {}  # other targets': key -> (target, path)
 
     def reset(self, env) -> None:
         self.nav = env.layout.nav(env.cfg.robot.radius_m + 0.05)
         self.layout = env.layout
         self.path = None
         self.target = None
+        self._kept = {}
 
     def _plan(self, xy: np.ndarray, target: np.ndarray) -> None:
         try:
@@ -38,6 +45,18 @@ class GlobalPath:
         self.path = path
         self.target = np.asarray(target, float).copy()
 
+    def _switch(self, xy: np.ndarray, target: np.ndarray) -> None:
+        """Makes ``target``'s path the current one: kept from before, or planned from ``xy``."""
+        if self.path is not None and self.target is not None:
+            self._kept[_key(self.target)] = (self.target, self.path)
+            while len(self._kept) > self.KEEP:
+                self._kept.pop(next(iter(self._kept)))
+        kept = self._kept.pop(_key(target), None)
+        if kept is None:
+            self._plan(xy, target)
+        else:
+            self.target, self.path = kept
+
     def subgoal(self, env, target: np.ndarray | None = None) -> np.ndarray:
         """The sub-goal (world frame) toward ``target`` (default: the env's goal)."""
         return self.ahead(env, [self.lookahead_m], target)[0]
@@ -48,7 +67,7 @@ class GlobalPath:
         xy = np.asarray(env.robot[:2], float)
         target = np.asarray(env.goal if target is None else target, float)
         if self.path is None or self.target is None or np.hypot(*(self.target - target)) > 1e-6:
-            self._plan(xy, target)
+            self._switch(xy, target)
         seg_d = distance_to_polyline(xy, self.path)
         if seg_d[0] > self.replan_m:
             self._plan(xy, target)
@@ -69,6 +88,10 @@ class GlobalPath:
             pos = p[k + 1]
             k += 1
         return out
+
+
+def _key(target: np.ndarray) -> tuple[float, float]:
+    return (round(float(target[0]), 6), round(float(target[1]), 6))
 
 
 def route_waypoints(layout, start: np.ndarray, goal: np.ndarray, robot_radius_m: float) -> np.ndarray:

@@ -175,3 +175,23 @@ def test_global_path_points_ahead_are_spaced_along_the_path():
     pts = g.ahead(e, [0.5, 1.0, 1.5, 3.0, 9.0], g.target) - e.robot[:2]
     np.testing.assert_allclose(pts, [[0.5, 0.0], [1.0, 0.0], [1.0, 0.5], [1.0, 2.0], [1.0, 3.0]], atol=1e-9)
     np.testing.assert_allclose(g.subgoal(e, g.target) - e.robot[:2], [1.0, 1.0], atol=1e-9)
+
+
+def test_global_path_keeps_a_path_per_target_when_asked_for_two_alternately(monkeypatch):
+    """A long-horizon run asks for the goal's and the current waypoint's path every step: the shared planner gives
+    what one planner per target gives, and plans each target once while the robot stays on its path."""
+    e = CrowdNavEnv(scene="corner", density=0.0, obs_mode="state")
+    e.reset(seed=3)
+    shared, own = GlobalPath(lookahead_m=2.0), {0: GlobalPath(lookahead_m=2.0), 1: GlobalPath(lookahead_m=2.0)}
+    for g in (shared, *own.values()):
+        g.reset(e)
+    targets = [np.asarray(e.goal, float), e.robot[:2] + 0.4 * (np.asarray(e.goal, float) - e.robot[:2])]
+    plans = []
+    real = shared.nav.shortest_path
+    monkeypatch.setattr(shared.nav, "shortest_path", lambda *a: plans.append(1) or real(*a))
+    d = [0.5, 1.0, 2.0]
+    for _ in range(5):  # the robot creeps along, both targets asked for at every step
+        for k, t in enumerate(targets):
+            np.testing.assert_array_equal(shared.ahead(e, d, t), own[k].ahead(e, d, t))
+        e.robot[:2] += 0.05 * (targets[1] - e.robot[:2]) / np.hypot(*(targets[1] - e.robot[:2]))
+    assert len(plans) == 2 + 2  # once per target by the shared planner (before: at every switch, 10) and by each own
