@@ -168,8 +168,8 @@ def test_teacher_extractor_scales_inputs():
 
 def test_the_cpu_training_kernel_gives_the_default_kernels_outputs_and_gradients(monkeypatch):
     """With gradients on the CPU the attention runs torch's math kernel (faster backward under bf16 autocast); it
-    must compute what torch's own choice computes — outputs and every parameter's gradient — and inference must
-    keep torch's own choice."""
+    must compute what torch's own choice computes — outputs and every parameter's gradient — and without gradients
+    torch's own choice stays."""
     import contextlib
 
     import pretrain.i2former as i2
