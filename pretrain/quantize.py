@@ -62,12 +62,15 @@ INT8_MAX_IOU_DROP = 0.05
 class ImageNet(nn.Module):
     """The encoder's image branch after normalisation: trunk → neck → (resize to the lift pixels)."""
 
-    def __init__(self, enc: BEVEncoder) -> None:
+    def __init__(self, enc: BEVEncoder, x: torch.Tensor) -> None:
+        """A copy of ``enc``'s trunk and neck for normalised images shaped like ``x`` (whether their features need
+        resizing to the lift pixels is decided on ``x``: FX traces with concrete shapes)."""
         super().__init__()
         self.trunk = copy.deepcopy(enc.trunk)
         self.neck = copy.deepcopy(enc.neck)
         self.lift_hw = tuple(int(v) for v in enc.geom.lift_hw)
-        self.resize = None  # decided on the first shapes seen (prepare_fx traces with concrete example inputs)
+        with torch.no_grad():
+            self.resize = tuple(self.neck(self.trunk(x[:1])).shape[-2:]) != self.lift_hw
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         f = self.neck(self.trunk(x))
@@ -146,21 +149,15 @@ class BF16BEVEncoder(_FrozenCopy):
         # built on first use, outside the module tree: state_dict and .to() see the float encoder only
         self._bf16: dict[str, nn.Module] = {}
 
-    def _part(self, name: str, build, *example: torch.Tensor) -> nn.Module:
+    def _part(self, name: str, build) -> nn.Module:
         part = self._bf16.get(name)
         if part is None:
-            part = self._bf16[name] = build(*example).to(dtype=torch.bfloat16, memory_format=torch.channels_last)
+            part = self._bf16[name] = build().to(dtype=torch.bfloat16, memory_format=torch.channels_last)
         return part
-
-    def _image_net(self, x: torch.Tensor) -> nn.Module:
-        net = ImageNet(self).eval()
-        with torch.no_grad():
-            net.resize = tuple(net.neck(net.trunk(x[:1])).shape[-2:]) != net.lift_hw
-        return fx_fuse(net)
 
     def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
         x = self.normalize(rgb).contiguous(memory_format=torch.channels_last)
-        net = self._part("image", self._image_net, x)
+        net = self._part("image", lambda: fx_fuse(ImageNet(self, x).eval()))
         return net(x.to(torch.bfloat16)).float().contiguous()
 
     def fuse_aligned(self, aligned: torch.Tensor, newest: torch.Tensor) -> torch.Tensor:
@@ -176,16 +173,9 @@ def fold_batch_norms(module: nn.Module) -> nn.Module:
     for child in module.children():
         fold_batch_norms(child)
     if isinstance(module, nn.Sequential):
-        parts, out = list(module), []
-        while parts:
-            m = parts.pop(0)
-            if isinstance(m, nn.Conv2d) and parts and isinstance(parts[0], nn.BatchNorm2d):
-                m = fuse_conv_bn_eval(m, parts.pop(0))
-            out.append(m)
-        for key in list(module._modules):
-            del module._modules[key]
-        for k, m in enumerate(out):
-            module.add_module(str(k), m)
+        for i in range(len(module) - 1):
+            if isinstance(module[i], nn.Conv2d) and isinstance(module[i + 1], nn.BatchNorm2d):
+                module[i], module[i + 1] = fuse_conv_bn_eval(module[i], module[i + 1]), nn.Identity()
     return module
 
 
@@ -218,10 +208,7 @@ class QuantizedBEVEncoder(_FrozenCopy):
     def image_features(self, rgb: torch.Tensor) -> torch.Tensor:
         x = self.normalize(rgb)
         if self._image_q is None:
-            net = ImageNet(self)
-            with torch.no_grad():
-                net.resize = tuple(net.neck(net.trunk(x[:1])).shape[-2:]) != net.lift_hw
-            self._image_q = _prepare(net, (x,))
+            self._image_q = _prepare(ImageNet(self, x), (x,))
         return self._image_q(x)
 
     def fuse_aligned(self, aligned: torch.Tensor, newest: torch.Tensor) -> torch.Tensor:

@@ -526,6 +526,8 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             policy.to(device)
         if data is None and k > 0:
             data = _load_aggregate(out, k)
+            if has_lookahead(policy):
+                cache = lookahead_feature_cache(policy, data, t.mirror)  # the aggregate's features, once
         t0 = time.perf_counter()
         if k == 0:
             new = collect_expert(cfg.sim, pairs, t.bc_episodes, cfg.seed, gamma, cfg.workers, cfg.progress)
@@ -536,15 +538,12 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                                  cfg.workers, cfg.progress, desc=f"teacher: DAgger {k}/{t.dagger_iterations}")
         collect_s = time.perf_counter() - t0
         rate = float(new.pop("success_rate"))
-        old = data
         data = new if data is None else {key: np.concatenate([data[key], new[key]]) for key in data}
         if k == 0:
             torch.manual_seed(cfg.seed)
             policy = build_policy("teacher", None, probe.observation_space, net).to(device)
         linear_fit = None
         if has_lookahead(policy):  # convex fit of the linear cost, then the MLP learns the rest
-            if cache is None and old is not None:  # resumed: the aggregate's features once
-                cache = lookahead_feature_cache(policy, old, t.mirror)
             cache = extend_feature_cache(cache, lookahead_feature_cache(policy, new, t.mirror))  # fit and cloning's
             linear_fit = fit_lookahead_linear(policy, data, t.soft_tau, seed=cfg.seed + k, mirror=t.mirror,
                                               cache=cache)
@@ -553,7 +552,6 @@ def _train_teacher(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         rows = behaviour_clone(policy, data, t.bc_epochs if k == 0 else t.dagger_epochs,
                                lr=t.bc_lr if k == 0 else t.bc_lr / 2, seed=cfg.seed + k,
                                frozen=("features_extractor.lookahead.linear.",) if linear_fit else (), cache=cache, **clone)
-        del old
         for r in rows:
             logger.add("teacher_bc" if k == 0 else f"teacher_dagger{k}", r["epoch"], bc_loss=r["bc_loss"],
                        accuracy=r["accuracy"], value_loss=r["value_loss"])
