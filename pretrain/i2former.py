@@ -72,9 +72,9 @@ def attention_kernel(x: torch.Tensor):
     plain (math) kernel rather than its flash kernel — over a person's 17 joints and a crowd of <= 11 keys the flash
     kernel's backward under bfloat16 autocast (the students' cloning, ``train.dagger.bc_precision``) is ≈ 3-4x slower
     and took 28 % of a `full` cloning epoch (docs/results.md, Performance); same maths, another summation order.
-    Without gradients (feature caches, PPO's rollouts) and on other devices torch's own choice stays, faster there
-    (0.89 vs 1.02 ms for one frame's I²Former on one thread). A driver's decision (:func:`rl.policy.act`, SB3's
-    ``get_distribution``) runs with gradients on, so it takes the math kernel too: ≈ 0.1 ms more a step."""
+    Without gradients (feature caches, PPO's rollouts, a driver's decision: :func:`rl.policy.act` and
+    :func:`rl.policy.action_logits` run under ``no_grad``) and on other devices torch's own choice stays, faster there
+    (0.89 vs 1.02 ms for one frame's I²Former on one thread)."""
     return sdpa_kernel(SDPBackend.MATH) if x.device.type == "cpu" and torch.is_grad_enabled() else nullcontext()
 
 

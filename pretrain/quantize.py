@@ -149,6 +149,21 @@ class BF16BEVEncoder(_FrozenCopy):
         # built on first use, outside the module tree: state_dict and .to() see the float encoder only
         self._bf16: dict[str, nn.Module] = {}
 
+    def _drop_prepared(self) -> None:
+        if "_bf16" in self.__dict__:  # not yet during __init__ (which loads the weights)
+            self._bf16.clear()
+
+    def _apply(self, fn, recurse=True):
+        """``.to()`` / ``.cuda()`` / a dtype cast after first use: the prepared parts are rebuilt from the moved
+        float weights on the next call (they are outside the module tree, so torch would not move them)."""
+        self._drop_prepared()
+        return super()._apply(fn, recurse)
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """New float weights after first use: the prepared parts are rebuilt from them on the next call."""
+        self._drop_prepared()
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
     def _part(self, name: str, build) -> nn.Module:
         part = self._bf16.get(name)
         if part is None:

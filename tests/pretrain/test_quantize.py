@@ -234,6 +234,29 @@ def test_bf16_encoder_is_close_to_float_streams_and_returns_float32(encoder, tmp
         load_frozen_encoder(tmp_path / "missing", "int8", "cuda")
 
 
+@pytest.mark.skipif(not native_bf16("cpu"), reason="this CPU has no native bfloat16 (AVX512-BF16 or AMX)")
+def test_bf16_encoder_follows_new_weights_and_moves_after_first_use(encoder):
+    """Its bfloat16 parts live outside the module tree: loading other weights or moving it after its first call
+    rebuilds them from the float weights instead of running stale copies."""
+    rgb, depth, poses = sequence(2, seed=23)
+    t = encoder.frames
+    b16 = BF16BEVEncoder(encoder)
+    other = BEVEncoder(encoder.cfg, encoder.cameras)
+    torch.manual_seed(5)
+    for p in other.parameters():
+        p.data.normal_(0, 0.05)
+    with torch.no_grad():
+        first = b16(rgb[:, :t], depth[:, :t], poses[:, :t])  # prepares the parts from `encoder`'s weights
+        b16.load_state_dict(other.state_dict())
+        assert torch.equal(b16(rgb[:, :t], depth[:, :t], poses[:, :t]),
+                           BF16BEVEncoder(other)(rgb[:, :t], depth[:, :t], poses[:, :t]))
+        assert not torch.equal(b16(rgb[:, :t], depth[:, :t], poses[:, :t]), first)
+        b16.to("cpu")  # the device move a caller may do after first use (CUDA is not needed to see the rebuild)
+        assert b16._bf16 == {}
+        assert torch.equal(b16(rgb[:, :t], depth[:, :t], poses[:, :t]),
+                           BF16BEVEncoder(other)(rgb[:, :t], depth[:, :t], poses[:, :t]))
+
+
 def test_an_uncalibrated_encoder_cannot_be_converted(encoder):
     with pytest.raises(ConfigError, match="calibrate"):
         QuantizedBEVEncoder(encoder).freeze()
