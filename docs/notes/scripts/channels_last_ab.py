@@ -3,7 +3,9 @@ trunk.md): BEVEncoder.image_features feeds the trunk channels-last in eval mode;
 the NCHW reference with the same weights.
 
 1. the students' streaming step (BEVStream.step, one stream, one thread, random frames, default encoder) in fp32
-   and under the bf16 autocast (pretrain.quantize.BF16BEVEncoder), 3 alternating rounds of 16 steps (median);
+   and under the bf16 autocast (the bf16 encoder as it was when the note was written, restated below:
+   pretrain.quantize.BF16BEVEncoder prepares folded channels-last bf16 copies since 99f0a13, and
+   docs/notes/scripts/bf16_prepared_stream.py compares the two), 3 alternating rounds of 16 steps (median);
 2. the default pretraining step (pretrain.bench.measure_fit_step, every thread, synthetic frames) with the trunk
    NCHW (what training does) or channels-last (the layout training does not take), 3 alternating rounds of 4 steps.
 
@@ -21,7 +23,7 @@ import pretrain.model as M  # noqa: E402
 from evaluation.stage import EvalConfig  # noqa: E402
 from pipeline.core.config import load_config  # noqa: E402
 from pretrain.bench import NCHWTrunkEncoder, measure_fit_step  # noqa: E402
-from pretrain.quantize import BF16BEVEncoder  # noqa: E402
+from pretrain.quantize import _FrozenCopy  # noqa: E402
 from pretrain.stage import PretrainConfig  # noqa: E402
 from rl.observe import env_cameras  # noqa: E402
 from sim.env import CrowdNavEnv  # noqa: E402
@@ -35,7 +37,19 @@ env.close()
 c0, n = cams[0], len(cams)
 
 
-class BF16NCHW(BF16BEVEncoder):
+class AutocastBF16(_FrozenCopy):
+    """The bf16 encoder until 99f0a13 (what this A/B measured): the float modules under bfloat16 autocast."""
+
+    def image_features(self, rgb):
+        with torch.autocast(rgb.device.type, dtype=torch.bfloat16):
+            return M.BEVEncoder.image_features(self, rgb)
+
+    def fuse_aligned(self, aligned, newest):
+        with torch.autocast(aligned.device.type, dtype=torch.bfloat16):
+            return M.BEVEncoder.fuse_aligned(self, aligned, newest)
+
+
+class BF16NCHW(AutocastBF16):
     def image_features(self, rgb):
         with torch.autocast(rgb.device.type, dtype=torch.bfloat16):
             return NCHWTrunkEncoder.image_features(self, rgb)
@@ -62,7 +76,7 @@ torch.manual_seed(0)
 f32 = M.BEVEncoder(enc_cfg, cams).eval().requires_grad_(False)
 ref = NCHWTrunkEncoder(enc_cfg, cams).eval().requires_grad_(False)
 ref.load_state_dict(f32.state_dict())
-encs = {"fp32_channels_last": f32, "fp32_nchw": ref, "bf16_channels_last": BF16BEVEncoder(f32), "bf16_nchw": BF16NCHW(f32)}
+encs = {"fp32_channels_last": f32, "fp32_nchw": ref, "bf16_channels_last": AutocastBF16(f32), "bf16_nchw": BF16NCHW(f32)}
 stream = {k: [] for k in encs}
 for rnd in range(3):
     for k, e in encs.items():
