@@ -307,7 +307,6 @@ def obs_to_tensor(obs: dict[str, np.ndarray], batch: bool = False) -> dict[str, 
 
 
 @torch.no_grad()
-@torch.no_grad()
 def action_logits(policy: ActorCriticPolicy, obs: dict[str, np.ndarray]) -> np.ndarray:
     """The logits over the action grid of one observation (``N_ACTIONS``; the deterministic action is their argmax).
     Inference only, like :func:`act`: no autograd graph, and torch's own attention kernel (``attention_kernel``)."""
