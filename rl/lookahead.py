@@ -333,6 +333,14 @@ class LookaheadHead(nn.Module):
             people = torch.zeros_like(static)
         return torch.stack([static.amax(-1), (static * w).sum(-1), people.amax(-1), (people * w).sum(-1)], -1)
 
+    @property
+    def input_keys(self) -> tuple[str, ...]:
+        """The observation keys :meth:`action_features` may read (those an observation lacks it does without); the
+        rest of an observation — a student's ``bev`` features, its joints — does not change the features, so
+        :func:`rl.teacher.lookahead_feature_cache` converts only these."""
+        return ("state", "scan", "peds", "peds_future", *(("path",) if self.path else ()),
+                *(("subgoal",) if self.subgoal else ()), *((self.map_key,) if self.map_key else ()))
+
     @torch.no_grad()
     def action_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """``B x A x F`` parameter-free rollout features of every action (see

@@ -654,6 +654,10 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         inherit_linear_cost(policy, teacher_dir)
     iters: list[dict[str, Any]] = []
     frames_total = 0
+    # the lookahead head's rollout features of the pool's frames (rl.teacher.lookahead_feature_cache): they depend
+    # on the cached observation alone (the intention model's prediction is stored per frame), so each iteration
+    # appends its new frames' to the earlier iterations' — bit for bit the whole pool's (as the teacher's stages do)
+    cache: tuple[np.ndarray, np.ndarray | None] | None = None
     tune = cfg.intention_tune.epochs > 0 and int_dir is not None
     for k in range(d.iterations):
         it = out / "dagger" / f"iter_{k}"
@@ -701,8 +705,12 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 soft_before = bc_loss(policy, new, soft_tau=d.soft_tau)
             epoch = len(new["action"] if d.bc_schedule == "new" else data["action"])  # = the default epoch for pool
             clone_samples = d.bc_epochs * epoch
+            if has_lookahead(policy):  # a resumed run computes the earlier iterations' features once, then appends
+                cache = (lookahead_feature_cache(policy, data, d.mirror, n_rot) if cache is None
+                         else extend_feature_cache(cache, lookahead_feature_cache(policy, new, d.mirror, n_rot)))
             hist, linear_fit = distill(policy, data, d, cfg.map_signs, cfg.seed + k, n_rot, inherited, soft,
-                                       cfg.progress, f"student {cfg.variant} iteration {k}", epoch_size=epoch)
+                                       cfg.progress, f"student {cfg.variant} iteration {k}", epoch_size=epoch,
+                                       cache=cache)
             after = bc_loss(policy, new)
             soft_ce = ({"soft_ce_new_before": soft_before,
                         "soft_ce_new_after": bc_loss(policy, new, soft_tau=d.soft_tau)} if soft else {})
@@ -730,7 +738,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     summary: dict[str, Any] = {"dagger": iters}
     if d.final_clone:
         policy, summary["final_clone"] = _final_clone(cfg, out, space, net, teacher_dir, n_rot, device, frames_total,
-                                                      extra, int_dir)
+                                                      extra, int_dir, cache)
     # provenance paths, like policy.json's checkpoint references, relative to the checkpoint (rl.policy)
     produced = {"teacher": relative_to(teacher_dir, out), "dagger_iterations": d.iterations,
                 "dagger_frames": frames_total, "dagger_bc_schedule": d.bc_schedule, "ppo_finetune_steps": 0,
@@ -779,9 +787,12 @@ def fresh_student(cfg: TrainConfig, space, net: dict[str, Any], teacher_dir: Pat
 
 
 def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teacher_dir: Path, n_rot: int,
-                 device: torch.device, frames_total: int, extra: dict[str, Any], int_dir: Path | None):
+                 device: torch.device, frames_total: int, extra: dict[str, Any], int_dir: Path | None,
+                 cache: tuple[np.ndarray, np.ndarray | None] | None = None):
     """``dagger.final_clone``: a fresh student cloned ``bc_epochs`` over every iteration's frames, saved in
-    ``dagger/final/`` (its ``done.json`` last, so a resumed run loads it instead of cloning again)."""
+    ``dagger/final/`` (its ``done.json`` last, so a resumed run loads it instead of cloning again). ``cache``: the
+    pool's lookahead features when the iterations' loop has them (the fresh student's are the same: they have no
+    weights)."""
     d = cfg.dagger
     fin = out / "dagger" / "final"
     shield = 0.0 if "shield_s" in net else None
@@ -800,7 +811,8 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
         policy, inherited = fresh_student(cfg, space, net, teacher_dir, data, seed)
         policy.to(device)
         hist, _ = distill(policy, data, d, cfg.map_signs, seed, n_rot, inherited, soft, cfg.progress,
-                          f"student {cfg.variant} final cloning")
+                          f"student {cfg.variant} final cloning",
+                          cache=cache if cache is not None and len(cache[0]) == frames_total else None)
     info = {"frames": frames_total, "clone_samples": d.bc_epochs * frames_total, "seed": seed,
             "final_bc_loss": hist[-1]["bc_loss"], "seconds": clock.seconds}
     save_policy(fin / "policy", policy, describe("student", cfg.variant, space, net, **extra,
@@ -813,16 +825,23 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
 
 def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str, seed: int, n_rot: int,
             inherited: bool, soft: bool, progress: bool = True, label: str = "student",
-            epoch_size: int | None = None) -> tuple[list[dict[str, float]], dict[str, Any] | None]:
+            epoch_size: int | None = None, cache: tuple[np.ndarray, np.ndarray | None] | None = None
+            ) -> tuple[list[dict[str, float]], dict[str, Any] | None]:
     """One cloning of a student on ``data`` (the aggregate of DAgger frames, ``costs`` = the teacher's negated logits
     when ``soft``): for the lookahead head its rollout features once, the convex fit of the linear cost terms
     ``d.linear_cost`` names (the map cost on top of an ``inherited`` teacher cost by default), then
     :func:`behaviour_clone` of every other weight (``epoch_size`` samples per epoch: all of ``data`` by default).
-    Returns the cloning's per-epoch rows and the linear fit's record
-    (None without one). Used by every DAgger iteration and by ``rl.data_scale``."""
-    linear_fit, cache = None, None
+    ``cache``: :func:`rl.teacher.lookahead_feature_cache` of ``data`` when the caller has it (computed here
+    otherwise). Returns the cloning's per-epoch rows and the linear fit's record (None without one). Used by every
+    DAgger iteration and by ``rl.data_scale``."""
+    linear_fit = None
     if has_lookahead(policy):  # rollout features once; the linear cost by convex regression, then the rest
-        cache = lookahead_feature_cache(policy, data, d.mirror, n_rot)
+        if cache is None:
+            cache = lookahead_feature_cache(policy, data, d.mirror, n_rot)
+        elif len(cache[0]) != len(data["action"]) or (cache[1] is None) == d.mirror:
+            raise ValueError(f"distill: the feature cache holds {len(cache[0])} frames "
+                             f"({'with' if cache[1] is not None else 'without'} mirrored ones), the pool "
+                             f"{len(data['action'])} (mirror {d.mirror})")
         map_head = policy.features_extractor.lookahead.n_map > 0
         terms, fitted = LINEAR_COSTS[d.linear_cost]
         if soft and (terms != "map" or map_head):  # the map cost is fitted on top of an inherited linear cost

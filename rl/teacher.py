@@ -297,7 +297,13 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
         out, stream = stream[:m], stream[m:]
         return out
 
-    opt = torch.optim.Adam([p for name, p in policy.named_parameters() if not name.startswith(frozen)], lr=lr)
+    trained = [p for name, p in policy.named_parameters() if not name.startswith(frozen)]
+    # the frozen weights get no gradient while cloning: before, they kept requires_grad, the optimiser (which holds
+    # only the trained ones) never zeroed theirs, so it summed over every batch — and over earlier clonings of the same
+    # policy object — inside the norm clipped below, making a run depend on what the process had done before (a
+    # resumed DAgger run gave other bytes than an uninterrupted one)
+    held = [p for name, p in policy.named_parameters() if name.startswith(frozen) and p.requires_grad]
+    opt = torch.optim.Adam(trained, lr=lr)
     policy.set_training_mode(True)
 
     if mirror and "bev" in keys:
@@ -313,12 +319,15 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     mirror_rng = np.random.default_rng(seed + 1)
     # the lookahead teacher's rollout features depend on the observation alone: computed once, not every epoch
     if cache is None and has_lookahead(policy):
-        cache = lookahead_feature_cache(policy, data, mirror, n_rot, keys)
+        cache = lookahead_feature_cache(policy, data, mirror, n_rot)
 
     rows = []
     convs = [m for m in policy.modules() if isinstance(m, torch.nn.Conv2d)]  # the map CNNs'
     for m in convs:  # channels-last while cloning (faster on the CPU, most so in bf16); contiguous again below
         m.to(memory_format=torch.channels_last)
+    policy.zero_grad(set_to_none=True)  # nothing left over from an earlier fit or cloning
+    for p in held:
+        p.requires_grad_(False)
     try:
         for epoch in tqdm(range(epochs), desc=f"behaviour cloning ({precision})", unit="epoch",
                           disable=not progress, dynamic_ncols=True):
@@ -353,7 +362,7 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
                     tot["value_loss"] += loss_v.item() * len(idx)
                 opt.zero_grad()
                 loss.backward()
-                torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+                torch.nn.utils.clip_grad_norm_(trained, 1.0)  # this batch's gradient of the weights it updates
                 opt.step()
                 pred = logits.detach().argmax(-1)
                 tot["bc_loss"] += loss_bc.item() * len(idx)
@@ -362,6 +371,8 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     finally:
         for m in convs:
             m.to(memory_format=torch.contiguous_format)
+        for p in held:
+            p.requires_grad_(True)
         policy.set_training_mode(False)
     return rows
 
@@ -393,7 +404,7 @@ def fit_lookahead_linear(policy, data: dict[str, np.ndarray], soft_tau: float, m
     n = len(data["action"])
     idx = np.sort(rng.choice(n, min(n, max_frames), replace=False))
     if cache is None:
-        sub = {k: data[k][idx] for k in (*policy.observation_space.spaces, "action", "bev_mirror") if k in data}
+        sub = {k: data[k][idx] for k in (*head.input_keys, "action") if k in data}
         cache = lookahead_feature_cache(policy, sub, mirror, n_rot)
     else:
         cache = (cache[0][idx], None if cache[1] is None else cache[1][idx])
@@ -504,12 +515,14 @@ def has_lookahead(policy) -> bool:
 @torch.no_grad()
 def lookahead_feature_cache(policy, data: dict[str, np.ndarray], mirror: bool, n_rot: int = 21,
                             keys: tuple[str, ...] | None = None, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray | None]:
-    """The lookahead teacher's rollout features of every frame of ``data`` (``N x A x F``, float16) and, with
-    ``mirror``, of every frame reflected (what :func:`mirror_batch` makes of it). Computed on the policy's device,
-    kept in host memory."""
+    """The lookahead head's rollout features of every frame of ``data`` (``N x A x F``, float16) and, with
+    ``mirror``, of every frame reflected (what :func:`mirror_batch` makes of it). Computed on the policy's device
+    from the observation keys the head reads (``keys``: default those of the policy's observation space in
+    :attr:`rl.lookahead.LookaheadHead.input_keys` — not a student's ``bev`` features, ≈ 190 KB a frame with their
+    mirror, which the features do not depend on), kept in host memory."""
     ext = policy.features_extractor
     dev = policy.device
-    keys = keys or tuple(policy.observation_space.spaces)
+    keys = keys or tuple(k for k in policy.observation_space.spaces if k in ext.lookahead.input_keys)
     if mirror and "bev" in keys and "bev_mirror" not in keys:  # mirror_batch swaps in the mirrored world's s_bev
         keys = (*keys, "bev_mirror")
     n = len(data["action"])

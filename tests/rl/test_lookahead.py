@@ -1,5 +1,6 @@
 """The lookahead teacher: rollout features, the scored policy, the convex fit of its linear cost."""
 
+import copy
 import math
 from dataclasses import replace
 
@@ -181,6 +182,25 @@ def test_linear_fit_and_cloning_lower_the_cross_entropy(space):
                            frozen=("features_extractor.lookahead.linear.",))
     assert torch.equal(policy.features_extractor.lookahead.linear.weight, frozen)  # the fitted cost stays
     assert rows[-1]["bc_loss"] <= fit["ce_after"] + 0.3
+
+
+def test_cloning_does_not_depend_on_gradients_left_on_frozen_weights(space):
+    """The frozen linear cost gets no gradient while cloning and what an earlier fit or cloning left on it changes
+    nothing: a policy whose frozen weights carry a stale gradient clones to the bytes of its fresh copy (the clipped
+    norm is the updated weights' own), and keeps its frozen weights trainable afterwards."""
+    data = collect_expert(replace(SIM, max_episode_s=4.0), [("hallway", 0.1)], 2, 0, 0.99, 1, progress=False)
+    frozen = ("features_extractor.lookahead.linear.",)
+    clone = {"progress": False, "soft_tau": 0.1, "mirror": True, "frozen": frozen}
+    a = _policy(space)
+    b = copy.deepcopy(a)  # no gradients (deepcopy drops them)
+    for p in a.features_extractor.lookahead.linear.parameters():
+        p.grad = torch.full_like(p, 1e3)
+    rows_a = behaviour_clone(a, data, 2, 64, 1e-3, 0, **clone)
+    rows_b = behaviour_clone(b, data, 2, 64, 1e-3, 0, **clone)
+    assert rows_a == rows_b
+    sa, sb = a.state_dict(), b.state_dict()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert all(p.requires_grad and p.grad is None for p in a.features_extractor.lookahead.linear.parameters())
 
 
 def test_a_feature_cache_extended_stage_by_stage_is_the_whole_aggregates(space):

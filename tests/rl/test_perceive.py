@@ -507,3 +507,26 @@ def test_the_map_is_read_only_inside_the_cameras_view_with_map_view_deg(lobby):
     torch.testing.assert_close(*(h.action_features(_map_obs(lobby, ahead)) for h in (whole, masked)))
     with pytest.raises(ConfigError, match="map_view_deg"):
         _map_head(lobby, 4, view_deg=270.0)
+
+
+def test_lookahead_feature_cache_reads_only_the_heads_inputs(lobby):
+    """A ``full`` student's rollout features come from the keys the head reads: computed from every key of its
+    observation (``bev`` and the mirrored world's ``bev_mirror`` included) or from a pool without the BEV features,
+    they are the same arrays."""
+    from pretrain.model import BEVEncoder, EncoderConfig
+    from rl.observe import env_cameras
+
+    torch.manual_seed(0)
+    enc = BEVEncoder(EncoderConfig(bev_channels=8, resnet_stages=1, lift_stride_px=4), env_cameras(lobby)).eval()
+    space = observer_for_env(lobby, "full", enc, head="lookahead", mirror=True).observation_space
+    policy = build_policy("student", "full", space, _net(lobby))
+    keys = policy.features_extractor.lookahead.input_keys
+    assert "bev" in space.spaces and "bev" not in keys and {"state", "scan", "peds"} <= set(keys)
+    data = {k: v.numpy() for k, v in _batch(space, 40, seed=7).items()}
+    data["bev_mirror"] = np.random.default_rng(1).random(data["bev"].shape, np.float32)
+    data["action"] = np.zeros(40, np.int64)
+    every = lookahead_feature_cache(policy, data, mirror=True, keys=tuple(space.spaces), chunk=16)
+    only = lookahead_feature_cache(policy, data, mirror=True, chunk=16)
+    no_bev = lookahead_feature_cache(policy, {k: v for k, v in data.items() if not k.startswith("bev")}, mirror=True)
+    for got in (only, no_bev):
+        assert all(np.array_equal(a, b) for a, b in zip(got, every, strict=True))
