@@ -298,10 +298,9 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
         return out
 
     trained = [p for name, p in policy.named_parameters() if not name.startswith(frozen)]
-    # the frozen weights get no gradient while cloning: before, they kept requires_grad, the optimiser (which holds
-    # only the trained ones) never zeroed theirs, so it summed over every batch — and over earlier clonings of the same
-    # policy object — inside the norm clipped below, making a run depend on what the process had done before (a
-    # resumed DAgger run gave other bytes than an uninterrupted one)
+    # the frozen weights get no gradient while cloning: the optimiser does not zero theirs, so it would sum over the
+    # batches — and earlier clonings of the same policy object — inside the norm clipped below, and a resumed DAgger
+    # run (its policy loaded without gradients) would end with other bytes than an uninterrupted one
     held = [p for name, p in policy.named_parameters() if name.startswith(frozen) and p.requires_grad]
     opt = torch.optim.Adam(trained, lr=lr)
     policy.set_training_mode(True)
