@@ -791,8 +791,8 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
                  cache: tuple[np.ndarray, np.ndarray | None] | None = None):
     """``dagger.final_clone``: a fresh student cloned ``bc_epochs`` over every iteration's frames, saved in
     ``dagger/final/`` (its ``done.json`` last, so a resumed run loads it instead of cloning again). ``cache``: the
-    pool's lookahead features when the iterations' loop has them (the fresh student's are the same: they have no
-    weights)."""
+    pool's lookahead features when the iterations' loop computed them (all its frames: the last iteration's pool is
+    every iteration's; the fresh student's are the same, they have no weights)."""
     d = cfg.dagger
     fin = out / "dagger" / "final"
     shield = 0.0 if "shield_s" in net else None
@@ -812,7 +812,7 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
         policy.to(device)
         hist, _ = distill(policy, data, d, cfg.map_signs, seed, n_rot, inherited, soft, cfg.progress,
                           f"student {cfg.variant} final cloning",
-                          cache=cache if cache is not None and len(cache[0]) == frames_total else None)
+                          cache=cache)
     info = {"frames": frames_total, "clone_samples": d.bc_epochs * frames_total, "seed": seed,
             "final_bc_loss": hist[-1]["bc_loss"], "seconds": clock.seconds}
     save_policy(fin / "policy", policy, describe("student", cfg.variant, space, net, **extra,

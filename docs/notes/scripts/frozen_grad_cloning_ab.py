@@ -13,10 +13,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-import rl.teacher
 from rl.dagger import feature_files, pool_frames
 from rl.policy import load_policy
-from rl.teacher import FITTED_PREFIXES, bc_loss, behaviour_clone, lookahead_feature_cache
+from rl.teacher import (
+    FITTED_PREFIXES,
+    bc_loss,
+    behaviour_clone,
+    lookahead_feature_cache,
+    policy_logits_values,
+)
 
 torch.set_num_threads(2)
 
@@ -40,7 +45,7 @@ if sys.argv[1] == "--compare":
         obs = {k: torch.as_tensor(new[k], dtype=torch.float32) for k in p.observation_space.spaces}
         feats = torch.as_tensor(lookahead_feature_cache(p, new, False, 21)[0], dtype=torch.float32)
         with torch.no_grad():
-            acts.append(rl.teacher.policy_logits_values(p, obs, feats)[0].argmax(-1))
+            acts.append(policy_logits_values(p, obs, feats)[0].argmax(-1))
     for name, run, p in zip(("before", "after"), (before, after), pols, strict=True):
         print(f"{name}: epochs' soft CE {[round(r['bc_loss'], 4) for r in run['rows']]}, {run['seconds']:.0f} s; "
               f"iteration 3's frames: hard CE {bc_loss(p, new):.4f}, soft CE {bc_loss(p, new, soft_tau=1.0):.4f}; "
