@@ -45,6 +45,7 @@ def teacher_dir(tmp_path_factory):
     data = collect_expert(TINY_SIM, [("hallway", 0.1)], 2, 0, 0.99, 1, progress=False)
     space = SceneMixEnv(TINY_SIM, [("hallway", 0.1)]).observation_space
     net = teacher_net({"encoder": "lookahead"}, TINY_SIM)
+    torch.manual_seed(0)  # the same teacher (and so the same labels and hashes) in every pytest session
     policy = build_policy("teacher", None, space, net)
     fit_lookahead_linear(policy, data, 0.1)
     behaviour_clone(policy, data, 2, 256, 1e-3, 0, progress=False, soft_tau=0.1,
