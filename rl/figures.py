@@ -238,7 +238,10 @@ def plot_ppo(runs: list[tuple[str, dict[str, list[tuple[int, float]]], int]], ou
 
 
 def parse_ckpt(arg: str) -> tuple[Path, str]:
-    """``CKPT[:LABEL]``: a checkpoint folder and its label (default: the folder's parent and name)."""
+    """``CKPT[:LABEL]``: a checkpoint folder and its label (default: the folder's parent and name).
+
+    A label cannot contain "/": paths may hold ":" (``C:/…``, ``run:2/ckpt``), so a suffix with a "/" is part of the path.
+    """
     path, sep, label = arg.rpartition(":")
     if sep and path and label and "/" not in label:
         return Path(path), label
@@ -249,7 +252,7 @@ def parse_ckpt(arg: str) -> tuple[Path, str]:
 @reports_errors
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m rl.figures", description=__doc__.split("\n\n")[0])
-    ap.add_argument("ckpts", nargs="+", help="student checkpoints: CKPT or CKPT:LABEL")
+    ap.add_argument("ckpts", nargs="+", help="student checkpoints: CKPT or CKPT:LABEL (a label holds no '/': after a '/' the whole argument is read as a path)")
     ap.add_argument("--out", type=Path, required=True, help="the PNG to write")
     ap.add_argument("--ppo", action="store_true", help="their PPO (tb/finetune_*, a teacher's tb/ppo_*), not DAgger")
     args = ap.parse_args(argv)
