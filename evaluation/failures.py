@@ -19,7 +19,12 @@ the goal still was and whether the robot was *frozen* (its last :data:`FROZEN_S`
 spot — a deterministic policy in a near-static scene that chose to stand still keeps choosing it) with a person
 within ``near_m`` for most of that time or not (counted as ``timeouts_frozen``); an obstacle hit records where the
 obstacle was — the bearing of its nearest surface point from the robot's heading, and whether that lies in the cameras' field of view (|bearing| ≤ camera yaw + half its
-horizontal FOV): a student only sees what its two forward cameras see, so a hit out of view is a side or rear one. Per cell, the episodes whose straight start–goal segment crosses an obstacle of the layout (``line_blocked``,
+horizontal FOV): a student only sees what its two forward cameras see, so a hit out of view is a side or rear one. A
+pedestrian hit records, from the trace alone and so for any method, where the person hit (the body nearest the
+robot's at the end) was: his bearing at contact and whether it lay in that field of view, how long before contact he
+was last inside it (0 when in view at contact; none when never during the episode — the view here is the cameras'
+angle only: no range limit, no occlusion), and the closing speed over the last ``tail_s`` split into the robot's
+part (its velocity towards him) and his (towards the robot): who walked into whom. Per cell, the episodes whose straight start–goal segment crosses an obstacle of the layout (``line_blocked``,
 a detour is needed: the warehouse allows a path up to 1.25 × the straight line, and a pallet on it) are counted with their
 successes, and the table gives the SR of those and of the rest. Writes ``failures.json`` (the counts per method and
 cell, and one record per failure) and
@@ -101,6 +106,7 @@ PED_MATCH_M = 0.5  # --replay-peds: a reported track within this of the hit pers
 PED_HIT_CLASSES = ("untracked", "chose_predicted_contact", "no_free_arc", "predicted_clear")
 CAUSES = ("collision_pedestrian", "collision_obstacle_near_person", "collision_obstacle_clear", "timeout")
 OUT_OF_VIEW = "obstacle_hits_out_of_view"  # obstacle hits whose obstacle lay outside the cameras' field of view
+PED_OUT_OF_VIEW = "ped_hits_out_of_view"  # pedestrian hits whose person was outside the cameras' field of view
 FROZEN = "timeouts_frozen"  # timeouts that ended standing still (the last FROZEN_S within FROZEN_M of one spot)
 FROZEN_S, FROZEN_M = 10.0, 0.1
 BLOCKED = "line_blocked"  # episodes whose straight start-goal segment crosses an obstacle (a detour is needed)
@@ -157,6 +163,35 @@ def hit_bearing(layout: Any, pose: np.ndarray) -> float:
     return float(np.degrees(np.angle(np.exp(1j * (math.atan2(d[1], d[0]) - pose[2])))))
 
 
+def hit_person(trace: EpisodeTrace) -> int:
+    """Index of the person a pedestrian collision hit: the body nearest the robot's (surface to surface) at the end."""
+    gaps = (np.linalg.norm(trace.ped_xy[-1] - trace.robot_pose[-1, :2], axis=-1) - trace.ped_radius
+            - trace.robot_radius_m)
+    return int(np.argmin(np.where(np.isfinite(gaps), gaps, np.inf)))
+
+
+def ped_hit_geometry(trace: EpisodeTrace, view_deg: float, tail_s: float) -> dict[str, Any]:
+    """Where the person a pedestrian collision hit was (module docstring), from the trace alone: his bearing at
+    contact (deg, counter-clockwise from the heading), inside the cameras' field of view (|bearing| <= ``view_deg``)
+    or not, the seconds from the last step he was inside it to contact (None if never), and the closing speed over
+    the last ``tail_s`` split into the robot's part and his (m/s, positive = towards the other)."""
+    j = hit_person(trace)
+    d = trace.ped_xy[:, j] - trace.robot_pose[:, :2]  # T x 2, NaN before a scripted person enters
+    bearing = np.degrees(np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0]) - trace.robot_pose[:, 2]))))
+    seen = np.flatnonzero(np.abs(bearing) <= view_deg)  # NaN compares False
+    out = {"ped_hit_bearing_deg": float(bearing[-1]), "ped_hit_in_view": bool(abs(bearing[-1]) <= view_deg),
+           "ped_last_in_view_s_before": float((len(d) - 1 - seen[-1]) * trace.dt_s) if len(seen) else None,
+           "closing_robot_mps": 0.0, "closing_ped_mps": 0.0}
+    n = min(len(d) - 1, max(1, round(tail_s / trace.dt_s)))
+    if n:
+        u = d[-1] / max(float(np.linalg.norm(d[-1])), 1e-9)  # robot -> person at contact
+        v_robot = (trace.robot_pose[-1, :2] - trace.robot_pose[-1 - n, :2]) / (n * trace.dt_s)
+        v_ped = (trace.ped_xy[-1, j] - trace.ped_xy[-1 - n, j]) / (n * trace.dt_s)
+        out["closing_robot_mps"] = float(v_robot @ u)
+        out["closing_ped_mps"] = float(-(v_ped @ u)) if np.isfinite(v_ped).all() else 0.0
+    return out
+
+
 def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: float = 0.5,
             scene: str | None = None) -> dict[str, Any]:
     """Counts of failure causes per method and cell, and one record per failed benchmark episode of ``run`` (only
@@ -188,7 +223,10 @@ def analyse(run: Path, method: str | None = None, near_m: float = 1.0, tail_s: f
             if trace.outcome == "collision_obstacle":
                 info["hit_bearing_deg"] = hit_bearing(layouts.layout(r, trace), trace.robot_pose[-1])
                 info["hit_in_view"] = abs(info["hit_bearing_deg"]) <= layouts.view_deg
-                c["obstacle_hits_out_of_view"] += int(not info["hit_in_view"])
+                c[OUT_OF_VIEW] += int(not info["hit_in_view"])
+            elif trace.outcome == "collision_pedestrian":
+                info.update(ped_hit_geometry(trace, layouts.view_deg, tail_s))
+                c[PED_OUT_OF_VIEW] += int(not info["ped_hit_in_view"])
             if info.get("frozen"):
                 c[FROZEN] += 1
             records.append({"method": r["method"], "scene": r["scene"], "density": r["density"], "seed": r["seed"],
@@ -259,10 +297,10 @@ def _sr_split(c: dict[str, int]) -> str:
 
 def markdown(res: dict[str, Any]) -> str:
     lines = [f"Failure causes in {res['run']} (obstacle hits split at a person within {res['near_m']:g} m)", "",
-             "| method | cell | episodes | " + " | ".join(CAUSES) + f" | {OUT_OF_VIEW} | {FROZEN} | "
-             "SR straight line blocked (n) / clear (n) |",
-             "|---|---|---|" + "---|" * (len(CAUSES) + 3)]
-    cols = (*CAUSES, OUT_OF_VIEW, FROZEN)
+             "| method | cell | episodes | " + " | ".join(CAUSES) + f" | {OUT_OF_VIEW} | {PED_OUT_OF_VIEW} | "
+             f"{FROZEN} | SR straight line blocked (n) / clear (n) |",
+             "|---|---|---|" + "---|" * (len(CAUSES) + 4)]
+    cols = (*CAUSES, OUT_OF_VIEW, PED_OUT_OF_VIEW, FROZEN)
     for m, cells in res["counts"].items():
         total = sum((Counter(c) for c in cells.values()), Counter())
         for cell, c in [*cells.items(), ("all", total)]:
@@ -465,9 +503,7 @@ def _hit_person(trace: EpisodeTrace, steps: list[dict[str, Any]], tracks: list[n
     truly was in the robot frame when the action was chosen (``range_m``, ``bearing_deg``, ``in_view``), whether a
     reported track lay within :data:`PED_MATCH_M` of him (``tracked``, ``track_error_m``) and his true clearance
     after the step (``true_ped_next_m``)."""
-    pose = trace.robot_pose[-1]
-    gaps = np.linalg.norm(trace.ped_xy[-1] - pose[:2], axis=-1) - trace.ped_radius - trace.robot_radius_m
-    j = int(np.nanargmin(np.where(np.isfinite(gaps), gaps, np.inf)))
+    j = hit_person(trace)
     for rec, tr in zip(steps, tracks, strict=True):
         k = rec["step"]
         if not np.isfinite(trace.ped_xy[k:k + 2, j]).all():  # not yet in the scene (a scripted person)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from evaluation import failures
-from evaluation.failures import analyse, classify, draw, hit_bearing, main
+from evaluation.failures import analyse, classify, draw, hit_bearing, main, ped_hit_geometry
 from pipeline.core.errors import ConfigError, CorruptArtifactError, InputMissingError
 from sim.env import CameraConfig, CrowdNavEnv, SimConfig
 from sim.geometry import Box, Cylinder, StaticGeometry
@@ -73,6 +73,37 @@ def test_the_bearing_of_a_hit_obstacle_is_measured_from_the_heading():
     assert hit_bearing(Layout, np.array([1.0, 0.5, 0.0])) == pytest.approx(90.0)  # on its left
     assert hit_bearing(Layout, np.array([1.0, 0.5, np.pi])) == pytest.approx(-90.0)  # on its right
     assert abs(hit_bearing(Layout, np.array([1.0, 0.5, -np.pi / 2]))) == pytest.approx(180.0)  # behind
+
+
+def test_a_pedestrian_hit_records_where_the_person_hit_was_and_who_closed_the_gap():
+    """The robot of :func:`_trace` drives along +x at 1 m/s to (1, 0). A person standing just ahead is hit in view
+    and the robot closed the gap; one walking into it from behind (+x at 2 m/s, ending 0.5 m behind it) was never in
+    the 60-degree view and closed the gap himself; one who stepped in front of it at the last step is in view at
+    contact; one ahead in the first three steps and beside it at contact was last seen 0.8 s before. The person hit is
+    the nearest body, not the first column."""
+    ahead = ped_hit_geometry(_trace("collision_pedestrian", [(4.0, 3.0), (1.5, 0.0)]), view_deg=60.0, tail_s=0.5)
+    assert ahead["ped_hit_bearing_deg"] == pytest.approx(0.0) and ahead["ped_hit_in_view"]
+    assert ahead["ped_last_in_view_s_before"] == 0.0
+    assert ahead["closing_robot_mps"] == pytest.approx(1.0) and ahead["closing_ped_mps"] == pytest.approx(0.0)
+
+    tr = _trace("collision_pedestrian", [(0.0, 0.0)])
+    behind = replace(tr, ped_xy=(tr.robot_pose[:, :2] + np.array([-0.5, 0.0]) - np.linspace(1.0, 0.0, 11)[:, None]
+                                 * np.array([1.0, 0.0]))[:, None])
+    rear = ped_hit_geometry(behind, view_deg=60.0, tail_s=0.5)
+    assert abs(rear["ped_hit_bearing_deg"]) == pytest.approx(180.0) and not rear["ped_hit_in_view"]
+    assert rear["ped_last_in_view_s_before"] is None
+    assert rear["closing_robot_mps"] == pytest.approx(-1.0) and rear["closing_ped_mps"] == pytest.approx(2.0)
+
+    side = np.repeat(np.array([[[1.0, 1.0]]]), 11, 0)  # beside the robot, then in front of it at contact
+    side[-1, 0] = (1.5, 0.0)
+    cut = ped_hit_geometry(replace(tr, ped_xy=side), view_deg=60.0, tail_s=0.1)
+    assert cut["ped_hit_in_view"] and cut["ped_last_in_view_s_before"] == 0.0
+    assert cut["closing_robot_mps"] == pytest.approx(1.0)
+    early = np.repeat(np.array([[[0.5, 1.0]]]), 11, 0)  # ahead in the first 3 steps, then beside and behind it
+    early[:3, 0] = (3.0, 0.0)
+    early[-1, 0] = (1.0, 0.5)
+    gone = ped_hit_geometry(replace(tr, ped_xy=early), view_deg=60.0, tail_s=0.5)
+    assert not gone["ped_hit_in_view"] and gone["ped_last_in_view_s_before"] == pytest.approx(0.8)
 
 
 def test_a_straight_line_through_an_obstacle_is_blocked_once_per_scene_seed(monkeypatch):
@@ -163,7 +194,7 @@ def test_a_real_run_is_counted_and_drawn_on_its_rebuilt_layout(timed_out_run, tm
 def test_cli_writes_its_tables_and_refuses_bad_input(timed_out_run, tmp_path, capsys):
     out = tmp_path / "f"
     assert main([str(timed_out_run), "--figures", "0", "--out", str(out)]) == 0
-    assert "| expert | office_lobby@0.1 | 2 | 0 | 0 | 0 | 2 | 0 | 0 | — (0) / 0.00 (2) |" in capsys.readouterr().out
+    assert "| expert | office_lobby@0.1 | 2 | 0 | 0 | 0 | 2 | 0 | 0 | 0 | — (0) / 0.00 (2) |" in capsys.readouterr().out
     assert json.loads((out / "failures.json").read_text())["counts"]["expert"]["office_lobby@0.1"]["timeout"] == 2
     assert main([str(tmp_path / "nope")]) == 2
     assert "no per-episode rows" in capsys.readouterr().err
@@ -280,6 +311,10 @@ def test_replay_of_pedestrian_hits_finds_the_person_tracked_and_the_contact_chos
     res = analyse(out, scene="office_lobby")
     hits = [f for f in res["failures"] if f["cause"] == "collision_pedestrian"]
     assert hits, res["failures"]
+    out_of_view = sum(c.get("ped_hits_out_of_view", 0) for c in res["counts"]["teacher"].values())
+    assert out_of_view == sum(not f["ped_hit_in_view"] for f in hits)  # where each person hit was, from the trace
+    assert all(f["ped_hit_in_view"] == (f["ped_last_in_view_s_before"] == 0.0) for f in hits)
+    assert any(f["closing_robot_mps"] + f["closing_ped_mps"] > 0.0 for f in hits)
     replays = replay_hits(out, res, len(hits), pedestrian=True)
     assert len(replays) == len(hits)
     for r in replays:
