@@ -257,12 +257,16 @@ def paired_by_line(res: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
         raise CorruptArtifactError(f"{res['run']} against {base['run']}: the straight line of {len(differ)} paired "
                                    f"episodes is blocked in one run's layout and clear in the other's, e.g. "
                                    f"{differ[0]} (scene files changed between the runs)")
-    out = {"run": res["run"], "base": base["run"], "groups": {}}
+    out = {"run": res["run"], "base": base["run"], "groups": {}, "ped_hits": {}}
     for name, sel in (("line blocked", True), ("line clear", False), ("all", None)):
         ks = [k for k in keys if sel is None or mine[k][BLOCKED] == sel]
         a, b = [theirs[k]["success"] for k in ks], [mine[k]["success"] for k in ks]
         out["groups"][name] = {**mcnemar_exact(a, b), "sr_base": float(np.mean(a)) if ks else math.nan,
                                "sr_run": float(np.mean(b)) if ks else math.nan}
+    for name, in_view in (("person in view", True), ("person out of view", False)):
+        hit = [{pair_key(f) for f in r["failures"] if f["cause"] == "collision_pedestrian"
+                and f["ped_hit_in_view"] == in_view} for r in (base, res)]
+        out["ped_hits"][name] = mcnemar_exact([k in hit[0] for k in keys], [k in hit[1] for k in keys])
     return out
 
 
@@ -273,6 +277,11 @@ def paired_markdown(paired: dict[str, Any]) -> str:
         p = "—" if math.isnan(g["p_value"]) else f"{g['p_value']:.3g}"
         lines.append(f"| {name} | {g['n']} | {g['sr_base']:.3f} | {g['sr_run']:.3f} | {g['a_only']} / {g['b_only']} "
                      f"| {p} |")
+    lines += ["", "Pedestrian hits on the same seeds, by where the person hit was (exact McNemar on who alone had one)", "",
+              "| pedestrian hit | only base / only this run | p |", "|---|---|---|"]
+    for name, g in paired.get("ped_hits", {}).items():
+        p = "—" if math.isnan(g["p_value"]) else f"{g['p_value']:.3g}"
+        lines.append(f"| {name} | {g['a_only']} / {g['b_only']} | {p} |")
     return "\n".join(lines) + "\n"
 
 
@@ -293,6 +302,26 @@ def _sr_split(c: dict[str, int]) -> str:
     nb, sb = c.get(BLOCKED, 0), c.get(BLOCKED_OK, 0)
     nc, sc = c["episodes"] - nb, c.get("successes", 0) - sb
     return " / ".join(f"{k / n:.2f} ({n})" if n else f"— ({n})" for k, n in ((sb, nb), (sc, nc)))
+
+
+def ped_hit_markdown(res: dict[str, Any]) -> str:
+    """Per method, where the people its pedestrian hits hit were (:func:`ped_hit_geometry`): in the cameras' view at
+    contact, within the last second, never; who did more of the closing; the median closing speeds and the median of
+    the robot's mean speed over the last ``tail_s``."""
+    lines = ["", "Pedestrian hits: where the person hit was (the cameras' angle only) and who closed the gap", "",
+             "| method | hits | in view at contact | in view within 1 s before | never in view | robot closed more | "
+             "median closing robot / person (m/s) | median robot speed over the last tail_s (m/s) |", "|---|---|---|---|---|---|---|---|"]
+    for m in res["counts"]:
+        h = [f for f in res["failures"] if f["method"] == m and f["cause"] == "collision_pedestrian"]
+        if not h:
+            continue
+        last = [f["ped_last_in_view_s_before"] for f in h]
+        cr, cp = (np.array([f[k] for f in h]) for k in ("closing_robot_mps", "closing_ped_mps"))
+        lines.append(f"| {m} | {len(h)} | {sum(f['ped_hit_in_view'] for f in h)} | "
+                     f"{sum(x is not None and x <= 1.0 for x in last)} | {sum(x is None for x in last)} | "
+                     f"{int((cr > cp).sum())} | {np.median(cr):.2f} / {np.median(cp):.2f} | "
+                     f"{np.median([f['tail_speed_mps'] for f in h]):.2f} |")
+    return "\n".join(lines) + "\n"
 
 
 def markdown(res: dict[str, Any]) -> str:
@@ -617,7 +646,7 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, name) < low:
             raise ConfigError(f"--{name.replace('_', '-')}: expected an integer >= {low}, got {getattr(args, name)}")
     res = analyse(args.run, args.method, args.near_m, args.tail_s, args.scene)
-    text = markdown(res)
+    text = markdown(res) + ped_hit_markdown(res)
     if args.against:
         base_run, _, base_method = args.against.partition(":")
         base = analyse(Path(base_run), base_method or args.method, args.near_m, args.tail_s, args.scene)

@@ -134,17 +134,26 @@ def test_a_timeouts_view_holds_its_start_and_goal_a_hits_stays_around_the_end():
     assert failures.view_bounds(trace, whole_span=True) == pytest.approx((-2.0, 10.0, -3.0, 3.0))
 
 
-def _analysed(run: str, outcomes: list[tuple[int, bool, bool]], method: str = "full") -> dict:
-    """What :func:`analyse` returns of a run, reduced to its episodes: (seed, success, line blocked) each."""
-    return {"run": run, "episodes": [{"method": method, "scene": "warehouse", "density": 0.1, "seed": seed,
-                                      "success": int(ok), "line_blocked": line} for seed, ok, line in outcomes]}
+def _analysed(run: str, outcomes: list[tuple[int, bool, bool]], method: str = "full",
+              ped_hits: dict[int, bool] | None = None) -> dict:
+    """What :func:`analyse` returns of a run, reduced to its episodes: (seed, success, line blocked) each, and its
+    pedestrian hits: seed -> the person hit was in view."""
+    cell = {"method": method, "scene": "warehouse", "density": 0.1}
+    return {"run": run, "episodes": [{**cell, "seed": seed, "success": int(ok), "line_blocked": line}
+                                     for seed, ok, line in outcomes],
+            "failures": [{**cell, "seed": seed, "cause": "collision_pedestrian", "ped_hit_in_view": v}
+                         for seed, v in (ped_hits or {}).items()]}
 
 
 def test_two_runs_are_paired_where_the_line_is_blocked_and_where_it_is_clear():
-    """Seeds 0-3 need a detour, 4-9 do not; the run gains two detours and loses one open episode against its base."""
+    """Seeds 0-3 need a detour, 4-9 do not; the run gains two detours and loses one open episode against its base.
+    Its pedestrian hits pair too: the base hit a person in view at seed 0 and one out of view at seed 8, the run
+    people in view at seeds 2, 7 and 8."""
     line = [s < 4 for s in range(10)]
-    base = _analysed("base", [(s, ok, line[s]) for s, ok in enumerate([0, 0, 0, 1, 1, 1, 1, 1, 0, 1])])
-    run = _analysed("run", [(s, ok, line[s]) for s, ok in enumerate([1, 1, 0, 1, 1, 1, 1, 0, 0, 1])], "no_bev")
+    base = _analysed("base", [(s, ok, line[s]) for s, ok in enumerate([0, 0, 0, 1, 1, 1, 1, 1, 0, 1])],
+                     ped_hits={0: True, 8: False})
+    run = _analysed("run", [(s, ok, line[s]) for s, ok in enumerate([1, 1, 0, 1, 1, 1, 1, 0, 0, 1])], "no_bev",
+                    ped_hits={2: True, 7: True, 8: True})
     res = failures.paired_by_line(run, base)
     blocked, clear, total = (res["groups"][k] for k in ("line blocked", "line clear", "all"))
     assert (blocked["n"], blocked["sr_base"], blocked["sr_run"], blocked["a_only"], blocked["b_only"]) == (
@@ -153,6 +162,9 @@ def test_two_runs_are_paired_where_the_line_is_blocked_and_where_it_is_clear():
     assert (total["n"], total["a_only"], total["b_only"]) == (10, 1, 2)
     table = failures.paired_markdown(res)
     assert "| line blocked | 4 | 0.250 | 0.750 | 0 / 2 | 0.5 |" in table and "Paired with base" in table
+    seen, unseen = res["ped_hits"]["person in view"], res["ped_hits"]["person out of view"]
+    assert (seen["a_only"], seen["b_only"], unseen["a_only"], unseen["b_only"]) == (1, 3, 1, 0)
+    assert "| person in view | 1 / 3 | 0.625 |" in table
     with pytest.raises(InputMissingError, match=r"1 episodes have no pair .*\('warehouse', 0.1, 9\)"):
         failures.paired_by_line(_analysed("run", [(s, 1, line[s]) for s in range(9)]), base)
     with pytest.raises(CorruptArtifactError, match=r"blocked in one run's layout and clear in the other's"):
@@ -315,6 +327,8 @@ def test_replay_of_pedestrian_hits_finds_the_person_tracked_and_the_contact_chos
     assert out_of_view == sum(not f["ped_hit_in_view"] for f in hits)  # where each person hit was, from the trace
     assert all(f["ped_hit_in_view"] == (f["ped_last_in_view_s_before"] == 0.0) for f in hits)
     assert any(f["closing_robot_mps"] + f["closing_ped_mps"] > 0.0 for f in hits)
+    in_view = sum(f["ped_hit_in_view"] for f in hits)
+    assert f"| teacher | {len(hits)} | {in_view} | " in failures.ped_hit_markdown(res)
     replays = replay_hits(out, res, len(hits), pedestrian=True)
     assert len(replays) == len(hits)
     for r in replays:
