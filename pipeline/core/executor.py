@@ -253,7 +253,9 @@ def ray_session(address: str, data_dir: Path, workers: int, files: str = "shared
     started = False
     if not ray.is_initialized():
         _probe_address(addr)
-        kw: dict[str, Any] = {"address": addr or None, "log_to_driver": False, "configure_logging": False}
+        # "local": our own instance even when another runs on this machine (a `ray start`, another run's cluster);
+        # a bare ray.init() would join the one recorded in /tmp/ray/ray_current_cluster and refuse num_cpus there
+        kw: dict[str, Any] = {"address": addr or "local", "log_to_driver": False, "configure_logging": False}
         if not addr:
             kw.update(num_cpus=max(1, workers), include_dashboard=False)
         try:

@@ -349,6 +349,22 @@ def test_files_through_the_object_store_equal_the_local_pool_and_survive_a_kille
 
 
 @pytest.mark.slow
+def test_without_an_address_a_run_starts_its_own_instance_beside_another_cluster(cluster, tmp_path, monkeypatch):
+    """No address given: the run's own Ray instance with its worker count, even while another cluster runs on this
+    machine (here the fixture's, recorded in /tmp/ray/ray_current_cluster as `ray start` and every test cluster
+    record theirs) — a bare ``ray.init()`` joined that one and refused the worker count, which failed a run whenever
+    two ran at once on one machine."""
+    import ray
+
+    from pipeline.core.executor import ray_session
+
+    monkeypatch.delenv("RAY_ADDRESS")
+    with ray_session("", tmp_path, 1):
+        assert ray.cluster_resources()["CPU"] == 1.0 and len(ray.nodes()) == 1  # the cluster has two 1-CPU nodes
+    assert not ray.is_initialized()
+
+
+@pytest.mark.slow
 def test_a_data_dir_the_nodes_cannot_reach_is_one_named_error(cluster, tmp_path):
     import ray
 
