@@ -96,7 +96,7 @@ from rl.lookahead import ObstacleShield
 from rl.policy import obs_to_tensor
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
-from sim.geometry import world_to_robot
+from sim.geometry import world_to_robot, world_to_robot_each
 from sim.trace import EpisodeTrace
 from sim.viz import plot_episode_topdown
 
@@ -177,7 +177,8 @@ def ped_hit_geometry(trace: EpisodeTrace, view_deg: float, tail_s: float) -> dic
     the last ``tail_s`` split into the robot's part and his (m/s, positive = towards the other)."""
     j = hit_person(trace)
     d = trace.ped_xy[:, j] - trace.robot_pose[:, :2]  # T x 2, NaN before a scripted person enters
-    bearing = np.degrees(np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0]) - trace.robot_pose[:, 2]))))
+    p = world_to_robot_each(trace.ped_xy[:, j], trace.robot_pose)  # in the robot's frame at each step
+    bearing = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
     seen = np.flatnonzero(np.abs(bearing) <= view_deg)  # NaN compares False
     out = {"ped_hit_bearing_deg": float(bearing[-1]), "ped_hit_in_view": bool(abs(bearing[-1]) <= view_deg),
            "ped_last_in_view_s_before": float((len(d) - 1 - seen[-1]) * trace.dt_s) if len(seen) else None,
