@@ -13,9 +13,11 @@ docs/results.md cites, kept in git so that a later run can be paired with them) 
 (``acceptance_episodes.jsonl``, then ``episodes.jsonl``), or an eval run that has not finished (its ``rows/`` so far,
 with a warning). Rows are matched by (scene, density, seed); per cell, pooled over the cells of each density and of
 each scene (where the runs hold more than one), and pooled over all cells: SR of each, the exact McNemar test, the SR
-difference detectable at 80 % power with these pairs, and the Wilcoxon test of the time in private zones (TPZ); pooled
-over the pairs, each failure outcome the two runs' rows both carry (collision, pedestrian and obstacle collision,
-timeout: the exact McNemar test on who alone failed that way) and the mean jerk of each. A run of several methods (an
+difference detectable at 80 % power with these pairs, and the Wilcoxon test of the time in private zones (TPZ) over all
+pairs and over the pairs both finished (TPZ sums an episode's time near people: a run whose episodes end sooner, in
+contacts, has less of it over all pairs); pooled over the pairs, each failure outcome the two runs' rows both carry
+(collision, pedestrian and obstacle collision, timeout: the exact McNemar test on who alone failed that way) and the
+mean jerk of each. A run of several methods (an
 eval run of ``--methods '[a, b]'``) is compared on one of them: ``--methods <first run's>,<second run's>`` (the same
 run may then be given twice). Two eval runs whose episodes were timed (:mod:`evaluation.cost`) are also compared on
 what their paired episodes cost per env step — e.g. a student with its encoder in fp32 and in int8, both runs started
@@ -228,8 +230,9 @@ def pooled_outcomes(rows: list[dict[str, Any]], ref: str) -> dict[str, Any]:
 
 def markdown(res: dict[str, Any]) -> str:
     a, b = res["reference"], res["other"]
-    lines = [f"| cell | pairs | SR {a} | SR {b} | {a} only / {b} only | McNemar p | detectable ΔSR | TPZ Wilcoxon p |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [f"| cell | pairs | SR {a} | SR {b} | {a} only / {b} only | McNemar p | detectable ΔSR | TPZ Wilcoxon p, "
+             "all pairs | TPZ Wilcoxon p, pairs both finished |",
+             "|---|---|---|---|---|---|---|---|---|"]
 
     def p(x: Any) -> str:
         return "—" if x is None or x != x else f"{x:.3f}"
@@ -239,7 +242,10 @@ def markdown(res: dict[str, Any]) -> str:
         s = e["sr"]
         lines.append(f"| {cell} | {e['n_pairs']} | {res['sr'][a][cell]:.2f} | {res['sr'][b][cell]:.2f} | "
                      f"{s['a_only']} / {s['b_only']} | {p(s['p_value'])} | {p(s['detectable_diff'])} | "
-                     f"{p(e['tpz_s'].get('p_value'))} |")
+                     f"{p(e['tpz_s'].get('p_value'))} | {p(e['tpz_s_success'].get('p_value'))} |")
+    lines += ["", "TPZ sums an episode's time near people: over all pairs a run whose episodes end sooner (in "
+              "contacts) has less of it without being more comfortable; over the pairs both finished the two drove "
+              "the same task to its end (the paper's TPZ is over successes)."]
     pooled = res["pooled"]["sr"]
     lines += ["", f"Pooled over {res['pooled']['n_cells']} cells: {pooled['n']} pairs, ΔSR ({a} − {b}) "
               f"{pooled['sr_diff']:+.3f}, {pooled['a_only']} / {pooled['b_only']} discordant, McNemar p = "

@@ -36,6 +36,21 @@ def test_pairs_by_seed_and_counts_the_discordant_pairs(tmp_path, capsys):
     assert "| office_lobby@0.1 | 30 | 1.00 | 0.67 | 10 / 0 |" in capsys.readouterr().out
 
 
+
+def test_tpz_is_tested_over_all_pairs_and_over_the_pairs_both_finished(tmp_path, capsys):
+    """A run whose failed episodes end early (little time near people) has lower TPZ over all pairs; over the
+    pairs both finished the two are level: the two tests are reported side by side."""
+    a = _rows([1] * 30)
+    b = [{**r, "tpz_s": 0.5} if k >= 20 else r for k, r in enumerate(_rows([1] * 20 + [0] * 10))]
+    _write(tmp_path / "a.jsonl", a)
+    _write(tmp_path / "b.jsonl", b)
+    assert compare.main([str(tmp_path / "a.jsonl"), str(tmp_path / "b.jsonl"), "--json", str(tmp_path / "c.json")]) == 0
+    cell = json.loads((tmp_path / "c.json").read_text())["cells"]["office_lobby@0.1"]["b"]
+    assert cell["tpz_s"]["n"] == 30 and cell["tpz_s"]["mean_diff"] > 0 and cell["tpz_s"]["p_value"] < 0.01
+    assert cell["tpz_s_success"]["n"] == 20 and cell["tpz_s_success"]["mean_diff"] == 0
+    out = capsys.readouterr().out
+    assert "TPZ Wilcoxon p, pairs both finished |" in out and "| 0.290 | 0.005 | — |" in out
+
 def test_failure_outcomes_are_tested_pooled_where_both_runs_carry_them(tmp_path, capsys):
     def rows(outcomes: list[str], scene: str) -> list[dict]:
         return [{**r, "collision": float(o == "c"), "timeout": float(o == "t"), "mean_jerk_mps3": 2.0 if o == "c" else 1.0}

@@ -118,6 +118,7 @@ def test_report_from_fixture_rows():
     assert pr["no_i2"]["sr"]["p_value"] == pytest.approx(0.125)  # exact McNemar: 2 * 0.5^4
     assert pr["dwa"]["sr"]["p_value"] == pytest.approx(2 * 0.5 ** 8)
     assert pr["no_i2"]["tpz_s"]["mean_diff"] == pytest.approx(-1.0)
+    assert pr["no_i2"]["tpz_s"]["n"] == 10 and pr["no_i2"]["tpz_s_success"]["n"] == 4  # no_i2 finished seeds 0..3
     checks = "\n".join(shape_checks(res))
     assert "SR full 0.80 ≥ no_i2 0.40 — as in the paper" in checks
     assert "TPZ full 1.00 s < w/o I² 2.00 s — as in the paper" in checks
