@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -124,9 +125,20 @@ def dagger_iterations(ckpt: Path) -> list[dict[str, Any]]:
     return out
 
 
-def plot_dagger(runs: list[tuple[str, list[dict[str, Any]]]], out: Path) -> None:
+def uniform_loss(ckpt: Path) -> float | None:
+    """The cross-entropy of a uniform choice among the checkpoint's actions, ln n (``policy.json``'s ``actions.n``):
+    a cloning left near it has learned next to nothing. ``None`` where ``policy.json`` does not say."""
+    try:
+        n = json.loads((Path(ckpt) / "policy.json").read_text())["actions"]["n"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return math.log(n) if isinstance(n, int) and n > 1 else None
+
+
+def plot_dagger(runs: list[tuple[str, list[dict[str, Any]]]], out: Path, chance: float | None = None) -> None:
     """Three panels, one line per ``(label, dagger_iterations(...))``: the held-out and after-cloning cross-entropy
-    of each iteration's frames and the rollout success rate, against the frames pooled before the iteration."""
+    of each iteration's frames and the rollout success rate, against the frames pooled before the iteration;
+    ``chance`` (:func:`uniform_loss`) is drawn on the two loss panels."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -147,6 +159,9 @@ def plot_dagger(runs: list[tuple[str, list[dict[str, Any]]]], out: Path) -> None
         ax.set_title(title, fontsize=9)
         ax.set_xlabel(xl, fontsize=8)
         ax.grid(alpha=0.3)
+    if chance is not None:
+        for ax in axes[:2]:
+            ax.axhline(chance, color="0.4", linestyle="--", linewidth=0.9, label="uniform over the actions (ln n)")
     axes[0].set_ylabel("cross-entropy to the teacher's action [nats]", fontsize=8)
     axes[1].set_ylabel("cross-entropy [nats]", fontsize=8)
     axes[2].set_ylabel("SR of the iteration's rollouts", fontsize=8)
@@ -261,8 +276,10 @@ def main(argv: list[str] | None = None) -> int:
         plot_ppo(logs, args.out)
         print(f"{len(logs)} PPO runs -> {args.out}")
         return 0
-    runs = [(label, dagger_iterations(path)) for path, label in map(parse_ckpt, args.ckpts)]
-    plot_dagger(runs, args.out)
+    ckpts = list(map(parse_ckpt, args.ckpts))
+    runs = [(label, dagger_iterations(path)) for path, label in ckpts]
+    chances = {uniform_loss(path) for path, _ in ckpts}  # one line only where every run has the same action set
+    plot_dagger(runs, args.out, chances.pop() if len(chances) == 1 else None)
     print(f"{len(runs)} DAgger runs -> {args.out}")
     return 0
 

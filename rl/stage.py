@@ -164,6 +164,21 @@ class TeacherConfig:
 
 
 BC_SCHEDULES = ("pool", "new")  # DaggerConfig.bc_schedule
+# a DAgger cloning that leaves the new frames' loss above this fraction of ln(n actions) has learned next to nothing:
+# the sixth chain's MLP `w/o I²` stayed at 0.87-0.94 of it and its next rollouts succeeded in 0-8 % (`full`'s 0.50-0.59,
+# 50-65 %; docs/results.md#mlp-no-i2-chain6)
+NEAR_UNIFORM = 0.85
+
+
+def near_uniform_warning(loss: float, n_actions: int, what: str) -> str | None:
+    """The warning for a cloning whose loss on its frames stays near a uniform choice (:data:`NEAR_UNIFORM` · ln n),
+    else ``None``: the next DAgger rollouts are then driven by a student that has learned little."""
+    if n_actions < 2 or not loss > NEAR_UNIFORM * math.log(n_actions):
+        return None
+    uniform = math.log(n_actions)
+    return (f"{what}: after cloning, the loss on the iteration's frames is {loss:.2f} nats, near a uniform choice "
+            f"({uniform:.2f} = ln {n_actions}): the next rollouts are driven by a student that has learned little, and "
+            f"end sooner (more cloning per iteration: train.dagger.bc_epochs, or train.dagger.bc_schedule: pool)")
 CRITIC_FEATURES = ("shared", "detached")  # TeacherConfig.critic_features, FinetuneConfig.critic_features
 
 
@@ -712,6 +727,10 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                                        cfg.progress, f"student {cfg.variant} iteration {k}", epoch_size=epoch,
                                        cache=cache)
             after = bc_loss(policy, new)
+            n_actions = int(getattr(policy.action_space, "n", 0))  # the students' action grid (Discrete)
+            warning = near_uniform_warning(after, n_actions, f"student {cfg.variant} iteration {k}")
+            if warning:
+                log.warning(warning)
             soft_ce = ({"soft_ce_new_before": soft_before,
                         "soft_ce_new_after": bc_loss(policy, new, soft_tau=d.soft_tau)} if soft else {})
         frames_total = int(len(data["action"]))
@@ -724,6 +743,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 "aggregate_frames": frames_total, "rollout_success_rate": sr_rollout,
                 "student_steps": int(sum(r["student_steps"] for r in rows)),
                 "bc_loss_new_before": before, "bc_loss_new_after": after, "final_accuracy": hist[-1]["accuracy"],
+                **({"uniform_loss": math.log(n_actions)} if n_actions > 1 else {}),
                 "clone_samples": clone_samples,
                 "dataset": str(it / "dataset"), "dataset_frames": counts["frames"], **soft_ce,
                 **({"linear_fit": linear_fit} if linear_fit else {}), **({"intention_tune": tuned} if tuned else {}),

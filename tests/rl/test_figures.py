@@ -6,7 +6,7 @@ import json
 import pytest
 
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
-from rl.figures import DAGGER_KEYS, dagger_iterations, main, parse_ckpt, ppo_log
+from rl.figures import DAGGER_KEYS, dagger_iterations, main, parse_ckpt, ppo_log, uniform_loss
 
 
 def _student(path, n_iters=3, **drop):
@@ -29,6 +29,17 @@ def test_two_students_in_one_png_and_the_iterations_read_in_order(tmp_path, caps
     assert [it["iteration"] for it in iters] == list(range(5)) and set(iters[0]) == set(DAGGER_KEYS)
     assert iters[2]["aggregate_frames"] == 1000 + 900 + 800
 
+
+
+def test_the_uniform_loss_comes_from_the_checkpoints_action_count(tmp_path):
+    """ln n of policy.json's actions: the level a cloning that learned nothing stays at (drawn on the loss panels)."""
+    a = _student(tmp_path / "a" / "no_i2")
+    assert uniform_loss(a) is None  # no policy.json: no line
+    (a / "policy.json").write_text(json.dumps({"actions": {"type": "discrete", "n": 105}}))
+    assert uniform_loss(a) == pytest.approx(4.6540, abs=1e-4)
+    assert main([str(a), "--out", str(tmp_path / "f.png")]) == 0
+    (a / "policy.json").write_text(json.dumps({"actions": {"type": "continuous"}}))
+    assert uniform_loss(a) is None
 
 def test_labels():
     assert parse_ckpt("/x/ckpt/policy/no_bev:big") == (parse_ckpt("/x/ckpt/policy/no_bev")[0], "big")

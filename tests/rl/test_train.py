@@ -23,7 +23,7 @@ from rl.dagger import PHASES, load_features
 from rl.driver import PolicyDriver
 from rl.lookahead import LINEAR_TERMS, SCORE_SCALE
 from rl.policy import act, build_policy, check_checkpoint_weights, describe, load_policy, save_policy
-from rl.stage import acceptance
+from rl.stage import NEAR_UNIFORM, acceptance, near_uniform_warning
 from rl.teacher import (
     SceneMixEnv,
     bc_loss,
@@ -348,7 +348,9 @@ def test_new_frames_schedule_and_a_final_fresh_cloning(tmp_path, teacher_dir, ca
     assert its[1]["aggregate_frames"] > its[1]["frames"] > 0
     assert [it["clone_samples"] for it in its] == [2 * it["frames"] for it in its]  # bc_epochs 2
     assert all(it["soft_ce_new_after"] < it["soft_ce_new_before"] for it in its)
-    produced = json.loads((out / "policy.json").read_text())["produced_by"]
+    desc = json.loads((out / "policy.json").read_text())
+    assert all(it["uniform_loss"] == pytest.approx(np.log(desc["actions"]["n"])) for it in its)  # rl.figures' line
+    produced = desc["produced_by"]
     assert produced["dagger_bc_schedule"] == "new"
     fin = json.loads((out / "dagger" / "final" / "done.json").read_text())
     assert fin["frames"] == its[1]["aggregate_frames"] and fin["clone_samples"] == 2 * fin["frames"]
@@ -1039,3 +1041,14 @@ def test_cloning_epochs_of_a_given_size_are_passes_over_the_whole_set():
     assert counts.min() == 1 and counts.max() == 2 and (counts == 2).sum() == 10
     with pytest.raises(ConfigError, match="epoch_size: expected an integer >= 1, got 0"):
         clone(epoch_size=0)
+
+
+def test_a_cloning_left_near_a_uniform_choice_is_warned_about():
+    """The DAgger loop warns when an iteration's cloning leaves its frames' loss near ln(n actions): its next
+    rollouts are then driven by a student that learned little (the sixth chain's MLP w/o I²)."""
+    uniform = np.log(105)
+    assert near_uniform_warning(0.55 * uniform, 105, "student full iteration 3") is None
+    msg = near_uniform_warning(4.2, 105, "student no_i2 iteration 3")
+    assert 4.2 > NEAR_UNIFORM * uniform and msg.startswith("student no_i2 iteration 3: after cloning, the loss")
+    assert "4.20 nats" in msg and "4.65 = ln 105" in msg and "train.dagger.bc_epochs" in msg
+    assert near_uniform_warning(float("nan"), 105, "x") is None and near_uniform_warning(9.0, 1, "x") is None
