@@ -164,9 +164,10 @@ class TeacherConfig:
 
 
 BC_SCHEDULES = ("pool", "new")  # DaggerConfig.bc_schedule
-# a DAgger cloning that leaves the new frames' loss above this fraction of ln(n actions) has learned next to nothing:
-# the sixth chain's MLP `w/o I²` stayed at 0.87-0.94 of it and its next rollouts succeeded in 0-8 % (`full`'s 0.50-0.59,
-# 50-65 %; docs/results.md#mlp-no-i2-chain6)
+CRITIC_FEATURES = ("shared", "detached")  # TeacherConfig.critic_features, FinetuneConfig.critic_features
+# an MLP-head DAgger cloning that leaves the new frames' loss above this fraction of ln(n actions) has learned next to
+# nothing: the sixth chain's MLP `w/o I²` stayed at 0.87-0.94 of it and its next rollouts succeeded in 0-8 %
+# (`full`'s 0.50-0.59, 50-65 %; docs/results.md#mlp-no-i2-chain6)
 NEAR_UNIFORM = 0.85
 
 
@@ -179,7 +180,6 @@ def near_uniform_warning(loss: float, n_actions: int, what: str) -> str | None:
     return (f"{what}: after cloning, the loss on the iteration's frames is {loss:.2f} nats, near a uniform choice "
             f"({uniform:.2f} = ln {n_actions}): the next rollouts are driven by a student that has learned little, and "
             f"end sooner (more cloning per iteration: train.dagger.bc_epochs, or train.dagger.bc_schedule: pool)")
-CRITIC_FEATURES = ("shared", "detached")  # TeacherConfig.critic_features, FinetuneConfig.critic_features
 
 
 @dataclass
@@ -728,7 +728,10 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                                        cache=cache)
             after = bc_loss(policy, new)
             n_actions = int(getattr(policy.action_space, "n", 0))  # the students' action grid (Discrete)
-            warning = near_uniform_warning(after, n_actions, f"student {cfg.variant} iteration {k}")
+            # the MLP head's logits start near 0, so its loss starts at ln n; the lookahead head's scores are scaled
+            # (rl.lookahead.SCORE_SCALE): its hard-label loss is not bounded by ln n (24-34 nats on a good student)
+            warning = (None if has_lookahead(policy)
+                       else near_uniform_warning(after, n_actions, f"student {cfg.variant} iteration {k}"))
             if warning:
                 log.warning(warning)
             soft_ce = ({"soft_ce_new_before": soft_before,
