@@ -166,8 +166,8 @@ class TeacherConfig:
 BC_SCHEDULES = ("pool", "new")  # DaggerConfig.bc_schedule
 CRITIC_FEATURES = ("shared", "detached")  # TeacherConfig.critic_features, FinetuneConfig.critic_features
 # an MLP-head DAgger cloning that leaves the new frames' loss above this fraction of ln(n actions) has learned next to
-# nothing: the sixth chain's MLP `w/o I²` stayed at 0.87-0.94 of it and its next rollouts succeeded in 0-8 %
-# (`full`'s 0.50-0.59, 50-65 %; docs/results.md#mlp-no-i2-chain6)
+# nothing: the sixth chain's MLP `w/o I²` stayed at 0.87-0.94 of it (iterations 1-7) and its next rollouts succeeded
+# in 0-8 % (`full`'s 0.50-0.58, 50-65 %; docs/results.md#mlp-no-i2-chain6)
 NEAR_UNIFORM = 0.85
 
 
