@@ -271,18 +271,20 @@ def paired_by_line(res: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _p(test: dict[str, Any]) -> str:
+    """An exact McNemar test's p-value for a table cell ("—" where no pair is discordant)."""
+    return "—" if math.isnan(test["p_value"]) else f"{test['p_value']:.3g}"
+
+
 def paired_markdown(paired: dict[str, Any]) -> str:
     lines = ["", f"Paired with {paired['base']} on the same seeds (exact McNemar on who alone succeeded)", "",
              "| episodes | pairs | SR base | SR this run | only base / only this run | p |", "|---|---|---|---|---|---|"]
     for name, g in paired["groups"].items():
-        p = "—" if math.isnan(g["p_value"]) else f"{g['p_value']:.3g}"
         lines.append(f"| {name} | {g['n']} | {g['sr_base']:.3f} | {g['sr_run']:.3f} | {g['a_only']} / {g['b_only']} "
-                     f"| {p} |")
+                     f"| {_p(g)} |")
     lines += ["", "Pedestrian hits on the same seeds, by where the person hit was (exact McNemar on who alone had one)", "",
               "| pedestrian hit | only base / only this run | p |", "|---|---|---|"]
-    for name, g in paired.get("ped_hits", {}).items():
-        p = "—" if math.isnan(g["p_value"]) else f"{g['p_value']:.3g}"
-        lines.append(f"| {name} | {g['a_only']} / {g['b_only']} | {p} |")
+    lines += [f"| {name} | {g['a_only']} / {g['b_only']} | {_p(g)} |" for name, g in paired.get("ped_hits", {}).items()]
     return "\n".join(lines) + "\n"
 
 
