@@ -32,6 +32,7 @@ import json
 import os
 import tempfile
 import time
+import zlib
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -267,6 +268,32 @@ def feature_files(iter_dirs: list[Path]) -> list[Path]:
     """Every finished episode's ``features/<episode>.npz`` of these iterations, in order."""
     return [f for d in iter_dirs for f in sorted((Path(d) / "features").glob("*.npz"))
             if not f.name.endswith(".tmp.npz")]
+
+
+def held_out_episode(name: str, fraction: float) -> bool:
+    """Whether the episode ``name`` (its features file's stem) is in the cloning's held-out share ``fraction``: a
+    hash of the name, so an episode stays on its side of the split as later iterations join the pool, and the share
+    spreads over scenes and densities (the rollout index would not: jobs cycle through the scene-density pairs)."""
+    return zlib.crc32(name.encode()) % 10_000 < fraction * 10_000
+
+
+def held_out_frames(iter_dirs: list[Path], fraction: float) -> np.ndarray:
+    """Per frame of :func:`load_features` (same order), whether it belongs to a held-out episode
+    (:func:`held_out_episode`). At least one episode is held out and at least one is not, when there are two."""
+    files = feature_files(iter_dirs)
+    lengths = []
+    for f in files:
+        try:
+            with np.load(f) as z:
+                lengths.append(len(z["action"]))
+        except (OSError, ValueError, KeyError, EOFError) as e:
+            raise InputMissingError(f"{f}: unreadable cached features ({type(e).__name__}: {e})") from None
+    out = np.array([held_out_episode(f.stem, fraction) for f in files], bool)
+    if len(files) > 1 and not out.any():  # the smallest hash: a tiny pool still gets a held-out episode
+        out[int(np.argmin([zlib.crc32(f.stem.encode()) for f in files]))] = True
+    if len(files) > 1 and out.all():
+        out[int(np.argmax([zlib.crc32(f.stem.encode()) for f in files]))] = False
+    return np.repeat(out, lengths)
 
 
 def load_features(iter_dirs: list[Path], keys: tuple[str, ...] | None = None, memory_gb: float | None = None,

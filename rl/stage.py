@@ -76,7 +76,15 @@ from rl.baselines.drl_vo.configuration import Config as DRLVOConfig
 from rl.baselines.sarl_om.configuration import Config as SARLOMConfig
 from rl.baselines.vint.configuration import Config as ViNTConfig
 from rl.callbacks import checkpoint_callback, learn_with_critic_warmup, progress_callback, save_ppo
-from rl.dagger import bev_stats, export_iteration, iteration_timing, load_features, run_iteration, write_done
+from rl.dagger import (
+    bev_stats,
+    export_iteration,
+    held_out_frames,
+    iteration_timing,
+    load_features,
+    run_iteration,
+    write_done,
+)
 from rl.evaluate import evaluate, success_table
 from rl.figures import plot_learning_curve, plot_training
 from rl.lookahead import LINEAR_TERMS, PED_TERMS, check_shield_s
@@ -200,6 +208,14 @@ class DaggerConfig:
     # final policy (dagger/final/): for the MLP head's own 8 x 60 run three such clonings drove +0.080 / +0.053 /
     # +0.013 SR better than the warm-started last iteration, only the first significant (docs/results.md, the MLP head)
     final_clone: bool = False
+    # an adaptive cloning budget (0 = off: bc_epochs, every frame cloned): a share bc_holdout of the episodes (a hash
+    # of their names: the same episodes through every iteration) is never cloned on, and each cloning — every
+    # iteration's and the final one — runs at least bc_epochs and on up to bc_max_epochs while its loss on those
+    # episodes reaches a new best within bc_patience epochs, keeping its best epoch's weights
+    # (rl.teacher.behaviour_clone). Built for the MLP head whose 8-epoch clonings stayed near chance (w/o I², chain 6)
+    bc_max_epochs: int = 0
+    bc_patience: int = 2
+    bc_holdout: float = 0.1
     bc_batch: int = 128
     bc_lr: float = 5e-4
     soft_tau: float = 1.0  # > 0: clone the teacher's action distribution softmax(logits / soft_tau); 0: its argmax
@@ -374,6 +390,13 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError(f"train.dagger.soft_tau: expected >= 0, got {d.soft_tau}")
         if d.bc_schedule not in BC_SCHEDULES:
             raise ConfigError(f"train.dagger.bc_schedule: expected one of {list(BC_SCHEDULES)}, got {d.bc_schedule!r}")
+        if d.bc_max_epochs and not (d.bc_max_epochs >= d.bc_epochs and d.bc_patience >= 1
+                                    and 0 < d.bc_holdout < 1):  # NaN fails too
+            raise ConfigError(f"train.dagger: the adaptive budget expects bc_max_epochs >= bc_epochs, bc_patience >= 1 "
+                              f"and 0 < bc_holdout < 1, got {d.bc_max_epochs} (bc_epochs {d.bc_epochs}), "
+                              f"{d.bc_patience}, {d.bc_holdout}")
+        if d.bc_max_epochs < 0:
+            raise ConfigError(f"train.dagger.bc_max_epochs: expected an integer >= 0 (0 = off), got {d.bc_max_epochs}")
         if not d.pool_memory_gb > 0:  # NaN fails too
             raise ConfigError(f"train.dagger.pool_memory_gb: expected > 0 (GiB), got {d.pool_memory_gb}")
         it = self.intention_tune
@@ -710,6 +733,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             int_dir = it / "intention"
         with clock("pool"):
             data, soft = _cloning_pool(out, k + 1, d)
+            held = held_out_frames(_iter_dirs(out, k + 1), d.bc_holdout) if d.bc_max_epochs else None
         with clock("clone"):  # the lookahead features, the linear fit, the cloning, and its losses
             # the newest iteration's frames: the pool's tail after the earlier iterations' frames_total (views)
             new = {key: v[frames_total:] for key, v in data.items()}
@@ -718,14 +742,17 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             before = bc_loss(policy, new)  # the hard-label loss (bc_loss reads costs only with soft_tau)
             if soft:
                 soft_before = bc_loss(policy, new, soft_tau=d.soft_tau)
-            epoch = len(new["action"] if d.bc_schedule == "new" else data["action"])  # = the default epoch for pool
-            clone_samples = d.bc_epochs * epoch
+            # samples per epoch: the new frames' count, drawn from the pool ("new"), or the pool's cloned frames
+            # ("pool": the default epoch); an adaptive budget's held-out frames are never drawn
+            epoch = len(new["action"]) if d.bc_schedule == "new" else int(len(data["action"]) - (
+                0 if held is None else held.sum()))
             if has_lookahead(policy):  # a resumed run computes the earlier iterations' features once, then appends
                 cache = (lookahead_feature_cache(policy, data, d.mirror, n_rot) if cache is None
                          else extend_feature_cache(cache, lookahead_feature_cache(policy, new, d.mirror, n_rot)))
             hist, linear_fit = distill(policy, data, d, cfg.map_signs, cfg.seed + k, n_rot, inherited, soft,
                                        cfg.progress, f"student {cfg.variant} iteration {k}", epoch_size=epoch,
-                                       cache=cache)
+                                       cache=cache, held_out=held)
+            clone_samples = len(hist) * epoch
             after = bc_loss(policy, new)
             n_actions = int(getattr(policy.action_space, "n", 0))  # the students' action grid (Discrete)
             # the MLP head's logits start near 0, so its loss starts at ln n; the lookahead head's scores are scaled
@@ -737,8 +764,9 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
             soft_ce = ({"soft_ce_new_before": soft_before,
                         "soft_ce_new_after": bc_loss(policy, new, soft_tau=d.soft_tau)} if soft else {})
         frames_total = int(len(data["action"]))
-        for r in hist:
-            logger.add("dagger_bc", k * d.bc_epochs + r["epoch"], bc_loss=r["bc_loss"], accuracy=r["accuracy"])
+        for r in hist:  # (an iteration's epochs fill the steps k·E .. k·E + E-1, E its most epochs)
+            logger.add("dagger_bc", k * max(d.bc_epochs, d.bc_max_epochs) + r["epoch"], bc_loss=r["bc_loss"], accuracy=r["accuracy"],
+                       **({"held_out_loss": r["held_out_loss"]} if "held_out_loss" in r else {}))
         sr_rollout = float(np.mean([r["outcome"] == "success" for r in rows]))
         logger.add("dagger", k, rollout_success=sr_rollout, bc_loss_new_before=before, bc_loss_new_after=after,
                    aggregate_frames=frames_total, **soft_ce)
@@ -747,7 +775,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 "student_steps": int(sum(r["student_steps"] for r in rows)),
                 "bc_loss_new_before": before, "bc_loss_new_after": after, "final_accuracy": hist[-1]["accuracy"],
                 **({"uniform_loss": math.log(n_actions)} if n_actions > 1 else {}),
-                "clone_samples": clone_samples,
+                "clone_samples": clone_samples, **adaptive_record(hist, held),
                 "dataset": str(it / "dataset"), "dataset_frames": counts["frames"], **soft_ce,
                 **({"linear_fit": linear_fit} if linear_fit else {}), **({"intention_tune": tuned} if tuned else {}),
                 "timing": iteration_timing(clock.seconds, rows, int(len(new["action"])), resumed)}
@@ -766,6 +794,9 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     produced = {"teacher": relative_to(teacher_dir, out), "dagger_iterations": d.iterations,
                 "dagger_frames": frames_total, "dagger_bc_schedule": d.bc_schedule, "ppo_finetune_steps": 0,
                 "bc_precision": resolve_precision(d.bc_precision, device, "train.dagger.bc_precision")}
+    if d.bc_max_epochs:
+        produced["dagger_bc_adaptive"] = {"min_epochs": d.bc_epochs, "max_epochs": d.bc_max_epochs,
+                                          "patience": d.bc_patience, "holdout": d.bc_holdout}
     if d.final_clone:
         produced["dagger_final_clone"] = {k: summary["final_clone"][k] for k in ("frames", "clone_samples", "seed")}
     produced["intention"] = (None if int_dir is None else "frozen" if int_dir == intention_dir(cfg)
@@ -782,12 +813,28 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
     return summary
 
 
+def _iter_dirs(out: Path, n_iters: int) -> list[Path]:
+    return [out / "dagger" / f"iter_{j}" for j in range(n_iters)]
+
+
+def adaptive_record(hist: list[dict[str, float]], held: np.ndarray | None) -> dict[str, Any]:
+    """What an adaptive cloning (``dagger.bc_max_epochs``) records in ``done.json``: the epochs it ran, the epoch
+    whose weights it kept, that epoch's held-out loss, and the held-out frames (nothing without a budget; a pool of
+    one episode holds none out and is cloned ``bc_epochs``)."""
+    if held is None:
+        return {}
+    if not held.any():  # a pool of one episode: nothing to hold out, the fixed budget
+        return {"clone_epochs": len(hist), "held_out_frames": 0}
+    best = next(r for r in hist if r["best"])
+    return {"clone_epochs": len(hist), "best_epoch": int(best["epoch"]), "held_out_loss": best["held_out_loss"],
+            "held_out_frames": int(held.sum())}
+
+
 def _cloning_pool(out: Path, n_iters: int, d: DaggerConfig) -> tuple[dict[str, np.ndarray], bool]:
     """The cached frames of DAgger iterations 0 .. n_iters-1 as one pool (rl.dagger.load_features), and whether the
     cloning is soft: every episode has the teacher's logits (the pool keeps only keys all episodes hold), turned into
     ``costs`` — softmin(-logits / τ) is the teacher's distribution softmax(logits / τ)."""
-    data = load_features([out / "dagger" / f"iter_{j}" for j in range(n_iters)], memory_gb=d.pool_memory_gb,
-                         scratch=out / "dagger")
+    data = load_features(_iter_dirs(out, n_iters), memory_gb=d.pool_memory_gb, scratch=out / "dagger")
     soft = d.soft_tau > 0 and "teacher_logits" in data
     if soft:
         data["costs"] = -data.pop("teacher_logits")
@@ -825,6 +872,7 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
     clock = PhaseClock()
     with clock("pool"):
         data, soft = _cloning_pool(out, d.iterations, d)
+        held = held_out_frames(_iter_dirs(out, d.iterations), d.bc_holdout) if d.bc_max_epochs else None
     if len(data["action"]) != frames_total:  # before the cloning, not after it
         raise CorruptArtifactError(f"{out / 'dagger'}: the iterations' features hold {len(data['action'])} frames, "
                                    f"their done.json files {frames_total}; delete {fin} and the damaged iteration to "
@@ -835,9 +883,10 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
         policy.to(device)
         hist, _ = distill(policy, data, d, cfg.map_signs, seed, n_rot, inherited, soft, cfg.progress,
                           f"student {cfg.variant} final cloning",
-                          cache=cache)
-    info = {"frames": frames_total, "clone_samples": d.bc_epochs * frames_total, "seed": seed,
-            "final_bc_loss": hist[-1]["bc_loss"], "seconds": clock.seconds}
+                          cache=cache, held_out=held)
+    cloned = frames_total - (0 if held is None else int(held.sum()))
+    info = {"frames": frames_total, "clone_samples": len(hist) * cloned, "seed": seed,
+            "final_bc_loss": hist[-1]["bc_loss"], **adaptive_record(hist, held), "seconds": clock.seconds}
     save_policy(fin / "policy", policy, describe("student", cfg.variant, space, net, **extra,
                                                  intention=str(int_dir) if int_dir else None,
                                                  produced_by={"dagger_iterations": d.iterations,
@@ -848,16 +897,24 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
 
 def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str, seed: int, n_rot: int,
             inherited: bool, soft: bool, progress: bool = True, label: str = "student",
-            epoch_size: int | None = None, cache: tuple[np.ndarray, np.ndarray | None] | None = None
-            ) -> tuple[list[dict[str, float]], dict[str, Any] | None]:
+            epoch_size: int | None = None, cache: tuple[np.ndarray, np.ndarray | None] | None = None,
+            held_out: np.ndarray | None = None) -> tuple[list[dict[str, float]], dict[str, Any] | None]:
     """One cloning of a student on ``data`` (the aggregate of DAgger frames, ``costs`` = the teacher's negated logits
     when ``soft``): for the lookahead head its rollout features once, the convex fit of the linear cost terms
     ``d.linear_cost`` names (the map cost on top of an ``inherited`` teacher cost by default), then
     :func:`behaviour_clone` of every other weight (``epoch_size`` samples per epoch: all of ``data`` by default).
     ``cache``: :func:`rl.teacher.lookahead_feature_cache` of ``data`` when the caller has it (computed here
-    otherwise). Returns the cloning's per-epoch rows and the linear fit's record (None without one). Used by every
-    DAgger iteration and by ``rl.data_scale``."""
+    otherwise). ``held_out`` (per frame, with ``d.bc_max_epochs``): the frames of the adaptive budget's held-out
+    episodes — neither the linear fit nor the cloning sees them, the cloning stops on its loss over them. Returns the
+    cloning's per-epoch rows and the linear fit's record (None without one). Used by every DAgger iteration and by
+    ``rl.data_scale``."""
     linear_fit = None
+    adaptive = {}
+    if held_out is not None and held_out.any() and d.bc_max_epochs:
+        idx = np.flatnonzero(~held_out)
+        keys = (*policy.observation_space.spaces, "action", *(("costs",) if soft else ()))
+        adaptive = {"indices": idx, "max_epochs": d.bc_max_epochs, "patience": d.bc_patience,
+                    "held_out": {k: data[k][held_out] for k in keys}}
     if has_lookahead(policy):  # rollout features once; the linear cost by convex regression, then the rest
         if cache is None:
             cache = lookahead_feature_cache(policy, data, d.mirror, n_rot)
@@ -868,8 +925,13 @@ def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str
         map_head = policy.features_extractor.lookahead.n_map > 0
         terms, fitted = LINEAR_COSTS[d.linear_cost]
         if soft and (terms != "map" or map_head):  # the map cost is fitted on top of an inherited linear cost
-            linear_fit = fit_lookahead_linear(policy, data, d.soft_tau, seed=seed, mirror=d.mirror,
-                                              n_rot=n_rot, cache=cache, terms=terms, map_signs=map_signs)
+            fit_data, fit_cache = data, cache
+            if adaptive:  # copies of the cloned frames (the lookahead pools are small)
+                fit_data = {k: v[adaptive["indices"]] for k, v in data.items()}
+                fit_cache = (cache[0][adaptive["indices"]],
+                             None if cache[1] is None else cache[1][adaptive["indices"]])
+            linear_fit = fit_lookahead_linear(policy, fit_data, d.soft_tau, seed=seed, mirror=d.mirror,
+                                              n_rot=n_rot, cache=fit_cache, terms=terms, map_signs=map_signs)
             log.info("%s: %s cost fit on %d frames, cross-entropy %.3f -> %.3f%s%s%s",
                      label, fitted, linear_fit["frames"], linear_fit["ce_before"], linear_fit["ce_after"],
                      f", pedestrian weights {[linear_fit['linear_weights'][n] for n in PED_NAMES]}"
@@ -880,7 +942,7 @@ def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str
                            soft_tau=d.soft_tau if soft else 0.0, mirror=d.mirror, n_rot=n_rot,
                            frozen=FITTED_PREFIXES if (linear_fit or inherited) else (), cache=cache,
                            precision=resolve_precision(d.bc_precision, policy.device, "train.dagger.bc_precision"),
-                           epoch_size=epoch_size)
+                           epoch_size=epoch_size, **adaptive)
     return hist, linear_fit
 
 

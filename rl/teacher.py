@@ -257,7 +257,9 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
                     progress: bool = True, soft_tau: float = 0.0, mirror: bool = False,
                     n_rot: int = 21, frozen: tuple[str, ...] = (),
                     cache: tuple[np.ndarray, np.ndarray | None] | None = None,
-                    precision: str = "fp32", epoch_size: int | None = None) -> list[dict[str, float]]:
+                    precision: str = "fp32", epoch_size: int | None = None, indices: np.ndarray | None = None,
+                    held_out: dict[str, np.ndarray] | None = None, max_epochs: int | None = None,
+                    patience: int = 2) -> list[dict[str, float]]:
     """Cross-entropy on ``data["action"]`` (+ value regression on ``data["return"]`` when present).
 
     With ``soft_tau > 0`` and ``data["costs"]`` (the expert's cost of every action), the target is the softmin
@@ -275,25 +277,37 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     ``epoch_size``: samples per epoch (default: all of ``data``), drawn from one stream of shuffled passes over all of
     ``data`` — every frame once per pass, a pass running on across epochs — so ``epochs`` x ``epoch_size`` samples in
     all, whatever the size of ``data`` (DAgger's ``bc_schedule: new``: passes over each iteration's new frames, drawn
-    from the whole pool). With ``epoch_size`` = ``len(data)`` it is the default, to the bit.
+    from the whole pool). With ``epoch_size`` = ``len(data)`` it is the default, to the bit. ``indices``: the rows of
+    ``data`` the cloning may draw (default: all; the passes are over these).
 
-    Returns one row per epoch: ``{"epoch", "bc_loss", "accuracy", "value_loss"}`` (means over the epoch).
+    An adaptive budget (``held_out``: frames never cloned on, and ``max_epochs`` > ``epochs``): after every epoch the
+    cloning objective on ``held_out`` (:func:`bc_loss`, evaluation mode, unmirrored); past ``epochs`` the cloning goes
+    on while that loss keeps reaching a new best within ``patience`` epochs, up to ``max_epochs``, and ends with the
+    weights of its best epoch (early stopping: a student still learning gets more steps, one that has stopped does
+    not; either way at least ``epochs`` epochs run, and the weights kept are those of the best held-out epoch).
+
+    Returns one row per epoch run: ``{"epoch", "bc_loss", "accuracy", "value_loss"}`` (means over the epoch), with
+    ``held_out_loss`` and ``best`` (True on the epoch whose weights are kept) when ``held_out`` is given.
     """
     from tqdm import tqdm
 
     keys = keys or tuple(policy.observation_space.spaces)
     dev = policy.device
-    n = len(data["action"])
+    n = len(data["action"]) if indices is None else len(indices)
     per_epoch = n if epoch_size is None else int(epoch_size)
     if per_epoch < 1:
         raise ConfigError(f"behaviour_clone epoch_size: expected an integer >= 1, got {epoch_size}")
+    if n < 1:
+        raise InputMissingError("behaviour_clone: no frames to clone (every frame held out, or an empty set)")
+    last_epoch = epochs if held_out is None or max_epochs is None else max(epochs, int(max_epochs))
     g = torch.Generator().manual_seed(seed)
     stream = np.empty(0, np.int64)  # the unused rest of the current shuffled pass over the data
 
     def draw(m: int) -> np.ndarray:  # the next m sample indices of the stream of passes
         nonlocal stream
         while len(stream) < m:
-            stream = np.concatenate([stream, torch.randperm(n, generator=g).numpy()])
+            perm = torch.randperm(n, generator=g).numpy()
+            stream = np.concatenate([stream, perm if indices is None else np.asarray(indices)[perm]])
         out, stream = stream[:m], stream[m:]
         return out
 
@@ -327,8 +341,9 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     policy.zero_grad(set_to_none=True)  # nothing left over from an earlier fit or cloning
     for p in held:
         p.requires_grad_(False)
+    best: tuple[float, int, dict[str, torch.Tensor]] | None = None  # held-out loss, epoch, weights
     try:
-        for epoch in tqdm(range(epochs), desc=f"behaviour cloning ({precision})", unit="epoch",
+        for epoch in tqdm(range(last_epoch), desc=f"behaviour cloning ({precision})", unit="epoch",
                           disable=not progress, dynamic_ncols=True):
             perm = draw(per_epoch)
             tot = {"bc_loss": 0.0, "accuracy": 0.0, "value_loss": 0.0}
@@ -367,6 +382,19 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
                 tot["bc_loss"] += loss_bc.item() * len(idx)
                 tot["accuracy"] += float((pred == act_t).float().sum())
             rows.append({"epoch": epoch, **{k: v / per_epoch for k, v in tot.items()}})
+            if held_out is None:
+                continue
+            policy.set_training_mode(False)
+            rows[-1]["held_out_loss"] = loss = bc_loss(policy, held_out, soft_tau=soft_tau)
+            policy.set_training_mode(True)
+            if best is None or loss < best[0]:
+                best = (loss, epoch, {k: v.detach().clone() for k, v in policy.state_dict().items()})
+            if epoch + 1 >= epochs and epoch - best[1] >= patience:
+                break  # no new best for `patience` epochs past the minimum
+        if best is not None:
+            policy.load_state_dict(best[2])
+            for r in rows:
+                r["best"] = r["epoch"] == best[1]
     finally:
         for m in convs:
             m.to(memory_format=torch.contiguous_format)

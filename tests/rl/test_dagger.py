@@ -167,3 +167,39 @@ def test_the_students_rollout_steps_are_its_shielded_actions(tmp_path):
     assert TARGET in intruding and rollout["plain"] == TARGET
     assert rollout["shielded"] not in intruding and rollout["shielded"] == deployed.act(obs, info)
     assert rollout["teacher"] == 3 and mlp_shield(SIM, 0.0) is None
+
+
+def test_held_out_episodes_keep_their_side_as_the_pool_grows(tmp_path):
+    """The adaptive cloning budget's held-out episodes (``dagger.bc_holdout``) are chosen by a hash of their names:
+    per frame in the pool's order, the same episodes whichever iterations are pooled, spread over scenes; a pool of
+    two episodes still has one on each side."""
+    from rl.dagger import held_out_episode, held_out_frames
+
+    names = [f"{s}_d{x}_s{e}" for e in range(40) for s, x in [("hallway", 0.1), ("corner", 0.2)]]
+    for k in range(2):
+        for j, name in enumerate(names[k::2]):
+            _episode(tmp_path / f"iter_{k}" / "features" / f"{name}.npz", 3 + j % 4, j)
+    one = held_out_frames([tmp_path / "iter_0"], 0.25)
+    both = held_out_frames([tmp_path / "iter_0", tmp_path / "iter_1"], 0.25)
+    assert len(one) == len(load_features([tmp_path / "iter_0"])["action"]) and np.array_equal(both[:len(one)], one)
+    chosen = {n for n in names if held_out_episode(n, 0.25)}
+    assert 0 < len(chosen) < len(names) and {n.split("_")[0] for n in chosen} == {"hallway", "corner"}
+    lengths = [len(np.load(f)["action"]) for f in feature_files([tmp_path / "iter_0", tmp_path / "iter_1"])]
+    per_episode = np.add.reduceat(both, np.cumsum([0, *lengths[:-1]]))
+    assert [bool(c) for c in per_episode] == [held_out_episode(f.stem, 0.25) for f in
+                                               feature_files([tmp_path / "iter_0", tmp_path / "iter_1"])]
+    small = tmp_path / "small"
+    for j in range(2):
+        _episode(small / "features" / f"hallway_d0.1_s{j}.npz", 4, j)
+    for fraction in (1e-4, 0.9999):
+        mask = held_out_frames([small], fraction)
+        assert mask[:4].all() != mask[4:].all() and mask.sum() == 4
+
+
+@pytest.mark.parametrize("over,field", [({"dagger.bc_max_epochs": "1", "dagger.bc_epochs": "2"}, "bc_max_epochs"),
+                                        ({"dagger.bc_max_epochs": "4", "dagger.bc_holdout": "nan"}, "bc_holdout"),
+                                        ({"dagger.bc_max_epochs": "4", "dagger.bc_patience": "0"}, "bc_patience"),
+                                        ({"dagger.bc_max_epochs": "-1"}, "bc_max_epochs")])
+def test_a_wrong_adaptive_budget_is_named(over, field):
+    with pytest.raises(ConfigError, match=rf"dagger.*{field}"):
+        load_config(TrainConfig, "train", "smoke", over)

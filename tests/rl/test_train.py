@@ -1,6 +1,7 @@
 """Teacher, DAgger and the train stage on tiny sizes (real envs, real rendering, real files)."""
 
 import json
+import math
 import re
 import shutil
 import tempfile
@@ -23,7 +24,7 @@ from rl.dagger import PHASES, load_features
 from rl.driver import PolicyDriver
 from rl.lookahead import LINEAR_TERMS, SCORE_SCALE
 from rl.policy import act, build_policy, check_checkpoint_weights, describe, load_policy, save_policy
-from rl.stage import NEAR_UNIFORM, acceptance, near_uniform_warning
+from rl.stage import NEAR_UNIFORM, acceptance, adaptive_record, near_uniform_warning
 from rl.teacher import (
     SceneMixEnv,
     bc_loss,
@@ -368,6 +369,35 @@ def test_new_frames_schedule_and_a_final_fresh_cloning(tmp_path, teacher_dir, ca
     assert json.loads((out / "metrics.json").read_text())["final_clone"]["marker"] == 1
     timings_main([str(tmp_path)])  # the final cloning's time after the loop's
     assert f"Final cloning (dagger/final): a fresh student on {fin['frames']:,} frames" in capsys.readouterr().out
+
+
+def test_an_adaptive_cloning_budget_in_the_dagger_loop(tmp_path, teacher_dir):
+    """``dagger.bc_max_epochs``: every iteration's cloning and the final one clone on the episodes outside the
+    held-out share (``bc_holdout``), run between ``bc_epochs`` and ``bc_max_epochs`` epochs, and record how many, the
+    epoch kept, its held-out loss and frames; the checkpoint names the budget."""
+    from pipeline.verbs.train import run
+    from rl.dagger import held_out_frames
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    cfg = {"dagger.bc_schedule": "new", "dagger.final_clone": "true", "dagger.bc_max_epochs": "5",
+           "dagger.bc_holdout": "0.5", "dagger.episodes_per_iter": "3"}
+    run(_train_cfg(tmp_path, "no_bev", head="mlp", **cfg))
+    out = tmp_path / "checkpoints" / "policy" / "no_bev"
+    its = json.loads((out / "metrics.json").read_text())["dagger"]
+    iters = [out / "dagger" / f"iter_{k}" for k in range(len(its))]
+    for k, it in enumerate(its):
+        held = held_out_frames(iters[:k + 1], 0.5)
+        assert 2 <= it["clone_epochs"] <= 5 and 0 <= it["best_epoch"] < it["clone_epochs"]
+        assert it["held_out_frames"] == int(held.sum()) > 0
+        assert it["clone_samples"] == it["clone_epochs"] * it["frames"]  # schedule new: epochs of the new frames' size
+        assert math.isfinite(it["held_out_loss"])
+    fin = json.loads((out / "dagger" / "final" / "done.json").read_text())
+    assert 2 <= fin["clone_epochs"] <= 5 and fin["held_out_frames"] == its[-1]["held_out_frames"]
+    assert fin["clone_samples"] == fin["clone_epochs"] * (fin["frames"] - fin["held_out_frames"])
+    produced = json.loads((out / "policy.json").read_text())["produced_by"]
+    assert produced["dagger_bc_adaptive"] == {"min_epochs": 2, "max_epochs": 5, "patience": 2, "holdout": 0.5}
+    # a pool of one episode holds nothing out: that cloning keeps the fixed budget, and says so
+    assert adaptive_record([{"epoch": 0}, {"epoch": 1}], np.zeros(7, bool)) == {"clone_epochs": 2, "held_out_frames": 0}
 
 
 @pytest.mark.parametrize("critic,temperature", [("shared", 1.0), ("detached", 0.5)])
@@ -1052,3 +1082,39 @@ def test_a_cloning_left_near_a_uniform_choice_is_warned_about():
     assert 4.2 > NEAR_UNIFORM * uniform and msg.startswith("student no_i2 iteration 3: after cloning, the loss")
     assert "4.20 nats" in msg and "4.65 = ln 105" in msg and "train.dagger.bc_epochs" in msg
     assert near_uniform_warning(float("nan"), 105, "x") is None and near_uniform_warning(9.0, 1, "x") is None
+
+
+def test_an_adaptive_cloning_goes_on_while_its_held_out_loss_falls_and_keeps_its_best_epoch():
+    """``behaviour_clone(held_out=..., max_epochs=...)`` (``dagger.bc_max_epochs``): it draws only ``indices``, scores
+    every epoch on frames it never clones on, runs past ``epochs`` while that loss still reaches new bests (a learnable
+    rule), stops ``patience`` epochs after its best when it no longer does (labels that are noise), and ends with its
+    best epoch's weights."""
+    from rl.teacher import bc_loss
+
+    space, data = _random_no_bev_frames(240)
+    rule = (data["state"][:, 1] > 0).astype(np.int64) * 40
+    held = np.zeros(240, bool)
+    held[::4] = True
+
+    def clone(labels, **kw):
+        torch.manual_seed(0)
+        policy = build_policy("student", "no_bev", space, {"bev_width": 8})
+        out = {**{k: v[held] for k, v in data.items()}, "action": labels[held]}
+        frames = {**data, "action": labels.view(_Recorded)}
+        frames["action"].reads = []
+        rows = behaviour_clone(policy, frames, 2, 32, 1e-3, 0, progress=False, indices=np.flatnonzero(~held),
+                               held_out=out, max_epochs=40, patience=2, **kw)
+        return rows, policy, frames["action"].reads, out
+
+    rows, policy, reads, out = clone(rule)
+    drawn = np.concatenate(reads)
+    assert not held[drawn].any() and set(drawn.tolist()) == set(np.flatnonzero(~held).tolist())
+    best = [r for r in rows if r["best"]]
+    assert len(best) == 1 and len(rows) > 2  # still learning after the minimum: the budget grew
+    assert best[0]["held_out_loss"] == min(r["held_out_loss"] for r in rows)
+    assert len(rows) == 40 or rows[-1]["epoch"] - best[0]["epoch"] == 2
+    assert bc_loss(policy, out) == pytest.approx(best[0]["held_out_loss"], rel=1e-5)  # the best epoch's weights
+    noise = np.random.default_rng(1).integers(0, 105, 240)
+    rows, _, _, _ = clone(noise)
+    best = next(r for r in rows if r["best"])
+    assert len(rows) < 40 and rows[-1]["epoch"] - best["epoch"] == 2 and len(rows) >= 2
