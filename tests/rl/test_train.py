@@ -355,7 +355,8 @@ def test_new_frames_schedule_and_a_final_fresh_cloning(tmp_path, teacher_dir, ca
     assert produced["dagger_bc_schedule"] == "new"
     fin = json.loads((out / "dagger" / "final" / "done.json").read_text())
     assert fin["frames"] == its[1]["aggregate_frames"] and fin["clone_samples"] == 2 * fin["frames"]
-    assert produced["dagger_final_clone"] == {k: fin[k] for k in ("frames", "clone_samples", "seed")}
+    assert produced["dagger_final_clone"] == {k: fin[k] for k in ("frames", "clone_samples", "seed", "kept")}
+    assert fin["kept"] == "fresh"  # no held-out episodes to choose by: the fresh student, always
     saved = (out / "policy.safetensors").read_bytes()
     assert saved == (out / "dagger" / "final" / "policy" / "policy.safetensors").read_bytes()
     assert saved != (out / "dagger" / "iter_1" / "policy" / "policy.safetensors").read_bytes()
@@ -371,10 +372,11 @@ def test_new_frames_schedule_and_a_final_fresh_cloning(tmp_path, teacher_dir, ca
     assert f"Final cloning (dagger/final): a fresh student on {fin['frames']:,} frames" in capsys.readouterr().out
 
 
-def test_an_adaptive_cloning_budget_in_the_dagger_loop(tmp_path, teacher_dir):
+def test_an_adaptive_cloning_budget_in_the_dagger_loop(tmp_path, teacher_dir, monkeypatch):
     """``dagger.bc_max_epochs``: every iteration's cloning and the final one clone on the episodes outside the
     held-out share (``bc_holdout``), run between ``bc_epochs`` and ``bc_max_epochs`` epochs, and record how many, the
-    epoch kept, its held-out loss and frames; the checkpoint names the budget."""
+    epoch kept, its held-out loss and frames; the checkpoint names the budget. The final fresh cloning is kept only
+    where it does better on the held-out episodes than the last iteration's student; else that student is saved."""
     from pipeline.verbs.train import run
     from rl.dagger import held_out_frames
 
@@ -396,6 +398,19 @@ def test_an_adaptive_cloning_budget_in_the_dagger_loop(tmp_path, teacher_dir):
     assert fin["clone_samples"] == fin["clone_epochs"] * (fin["frames"] - fin["held_out_frames"])
     produced = json.loads((out / "policy.json").read_text())["produced_by"]
     assert produced["dagger_bc_adaptive"] == {"min_epochs": 2, "max_epochs": 5, "patience": 2, "holdout": 0.5}
+    assert fin["kept"] == ("fresh" if fin["held_out_loss"] < fin["last_iteration_held_out_loss"] else "last_iteration")
+    assert produced["dagger_final_clone"]["kept"] == fin["kept"]
+    # a last iteration's student that does better on the held-out episodes (its loss stood in for by 0) is kept
+    for name in ("manifest.json", "policy.safetensors", "policy.json", "metrics.json"):
+        (out / name).unlink()
+    shutil.rmtree(out / "dagger" / "final")
+    monkeypatch.setattr("rl.stage.bc_loss", lambda *a, **k: 0.0)
+    run(_train_cfg(tmp_path, "no_bev", head="mlp", resume="true", **cfg))
+    fin = json.loads((out / "dagger" / "final" / "done.json").read_text())
+    assert fin["kept"] == "last_iteration" and fin["last_iteration_held_out_loss"] == 0.0
+    saved, _ = load_policy(out)
+    last, _ = load_policy(out / "dagger" / f"iter_{len(its) - 1}" / "policy")
+    assert all(torch.equal(v, last.state_dict()[k]) for k, v in saved.state_dict().items())
     # a pool of one episode holds nothing out: that cloning keeps the fixed budget, and says so
     assert adaptive_record([{"epoch": 0}, {"epoch": 1}], np.zeros(7, bool)) == {"clone_epochs": 2, "held_out_frames": 0}
 
