@@ -213,7 +213,9 @@ class DaggerConfig:
     # of their names: the same episodes through every iteration) is never cloned on, and each cloning — every
     # iteration's and the final one — runs at least bc_epochs and on up to bc_max_epochs while its loss on those
     # episodes reaches a new best within bc_patience epochs, keeping its best epoch's weights
-    # (rl.teacher.behaviour_clone). Built for the MLP head whose 8-epoch clonings stayed near chance (w/o I², chain 6)
+    # (rl.teacher.behaviour_clone); an MLP-head cloning whose best held-out loss is still above NEAR_UNIFORM · ln n
+    # does not stop (its early plateau). Built for the MLP head whose 8-epoch clonings stayed near chance (w/o I²,
+    # chain 6); measured there: docs/results.md#mlp-adaptive-budget
     bc_max_epochs: int = 0
     bc_patience: int = 2
     bc_holdout: float = 0.1
@@ -941,8 +943,11 @@ def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str
     linear_fit = None
     adaptive = {}
     if held_out is not None and held_out.any() and d.bc_max_epochs:
+        n_actions = int(getattr(policy.action_space, "n", 0))
         adaptive = {"indices": np.flatnonzero(~held_out), "max_epochs": d.bc_max_epochs, "patience": d.bc_patience,
-                    "held_out": held_out_set(policy, data, held_out, soft)}
+                    "held_out": held_out_set(policy, data, held_out, soft),
+                    # the MLP head's plateau near ln n is not an end (the lookahead head's scores are not bounded so)
+                    "floor": None if has_lookahead(policy) or n_actions < 2 else NEAR_UNIFORM * math.log(n_actions)}
     if has_lookahead(policy):  # rollout features once; the linear cost by convex regression, then the rest
         if cache is None:
             cache = lookahead_feature_cache(policy, data, d.mirror, n_rot)

@@ -259,7 +259,7 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
                     cache: tuple[np.ndarray, np.ndarray | None] | None = None,
                     precision: str = "fp32", epoch_size: int | None = None, indices: np.ndarray | None = None,
                     held_out: dict[str, np.ndarray] | None = None, max_epochs: int | None = None,
-                    patience: int = 2) -> list[dict[str, float]]:
+                    patience: int = 2, floor: float | None = None) -> list[dict[str, float]]:
     """Cross-entropy on ``data["action"]`` (+ value regression on ``data["return"]`` when present).
 
     With ``soft_tau > 0`` and ``data["costs"]`` (the expert's cost of every action), the target is the softmin
@@ -284,7 +284,9 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
     cloning objective on ``held_out`` (:func:`bc_loss`, evaluation mode, unmirrored); past ``epochs`` the cloning goes
     on while that loss keeps reaching a new best within ``patience`` epochs, up to ``max_epochs``, and ends with the
     weights of its best epoch (early stopping: a student still learning gets more steps, one that has stopped does
-    not; either way at least ``epochs`` epochs run, and the weights kept are those of the best held-out epoch).
+    not; either way at least ``epochs`` epochs run, and the weights kept are those of the best held-out epoch). It
+    does not stop while its best held-out loss is above ``floor`` (a cloning still near a uniform choice sits on the
+    MLP head's early plateau, not at its end: it runs on to ``max_epochs``).
 
     Returns one row per epoch run: ``{"epoch", "bc_loss", "accuracy", "value_loss"}`` (means over the epoch), with
     ``held_out_loss`` and ``best`` (True on the epoch whose weights are kept) when ``held_out`` is given.
@@ -389,8 +391,8 @@ def behaviour_clone(policy, data: dict[str, np.ndarray], epochs: int, batch: int
             policy.set_training_mode(True)
             if best is None or loss < best[0]:
                 best = (loss, epoch, {k: v.detach().clone() for k, v in policy.state_dict().items()})
-            if epoch + 1 >= epochs and epoch - best[1] >= patience:
-                break  # no new best for `patience` epochs past the minimum
+            if epoch + 1 >= epochs and epoch - best[1] >= patience and (floor is None or best[0] <= floor):
+                break  # no new best for `patience` epochs past the minimum, and off the plateau
         if best is not None:
             policy.load_state_dict(best[2])
             for r in rows:

@@ -1133,3 +1133,24 @@ def test_an_adaptive_cloning_goes_on_while_its_held_out_loss_falls_and_keeps_its
     rows, _, _, _ = clone(noise)
     best = next(r for r in rows if r["best"])
     assert len(rows) < 40 and rows[-1]["epoch"] - best["epoch"] == 2 and len(rows) >= 2
+
+
+def test_an_adaptive_cloning_does_not_stop_on_the_plateau_above_its_floor():
+    """With ``floor`` (DAgger's: 0.85 ln n for the MLP head) a cloning whose best held-out loss stays above it runs on
+    to ``max_epochs`` — on labels that are noise it never gets below ln n — where without one it stops after
+    ``patience`` epochs without a new best."""
+    space, data = _random_no_bev_frames(120)
+    data["action"] = np.random.default_rng(1).integers(0, 105, 120)
+    held = np.zeros(120, bool)
+    held[::4] = True
+    out = {k: v[held] for k, v in data.items()}
+
+    def clone(**kw):
+        torch.manual_seed(0)
+        policy = build_policy("student", "no_bev", space, {"bev_width": 8})
+        return behaviour_clone(policy, data, 2, 32, 1e-3, 0, progress=False, indices=np.flatnonzero(~held),
+                               held_out=out, max_epochs=9, patience=2, **kw)
+
+    assert len(clone()) < 9
+    assert len(clone(floor=0.85 * np.log(105))) == 9
+    assert len(clone(floor=100.0)) == len(clone())  # below the floor from the start: the plain rule
