@@ -411,6 +411,18 @@ def test_an_adaptive_cloning_budget_in_the_dagger_loop(tmp_path, teacher_dir, mo
     saved, _ = load_policy(out)
     last, _ = load_policy(out / "dagger" / f"iter_{len(its) - 1}" / "policy")
     assert all(torch.equal(v, last.state_dict()[k]) for k, v in saved.state_dict().items())
+    # a fresh cloning left near a uniform choice (every loss counts as near one with the line at 0) is cloned once
+    # more from the next seed; the one lower on the held-out episodes is the final cloning, the other is recorded
+    monkeypatch.undo()
+    monkeypatch.setattr("rl.stage.NEAR_UNIFORM", 0.0)
+    for name in ("manifest.json", "policy.safetensors", "policy.json", "metrics.json"):
+        (out / name).unlink()
+    shutil.rmtree(out / "dagger" / "final")
+    run(_train_cfg(tmp_path, "no_bev", head="mlp", resume="true", **cfg))
+    fin = json.loads((out / "dagger" / "final" / "done.json").read_text())
+    other = fin["other_cloning"]
+    assert {fin["seed"], other["seed"]} == {2, 3}  # seed 0 + 2 iterations, then the next
+    assert fin["held_out_loss"] <= other["held_out_loss"] and other["clone_epochs"] == 5  # no stop above the line
     # a pool of one episode holds nothing out: that cloning keeps the fixed budget, and says so
     assert adaptive_record([{"epoch": 0}, {"epoch": 1}], np.zeros(7, bool)) == {"clone_epochs": 2, "held_out_frames": 0}
 
