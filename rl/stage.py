@@ -214,8 +214,9 @@ class DaggerConfig:
     # iteration's and the final one — runs at least bc_epochs and on up to bc_max_epochs while its loss on those
     # episodes reaches a new best within bc_patience epochs, keeping its best epoch's weights
     # (rl.teacher.behaviour_clone); an MLP-head cloning whose best held-out loss is still above NEAR_UNIFORM · ln n
-    # does not stop (its early plateau). Built for the MLP head whose 8-epoch clonings stayed near chance (w/o I²,
-    # chain 6); measured there: docs/results.md#mlp-adaptive-budget
+    # does not stop (its early plateau), and a fresh final cloning left there is cloned once more from the next seed
+    # (leaving the plateau is a draw of the initialisation). Built for the MLP head whose 8-epoch clonings stayed
+    # near chance (w/o I², chain 6); measured there: docs/results.md#mlp-adaptive-budget
     bc_max_epochs: int = 0
     bc_patience: int = 2
     bc_holdout: float = 0.1
@@ -867,7 +868,8 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
     ``dagger/final/`` (its ``done.json`` last, so a resumed run loads it instead of cloning again). With the adaptive
     budget (``dagger.bc_max_epochs``) the held-out episodes choose: the fresh student is kept only where its held-out
     loss is below the last iteration's student's, else that student is (``done.json`` ``kept``; a fresh cloning can
-    stop on the MLP head's early plateau — the sixth chain's adaptive `full`, 4.08 nats against 3.12). ``cache``: the
+    stay on the MLP head's early plateau — the sixth chain's adaptive `full`, 4.08 nats against 3.12 — so one left
+    near ln n is first cloned once more from the next seed, ``other_cloning`` recording the one not kept). ``cache``: the
     pool's lookahead features when the iterations' loop computed them (all its frames: the last iteration's pool is
     every iteration's; the fresh student's are the same, they have no weights)."""
     d = cfg.dagger
