@@ -887,14 +887,16 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
                                    f"their done.json files {frames_total}; delete {fin} and the damaged iteration to "
                                    "redo them")
     with clock("clone"):
+        def clone(seed: int, label: str):  # a fresh student cloned on the pool: (policy, epochs, its record)
+            fresh, inherited = fresh_student(cfg, space, net, teacher_dir, data, seed)
+            fresh.to(device)
+            rows, _ = distill(fresh, data, d, cfg.map_signs, seed, n_rot, inherited, soft, cfg.progress,
+                              f"student {cfg.variant} {label}", cache=cache, held_out=held)
+            return fresh, rows, adaptive_record(rows, held)
+
         seed = cfg.seed + d.iterations
-        policy, inherited = fresh_student(cfg, space, net, teacher_dir, data, seed)
-        policy.to(device)
-        hist, _ = distill(policy, data, d, cfg.map_signs, seed, n_rot, inherited, soft, cfg.progress,
-                          f"student {cfg.variant} final cloning",
-                          cache=cache, held_out=held)
+        policy, hist, record = clone(seed, "final cloning")
         n_actions = int(getattr(policy.action_space, "n", 0))
-        record = adaptive_record(hist, held)
         restarted = None
         # with the adaptive budget, an MLP-head cloning whose best held-out loss is still near a uniform choice sat
         # on the head's early plateau — a draw of its initialisation (chain 6's adaptive `full`: seed 8 stayed at
@@ -903,11 +905,7 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
                 and record["held_out_loss"] > NEAR_UNIFORM * math.log(n_actions)):
             log.warning("student %s final cloning: held-out loss %.3f is near a uniform choice (%.3f): cloned again "
                         "from seed %d", cfg.variant, record["held_out_loss"], math.log(n_actions), seed + 1)
-            again, _ = fresh_student(cfg, space, net, teacher_dir, data, seed + 1)
-            again.to(device)
-            hist2, _ = distill(again, data, d, cfg.map_signs, seed + 1, n_rot, inherited, soft, cfg.progress,
-                               f"student {cfg.variant} final cloning, again", cache=cache, held_out=held)
-            record2 = adaptive_record(hist2, held)
+            again, hist2, record2 = clone(seed + 1, "final cloning, again")
             restarted = {"seed": seed, "held_out_loss": record["held_out_loss"], "clone_epochs": len(hist)}
             if record2["held_out_loss"] < record["held_out_loss"]:
                 policy, hist, record, seed = again, hist2, record2, seed + 1
