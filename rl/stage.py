@@ -220,6 +220,12 @@ class DaggerConfig:
     bc_max_epochs: int = 0
     bc_patience: int = 2
     bc_holdout: float = 0.1
+    # which held-out frames decide an iteration's stop: "pool" = every iteration's held-out episodes; "new" = only the
+    # newest iteration's (the states the student visits now; the split is the same, held-out episodes of earlier
+    # iterations are still never cloned on). Over the pool, past the first iterations the loss barely moved with one
+    # iteration's frames and the stops kept epoch 1-3 weights (chain 6: docs/results.md#mlp-adaptive-budget); an
+    # iteration with no held-out episode falls back to the pool. The final cloning always reads the pool's.
+    bc_holdout_scope: str = "pool"
     bc_batch: int = 128
     bc_lr: float = 5e-4
     soft_tau: float = 1.0  # > 0: clone the teacher's action distribution softmax(logits / soft_tau); 0: its argmax
@@ -399,6 +405,8 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError(f"train.dagger: the adaptive budget expects bc_max_epochs >= bc_epochs, bc_patience >= 1 "
                               f"and 0 < bc_holdout < 1, got {d.bc_max_epochs} (bc_epochs {d.bc_epochs}), "
                               f"{d.bc_patience}, {d.bc_holdout}")
+        if d.bc_holdout_scope not in ("pool", "new"):
+            raise ConfigError(f"train.dagger.bc_holdout_scope: expected 'pool' or 'new', got {d.bc_holdout_scope!r}")
         if d.bc_max_epochs < 0:
             raise ConfigError(f"train.dagger.bc_max_epochs: expected an integer >= 0 (0 = off), got {d.bc_max_epochs}")
         if not d.pool_memory_gb > 0:  # NaN fails too
@@ -738,6 +746,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
         with clock("pool"):
             data, soft = _cloning_pool(out, k + 1, d)
             held = held_out_frames(_iter_dirs(out, k + 1), d.bc_holdout) if d.bc_max_epochs else None
+            scored = newest_held_out(held, frames_total, d.bc_holdout_scope, f"student {cfg.variant} iteration {k}")
         with clock("clone"):  # the lookahead features, the linear fit, the cloning, and its losses
             # the newest iteration's frames: the pool's tail after the earlier iterations' frames_total (views)
             new = {key: v[frames_total:] for key, v in data.items()}
@@ -755,7 +764,7 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                          else extend_feature_cache(cache, lookahead_feature_cache(policy, new, d.mirror, n_rot)))
             hist, linear_fit = distill(policy, data, d, cfg.map_signs, cfg.seed + k, n_rot, inherited, soft,
                                        cfg.progress, f"student {cfg.variant} iteration {k}", epoch_size=epoch,
-                                       cache=cache, held_out=held)
+                                       cache=cache, held_out=held, scored=scored)
             clone_samples = len(hist) * epoch
             after = bc_loss(policy, new)
             n_actions = int(getattr(policy.action_space, "n", 0))  # the students' action grid (Discrete)
@@ -779,7 +788,10 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 "student_steps": int(sum(r["student_steps"] for r in rows)),
                 "bc_loss_new_before": before, "bc_loss_new_after": after, "final_accuracy": hist[-1]["accuracy"],
                 **({"uniform_loss": math.log(n_actions)} if n_actions > 1 else {}),
-                "clone_samples": clone_samples, **adaptive_record(hist, held),
+                "clone_samples": clone_samples, **adaptive_record(hist, held, scored),
+                **({"pool_held_out_loss": bc_loss(policy, held_out_set(policy, data, held, soft),
+                                                  soft_tau=d.soft_tau if soft else 0.0)}
+                   if scored is not None else {}),
                 "dataset": str(it / "dataset"), "dataset_frames": counts["frames"], **soft_ce,
                 **({"linear_fit": linear_fit} if linear_fit else {}), **({"intention_tune": tuned} if tuned else {}),
                 "timing": iteration_timing(clock.seconds, rows, int(len(new["action"])), resumed)}
@@ -800,7 +812,8 @@ def _train_student(cfg: TrainConfig, out: Path) -> dict[str, Any]:
                 "bc_precision": resolve_precision(d.bc_precision, device, "train.dagger.bc_precision")}
     if d.bc_max_epochs:
         produced["dagger_bc_adaptive"] = {"min_epochs": d.bc_epochs, "max_epochs": d.bc_max_epochs,
-                                          "patience": d.bc_patience, "holdout": d.bc_holdout}
+                                          "patience": d.bc_patience, "holdout": d.bc_holdout,
+                                          "holdout_scope": d.bc_holdout_scope}
     if d.final_clone:
         produced["dagger_final_clone"] = {k: summary["final_clone"][k] for k in ("frames", "clone_samples", "seed",
                                                                                "kept") if k in summary["final_clone"]}
@@ -822,17 +835,34 @@ def _iter_dirs(out: Path, n_iters: int) -> list[Path]:
     return [out / "dagger" / f"iter_{j}" for j in range(n_iters)]
 
 
-def adaptive_record(hist: list[dict[str, float]], held: np.ndarray | None) -> dict[str, Any]:
+def newest_held_out(held: np.ndarray | None, start: int, scope: str, label: str) -> np.ndarray | None:
+    """With ``dagger.bc_holdout_scope`` "new", the held-out frames that decide an iteration's stop: those of ``held``
+    from frame ``start`` on (the newest iteration's episodes). None — the whole of ``held`` decides — for "pool",
+    without a budget, or where the newest iteration has no held-out episode (said in the log)."""
+    if held is None or scope != "new":
+        return None
+    scored = held.copy()
+    scored[:start] = False
+    if not scored.any():
+        log.info("%s: no held-out episode among the newest frames; the pool's held-out episodes decide", label)
+        return None
+    return scored
+
+
+def adaptive_record(hist: list[dict[str, float]], held: np.ndarray | None,
+                    scored: np.ndarray | None = None) -> dict[str, Any]:
     """What an adaptive cloning (``dagger.bc_max_epochs``) records in ``done.json``: the epochs it ran, the epoch
-    whose weights it kept, that epoch's held-out loss, and the held-out frames (nothing without a budget; a pool of
-    one episode holds none out and is cloned ``bc_epochs``)."""
+    whose weights it kept, that epoch's held-out loss, the held-out frames that decided (``scored``, the newest
+    iteration's, else all of ``held``) and which (``held_out_scope``); nothing without a budget; a pool of one episode
+    holds none out and is cloned ``bc_epochs``."""
     if held is None:
         return {}
     if not held.any():  # a pool of one episode: nothing to hold out, the fixed budget
         return {"clone_epochs": len(hist), "held_out_frames": 0}
     best = next(r for r in hist if r["best"])
     return {"clone_epochs": len(hist), "best_epoch": int(best["epoch"]), "held_out_loss": best["held_out_loss"],
-            "held_out_frames": int(held.sum())}
+            "held_out_frames": int((held if scored is None else scored).sum()),
+            "held_out_scope": "pool" if scored is None else "new"}
 
 
 def _cloning_pool(out: Path, n_iters: int, d: DaggerConfig) -> tuple[dict[str, np.ndarray], bool]:
@@ -950,14 +980,16 @@ def held_out_set(policy, data: dict[str, np.ndarray], held: np.ndarray, soft: bo
 def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str, seed: int, n_rot: int,
             inherited: bool, soft: bool, progress: bool = True, label: str = "student",
             epoch_size: int | None = None, cache: tuple[np.ndarray, np.ndarray | None] | None = None,
-            held_out: np.ndarray | None = None) -> tuple[list[dict[str, float]], dict[str, Any] | None]:
+            held_out: np.ndarray | None = None,
+            scored: np.ndarray | None = None) -> tuple[list[dict[str, float]], dict[str, Any] | None]:
     """One cloning of a student on ``data`` (the aggregate of DAgger frames, ``costs`` = the teacher's negated logits
     when ``soft``): for the lookahead head its rollout features once, the convex fit of the linear cost terms
     ``d.linear_cost`` names (the map cost on top of an ``inherited`` teacher cost by default), then
     :func:`behaviour_clone` of every other weight (``epoch_size`` samples per epoch: all of ``data`` by default).
     ``cache``: :func:`rl.teacher.lookahead_feature_cache` of ``data`` when the caller has it (computed here
     otherwise). ``held_out`` (per frame, with ``d.bc_max_epochs``): the frames of the adaptive budget's held-out
-    episodes — neither the linear fit nor the cloning sees them, the cloning stops on its loss over them. Returns the
+    episodes — neither the linear fit nor the cloning sees them, the cloning stops on its loss over them (over
+    ``scored`` instead where given: a subset of them, :func:`newest_held_out`). Returns the
     cloning's per-epoch rows and the linear fit's record (None without one). Used by every DAgger iteration and by
     ``rl.data_scale``."""
     linear_fit = None
@@ -965,7 +997,7 @@ def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str
     if held_out is not None and held_out.any() and d.bc_max_epochs:
         n_actions = int(getattr(policy.action_space, "n", 0))
         adaptive = {"indices": np.flatnonzero(~held_out), "max_epochs": d.bc_max_epochs, "patience": d.bc_patience,
-                    "held_out": held_out_set(policy, data, held_out, soft),
+                    "held_out": held_out_set(policy, data, held_out if scored is None else scored, soft),
                     # the MLP head's plateau near ln n is not an end (the lookahead head's scores are not bounded so)
                     "floor": None if has_lookahead(policy) or n_actions < 2 else NEAR_UNIFORM * math.log(n_actions)}
     if has_lookahead(policy):  # rollout features once; the linear cost by convex regression, then the rest

@@ -199,7 +199,8 @@ def test_held_out_episodes_keep_their_side_as_the_pool_grows(tmp_path):
 @pytest.mark.parametrize("over,field", [({"dagger.bc_max_epochs": "1", "dagger.bc_epochs": "2"}, "bc_max_epochs"),
                                         ({"dagger.bc_max_epochs": "4", "dagger.bc_holdout": "nan"}, "bc_holdout"),
                                         ({"dagger.bc_max_epochs": "4", "dagger.bc_patience": "0"}, "bc_patience"),
-                                        ({"dagger.bc_max_epochs": "-1"}, "bc_max_epochs")])
+                                        ({"dagger.bc_max_epochs": "-1"}, "bc_max_epochs"),
+                                        ({"dagger.bc_holdout_scope": "newest"}, "bc_holdout_scope")])
 def test_a_wrong_adaptive_budget_is_named(over, field):
     with pytest.raises(ConfigError, match=rf"dagger.*{field}"):
         load_config(TrainConfig, "train", "smoke", over)

@@ -24,7 +24,7 @@ from rl.dagger import PHASES, load_features
 from rl.driver import PolicyDriver
 from rl.lookahead import LINEAR_TERMS, SCORE_SCALE
 from rl.policy import act, build_policy, check_checkpoint_weights, describe, load_policy, save_policy
-from rl.stage import NEAR_UNIFORM, acceptance, adaptive_record, near_uniform_warning
+from rl.stage import NEAR_UNIFORM, acceptance, adaptive_record, near_uniform_warning, newest_held_out
 from rl.teacher import (
     SceneMixEnv,
     bc_loss,
@@ -375,29 +375,36 @@ def test_new_frames_schedule_and_a_final_fresh_cloning(tmp_path, teacher_dir, ca
 def test_an_adaptive_cloning_budget_in_the_dagger_loop(tmp_path, teacher_dir, monkeypatch):
     """``dagger.bc_max_epochs``: every iteration's cloning and the final one clone on the episodes outside the
     held-out share (``bc_holdout``), run between ``bc_epochs`` and ``bc_max_epochs`` epochs, and record how many, the
-    epoch kept, its held-out loss and frames; the checkpoint names the budget. The final fresh cloning is kept only
-    where it does better on the held-out episodes than the last iteration's student; else that student is saved."""
+    epoch kept, its held-out loss and frames; the checkpoint names the budget. With ``bc_holdout_scope: new`` an
+    iteration's stop reads only the newest iteration's held-out frames (the pool's where it has none), and its record
+    adds the pool's held-out loss. The final fresh cloning is kept only where it does better on the (pool's) held-out
+    episodes than the last iteration's student; else that student is saved."""
     from pipeline.verbs.train import run
     from rl.dagger import held_out_frames
 
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
     cfg = {"dagger.bc_schedule": "new", "dagger.final_clone": "true", "dagger.bc_max_epochs": "5",
-           "dagger.bc_holdout": "0.5", "dagger.episodes_per_iter": "3"}
+           "dagger.bc_holdout": "0.5", "dagger.episodes_per_iter": "3", "dagger.bc_holdout_scope": "new"}
     run(_train_cfg(tmp_path, "no_bev", head="mlp", **cfg))
     out = tmp_path / "checkpoints" / "policy" / "no_bev"
     its = json.loads((out / "metrics.json").read_text())["dagger"]
     iters = [out / "dagger" / f"iter_{k}" for k in range(len(its))]
     for k, it in enumerate(its):
         held = held_out_frames(iters[:k + 1], 0.5)
+        newest = held[it["aggregate_frames"] - it["frames"]:]
         assert 2 <= it["clone_epochs"] <= 5 and 0 <= it["best_epoch"] < it["clone_epochs"]
-        assert it["held_out_frames"] == int(held.sum()) > 0
+        assert it["held_out_scope"] == ("new" if newest.any() else "pool")
+        assert it["held_out_frames"] == int((newest if newest.any() else held).sum()) > 0
+        assert ("pool_held_out_loss" in it) == newest.any() and math.isfinite(it.get("pool_held_out_loss", 0.0))
         assert it["clone_samples"] == it["clone_epochs"] * it["frames"]  # schedule new: epochs of the new frames' size
         assert math.isfinite(it["held_out_loss"])
     fin = json.loads((out / "dagger" / "final" / "done.json").read_text())
     assert 2 <= fin["clone_epochs"] <= 5 and fin["held_out_frames"] == its[-1]["held_out_frames"]
     assert fin["clone_samples"] == fin["clone_epochs"] * (fin["frames"] - fin["held_out_frames"])
     produced = json.loads((out / "policy.json").read_text())["produced_by"]
-    assert produced["dagger_bc_adaptive"] == {"min_epochs": 2, "max_epochs": 5, "patience": 2, "holdout": 0.5}
+    assert produced["dagger_bc_adaptive"] == {"min_epochs": 2, "max_epochs": 5, "patience": 2, "holdout": 0.5,
+                                              "holdout_scope": "new"}
+    assert fin["held_out_scope"] == "pool"  # the final cloning reads every held-out episode
     assert fin["kept"] == ("fresh" if fin["held_out_loss"] < fin["last_iteration_held_out_loss"] else "last_iteration")
     assert produced["dagger_final_clone"]["kept"] == fin["kept"]
     # a last iteration's student that does better on the held-out episodes (its loss stood in for by 0) is kept
@@ -425,6 +432,16 @@ def test_an_adaptive_cloning_budget_in_the_dagger_loop(tmp_path, teacher_dir, mo
     assert fin["held_out_loss"] <= other["held_out_loss"] and other["clone_epochs"] == 5  # no stop above the line
     # a pool of one episode holds nothing out: that cloning keeps the fixed budget, and says so
     assert adaptive_record([{"epoch": 0}, {"epoch": 1}], np.zeros(7, bool)) == {"clone_epochs": 2, "held_out_frames": 0}
+
+
+def test_the_newest_iterations_held_out_frames_decide_with_scope_new():
+    """``newest_held_out``: the held-out frames from the newest iteration's first frame on; None (the pool's decide)
+    for scope "pool", without a budget, or when the newest iteration holds no episode out."""
+    held = np.array([1, 1, 0, 0, 1, 0, 1, 1], bool)
+    assert newest_held_out(held, 3, "new", "s").tolist() == [0, 0, 0, 0, 1, 0, 1, 1]
+    assert held.tolist() == [1, 1, 0, 0, 1, 0, 1, 1]  # a copy
+    assert newest_held_out(held, 3, "pool", "s") is None and newest_held_out(None, 3, "new", "s") is None
+    assert newest_held_out(np.array([1, 0, 0], bool), 1, "new", "s") is None
 
 
 @pytest.mark.parametrize("critic,temperature", [("shared", 1.0), ("detached", 0.5)])
