@@ -927,20 +927,18 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
         seed = cfg.seed + d.iterations
         policy, hist, record = clone(seed, "final cloning")
         n_actions = int(getattr(policy.action_space, "n", 0))
+        floor = plateau_floor(policy)
         restarted = None
         # with the adaptive budget, an MLP-head cloning whose best held-out loss is still near a uniform choice sat
         # on the head's early plateau — a draw of its initialisation (chain 6's adaptive `full`: seed 8 stayed at
         # 4.08-4.22 nats on two pools, seed 9 left it, 3.21): cloned once more from the next seed, the better kept
-        if ("held_out_loss" in record and not has_lookahead(policy) and n_actions > 1
-                and record["held_out_loss"] > NEAR_UNIFORM * math.log(n_actions)):
+        if "held_out_loss" in record and floor is not None and record["held_out_loss"] > floor:
             log.warning("student %s final cloning: held-out loss %.3f is near a uniform choice (%.3f): cloned again "
                         "from seed %d", cfg.variant, record["held_out_loss"], math.log(n_actions), seed + 1)
-            again, hist2, record2 = clone(seed + 1, "final cloning, again")
-            restarted = {"seed": seed, "held_out_loss": record["held_out_loss"], "clone_epochs": len(hist)}
-            if record2["held_out_loss"] < record["held_out_loss"]:
-                policy, hist, record, seed = again, hist2, record2, seed + 1
-            else:
-                restarted = {"seed": seed + 1, "held_out_loss": record2["held_out_loss"], "clone_epochs": len(hist2)}
+            first, second = (policy, hist, record, seed), (*clone(seed + 1, "final cloning, again"), seed + 1)
+            kept, other = (second, first) if second[2]["held_out_loss"] < record["held_out_loss"] else (first, second)
+            policy, hist, record, seed = kept
+            restarted = {"seed": other[3], "held_out_loss": other[2]["held_out_loss"], "clone_epochs": len(other[1])}
     cloned = frames_total - (0 if held is None else int(held.sum()))
     info = {"frames": frames_total, "clone_samples": len(hist) * cloned, "seed": seed,
             "final_bc_loss": hist[-1]["bc_loss"], **record, "seconds": clock.seconds,
@@ -970,6 +968,14 @@ def _final_clone(cfg: TrainConfig, out: Path, space, net: dict[str, Any], teache
     return policy, info
 
 
+def plateau_floor(policy) -> float | None:
+    """The held-out loss above which an MLP-head cloning still sits on its early plateau near a uniform choice,
+    ``NEAR_UNIFORM · ln n`` (n actions): it does not stop there, and a fresh final cloning left there is cloned again.
+    None for the lookahead head (its scores are not bounded by ln n) or a grid of fewer than two actions."""
+    n_actions = int(getattr(policy.action_space, "n", 0))
+    return None if has_lookahead(policy) or n_actions < 2 else NEAR_UNIFORM * math.log(n_actions)
+
+
 def held_out_set(policy, data: dict[str, np.ndarray], held: np.ndarray, soft: bool) -> dict[str, np.ndarray]:
     """Copies of what :func:`rl.teacher.bc_loss` reads of the held-out frames ``held`` (a per-frame mask of
     ``data``): the policy's observation keys, the action, and the teacher's costs when the cloning is ``soft``."""
@@ -995,11 +1001,10 @@ def distill(policy, data: dict[str, np.ndarray], d: DaggerConfig, map_signs: str
     linear_fit = None
     adaptive = {}
     if held_out is not None and held_out.any() and d.bc_max_epochs:
-        n_actions = int(getattr(policy.action_space, "n", 0))
         adaptive = {"indices": np.flatnonzero(~held_out), "max_epochs": d.bc_max_epochs, "patience": d.bc_patience,
                     "held_out": held_out_set(policy, data, held_out if scored is None else scored, soft),
                     # the MLP head's plateau near ln n is not an end (the lookahead head's scores are not bounded so)
-                    "floor": None if has_lookahead(policy) or n_actions < 2 else NEAR_UNIFORM * math.log(n_actions)}
+                    "floor": plateau_floor(policy)}
     if has_lookahead(policy):  # rollout features once; the linear cost by convex regression, then the rest
         if cache is None:
             cache = lookahead_feature_cache(policy, data, d.mirror, n_rot)
