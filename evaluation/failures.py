@@ -93,6 +93,7 @@ from pipeline.core.errors import (
 )
 from pipeline.core.executor import map_jobs
 from rl.lookahead import ObstacleShield
+from rl.networks import MLP_HEADS
 from rl.policy import obs_to_tensor
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
@@ -459,7 +460,7 @@ def replay_head(spec: MethodSpec, sim: SimConfig, pedestrian: bool = False) -> A
     head = getattr(getattr(getattr(driver, "policy", None), "features_extractor", None), "lookahead", None)
     if head is not None:
         return head
-    if getattr(driver, "student", False) and getattr(driver, "head", None) == "mlp" and not pedestrian:
+    if getattr(driver, "student", False) and getattr(driver, "head", None) in MLP_HEADS and not pedestrian:
         driver.perceive_scan = True
         return ObstacleShield(sim.robot, sim.dt_s, sim.scan_rays, sim.scan_range_m, REPLAY_WINDOW_S)
     what = "predicted pedestrian clearances (a lookahead head)" if pedestrian else (

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from rl.lookahead import ObstacleShield
+from rl.networks import MLP_HEADS
 from rl.observe import (
     StudentObserver,
     load_student_encoder,
@@ -77,9 +78,10 @@ def mlp_shield(sim_cfg, shield_s: float) -> ObstacleShield | None:
 
 
 def observer_head(head: str, scan: bool) -> str:
-    """The perception a student's observer runs: its head's, or for an MLP head whose shield reads the depth scan
-    (``scan``) the lookahead head's (its scan, without the detected people's points)."""
-    return "lookahead" if head == "mlp" and scan else head
+    """The perception a student's observer runs: its head's, or for an MLP head (``mlp``, ``mlp_intention``) whose
+    shield or replay reads the depth scan (``scan``) the lookahead head's (its scan, without the detected people's
+    points; its tracks and forecasts are the ``mlp_intention`` head's too)."""
+    return "lookahead" if head in MLP_HEADS and scan else head
 
 
 def shielded_logits(policy, obs: dict[str, np.ndarray], shield: ObstacleShield | None) -> np.ndarray:

@@ -6,6 +6,13 @@ Student (the paper's policy, §III-B/C), variants :data:`VARIANTS`::
     no_i2   z = φ_f([φ_bev(s_bev),                           φ_s(s)])          ablation "w/o I²"
     no_bev  z = φ_f([φ_occ(occ),   I²Former(poses, mask, s), φ_s(s)])          ablation "w/o BEV"
 
+With ``net.head = "mlp_intention"`` (the same MLP head) the I²Former's people come from the *pretrained* intention
+model instead of being learned from raw poses by cloning: the variants with poses read the tracks of the people they
+detect and each track's forecast by the frozen intention model (``peds``, ``peds_future``: :mod:`rl.perceive`; its
+pose encoder and IntentFormer were trained on the recorded dataset by ``make pretrain``), and
+:class:`ForecastI2Former` lets the robot query them (the InteractFormer, learned by cloning). ``no_i2`` is unchanged:
+no I²Former output, no tracks, no forecasts.
+
 ``s_bev`` is the frozen spatio-temporal encoder's output after a fixed 2 x 2 average pool (done by the observer,
 :mod:`rl.observe`, so it is what DAgger caches); ``occ`` is a local occupancy map built from the depth images on
 the same grid (no learned perception). φ_bev and φ_occ are the same architecture: 2D convolutions with residual
@@ -34,12 +41,25 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
 from pipeline.core.errors import ConfigError
-from pretrain.i2former import AttnPool, I2Former, I2FormerConfig, mlp, normalise_state
+from pretrain.i2former import (
+    POSE_SCALE_M,
+    STATE_DIM,
+    AttnPool,
+    I2Former,
+    I2FormerConfig,
+    InteractFormer,
+    mlp,
+    normalise_state,
+)
 from rl.lookahead import LookaheadHead
 
 VARIANTS = ("full", "no_i2", "no_bev")
 VARIANT_LABELS = {"full": "iCrowdNav (full)", "no_i2": "w/o I²", "no_bev": "w/o BEV"}
-STUDENT_HEADS = ("mlp", "lookahead")  # the student's actor: SB3's MLP on z (the paper's) or the lookahead scorer
+# the student's actor: SB3's MLP on z (the paper's), the same with the pretrained intention model's tracks and
+# forecasts as the I²Former's people (module docstring), or the lookahead scorer
+STUDENT_HEADS = ("mlp", "mlp_intention", "lookahead")
+MLP_HEADS = ("mlp", "mlp_intention")  # the heads whose actor is SB3's MLP on z
+PEOPLE_INPUTS = {"mlp": "poses", "mlp_intention": "forecasts", "lookahead": "poses"}  # what a head's I²Former reads
 
 
 TEACHER_ENCODERS = ("set", "flat", "lookahead")
@@ -56,7 +76,9 @@ def teacher_extractor_class(encoder: str) -> type[BaseFeaturesExtractor]:
 def variant_keys(variant: str, head: str = "mlp", map_cost: bool = False) -> tuple[str, ...]:
     """The observation keys a student variant consumes (with the ``lookahead`` head also its perceived ``scan`` and,
     for variants with poses, the pedestrian tracks ``peds``: :mod:`rl.perceive`; with ``map_cost`` a variant with
-    ``bev`` also reads the BEV's predicted occupancy ``bev_occ``, ``no_bev`` its depth occupancy ``occ``)."""
+    ``bev`` also reads the BEV's predicted occupancy ``bev_occ``, ``no_bev`` its depth occupancy ``occ``; with the
+    ``mlp_intention`` head a variant with poses reads the tracks ``peds`` and the intention model's forecasts
+    ``peds_future`` in place of the raw poses)."""
 
     if variant not in VARIANTS:
         raise ConfigError(f"variant: expected one of {list(VARIANTS)}, got {variant!r}")
@@ -64,6 +86,8 @@ def variant_keys(variant: str, head: str = "mlp", map_cost: bool = False) -> tup
         raise ConfigError(f"net.head: expected one of {list(STUDENT_HEADS)}, got {head!r}")
     keys = {"full": ("bev", "poses", "pose_mask", "state"), "no_i2": ("bev", "state"),
             "no_bev": ("occ", "poses", "pose_mask", "state")}[variant]
+    if head == "mlp_intention" and "poses" in keys:
+        keys = tuple(k for k in keys if k not in ("poses", "pose_mask", "state")) + ("peds", "peds_future", "state")
     if head == "lookahead":
         keys += ("scan",) + (("peds",) if "poses" in keys else ()) + (("bev_occ",) if map_cost and "bev" in keys
                                                                     else ())
@@ -108,13 +132,51 @@ class BEVNet(nn.Module):
         return self.net(x)
 
 
+class ForecastI2Former(nn.Module):
+    """The I²Former of the ``mlp_intention`` head (module docstring): ``peds`` ``B x K x 6`` ([x, y, vx, vy, r,
+    present], robot frame) + ``peds_future`` ``B x K x S x 2`` (the frozen intention model's forecast positions) +
+    ``s`` → ``z_interact`` ``B x dim``.
+
+    Each present track is one person token, φ_t([x, y, v_x, v_y, forecast displacements from now]) (lengths divided
+    by :data:`pretrain.i2former.POSE_SCALE_M`); the robot's φ_sp(s) queries the tokens through the InteractFormer
+    (:class:`pretrain.i2former.InteractFormer`: its empty-crowd key, absent tracks masked). The pose encoder and
+    IntentFormer of the paper's I²Former are the intention model's, pretrained and frozen (their output reaches the
+    policy as the forecast); φ_t, φ_sp and the InteractFormer are learned with the policy. Invariant to the order of
+    the tracks."""
+
+    def __init__(self, cfg: I2FormerConfig, horizons: int) -> None:
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        d = cfg.dim
+        self.token = mlp([4 + 2 * horizons, d, d])  # φ_t
+        self.state_encoder = mlp([STATE_DIM, d, d])  # φ_sp
+        self.interact = InteractFormer(d, cfg.heads, cfg.ffn_mult)
+
+    @property
+    def out_dim(self) -> int:
+        return self.cfg.dim
+
+    def forward(self, peds: torch.Tensor, future: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        peds, future = peds.float(), future.float()
+        now = peds[..., :2]
+        ahead = (future - now.unsqueeze(-2)) / POSE_SCALE_M
+        x = torch.cat([now / POSE_SCALE_M, peds[..., 2:4], ahead.flatten(-2)], -1)
+        e = self.state_encoder(normalise_state(state.float()))
+        return self.interact(e, self.token(x), peds[..., 5] > 0.5)
+
+
 class StudentExtractor(BaseFeaturesExtractor):
-    """The visual policy's state embedding ``z`` for one variant (see the module docstring)."""
+    """The visual policy's state embedding ``z`` for one variant (see the module docstring); ``people``: what its
+    I²Former reads — ``poses`` (the paper's) or ``forecasts`` (the ``mlp_intention`` head's tracks and forecasts,
+    :class:`ForecastI2Former`)."""
 
     def __init__(self, observation_space: gym.spaces.Dict, variant: str = "full", bev_dim: int = 256,
                  bev_width: int = 32, state_dim: int = 64, fused_dim: int = 256,
-                 i2former: dict[str, Any] | None = None) -> None:
-        keys = variant_keys(variant)
+                 i2former: dict[str, Any] | None = None, people: str = "poses") -> None:
+        if people not in ("poses", "forecasts"):
+            raise ConfigError(f"student extractor people: expected 'poses' or 'forecasts', got {people!r}")
+        keys = variant_keys(variant, "mlp_intention" if people == "forecasts" else "mlp")
         missing = [k for k in keys if k not in observation_space.spaces]
         if missing:
             raise ConfigError(f"variant {variant!r} needs observation keys {missing}, the env gives "
@@ -134,6 +196,10 @@ class StudentExtractor(BaseFeaturesExtractor):
         if "poses" in keys:
             self.i2former = I2Former(I2FormerConfig(**(i2former or {})))
             width += self.i2former.out_dim
+        elif "peds_future" in keys:
+            self.i2former = ForecastI2Former(I2FormerConfig(**(i2former or {})),
+                                             observation_space["peds_future"].shape[1])
+            width += self.i2former.out_dim
         self.state_net = mlp([5, state_dim, state_dim])  # φ_s
         width += state_dim
         self.fusion = mlp([width, fused_dim, fused_dim])  # φ_f
@@ -149,7 +215,9 @@ class StudentExtractor(BaseFeaturesExtractor):
             parts.append(self.bev((obs["bev"] - self.bev_mean) / self.bev_std))
         if hasattr(self, "occ"):
             parts.append(self.occ(obs["occ"]))
-        if hasattr(self, "i2former"):
+        if isinstance(getattr(self, "i2former", None), ForecastI2Former):
+            parts.append(self.i2former(obs["peds"], obs["peds_future"], obs["state"]))
+        elif hasattr(self, "i2former"):
             parts.append(self.i2former(obs["poses"], obs["pose_mask"] > 0.5, obs["state"]))
         parts.append(self.state_net(normalise_state(obs["state"])))
         return self.fusion(torch.cat(parts, -1))

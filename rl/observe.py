@@ -99,11 +99,12 @@ class StudentObserver:
         encoder: the frozen pretrained encoder (required unless the variant is ``no_bev``).
         max_people: ``K`` of the detector.
         mirror: also return ``bev_mirror`` (module docstring); only for variants with ``bev``.
-        head: the policy's actor head (``lookahead`` adds ``peds`` and ``scan``).
+        head: the policy's actor head (``lookahead`` adds ``peds`` and ``scan``; ``mlp_intention`` replaces the
+            poses by ``peds`` and ``peds_future``).
         perception: ``{"dt_s", "k", "rays", "range_m"}`` of the lookahead head's :class:`rl.perceive.Perception`
             (:func:`perception_params` of the env), optionally ``"unseen_s"`` (the policy's ``net.track_unseen_s``).
         forecaster: the pretrained intention model; with the lookahead head and a variant with poses it predicts
-            the tracks (``peds_future``) instead of constant velocity.
+            the tracks (``peds_future``) instead of constant velocity; the ``mlp_intention`` head needs it.
         map_cost: the lookahead head reads an occupancy map along its arcs (``bev_occ`` for variants with ``bev``).
         map_heads: the encoder checkpoint's pretext heads (:func:`load_student_heads`), which make ``bev_occ``.
     """
@@ -116,12 +117,16 @@ class StudentObserver:
         self.keys = variant_keys(variant, head, map_cost)
         self.cameras = cameras
         self.perception = None
-        if head == "lookahead":
+        if "scan" in self.keys or "peds" in self.keys:  # the lookahead head; the mlp_intention head's tracks
             if perception is None:
-                raise ConfigError("the lookahead head's observer needs the perception parameters of the env")
+                raise ConfigError(f"the {head} head's observer needs the perception parameters of the env")
+            if "peds_future" in self.keys and forecaster is None:
+                raise ConfigError(f"the {head} head of variant {variant!r} needs the pretrained intention model "
+                                  "(train.intention: its forecasts are the I²Former's input)")
             self.perception = Perception([CameraView.of(c) for c in cameras], perception["dt_s"], perception["k"],
-                                         perception["rays"], perception["range_m"], people="poses" in self.keys,
-                                         forecaster=forecaster, unseen_s=perception.get("unseen_s", 0.0))
+                                         perception["rays"], perception["range_m"], people="peds" in self.keys,
+                                         forecaster=forecaster, unseen_s=perception.get("unseen_s", 0.0),
+                                         scan="scan" in self.keys)
         # where the frames are encoded (and the occupancy map lifted): the encoder's device
         self.device = next(encoder.parameters()).device if encoder is not None else torch.device("cpu")
         if "bev" in self.keys:
@@ -173,7 +178,8 @@ class StudentObserver:
             d["poses"] = gym.spaces.Box(-big, big, (self.max_people, 17, 3), np.float32)
             d["pose_mask"] = gym.spaces.Box(0.0, 1.0, (self.max_people, 17), np.float32)
         if self.perception is not None:
-            d["scan"] = gym.spaces.Box(0.0, big, (self.perception.scan.rays,), np.float32)
+            if self.perception.scan is not None:
+                d["scan"] = gym.spaces.Box(0.0, big, (self.perception.scan.rays,), np.float32)
             if self.perception.people:
                 d["peds"] = gym.spaces.Box(-big, big, (self.perception.k, 6), np.float32)
             if self.perception.forecaster is not None:
@@ -267,9 +273,11 @@ def observer_for_env(env, variant: str, encoder: BEVEncoder | None, head: str = 
 
 
 def uses_forecaster(variant: str, head: str) -> bool:
-    """Whether a student predicts people with the intention model when one is given: the lookahead head of a
-    variant that sees poses (``no_i2`` sees none: people are depth obstacles to it)."""
-    return head == "lookahead" and "poses" in variant_keys(variant, head)
+    """Whether a student predicts people with the intention model when one is given: the lookahead or
+    ``mlp_intention`` head of a variant that sees poses (``no_i2`` sees none: people are depth obstacles to it).
+    The ``mlp_intention`` head needs it (:class:`StudentObserver` says so); the lookahead head falls back to
+    constant velocity."""
+    return head in ("lookahead", "mlp_intention") and "poses" in variant_keys(variant)
 
 
 def load_student_forecaster(variant: str, head: str, intention_ckpt: Path | str | None

@@ -24,6 +24,9 @@ velocities and a range scan of the *static map* (:class:`rl.networks.LookaheadTe
   reported track will be at the lookahead head's times, predicted from the track's history and the pose detected on
   it now — the model is trained on tracks of this very tracker replayed over a recorded dataset.
 
+The MLP head with the intention model (``net.head = "mlp_intention"``, :class:`rl.networks.ForecastI2Former`) reads
+``peds`` and ``peds_future`` alone (no ``scan``).
+
 Apart from that frozen model, nothing here is learned or privileged; the numbers are checked against the simulator's truth in
 ``tests/rl/test_perceive.py`` and measured in docs/results.md ("The students' perception").
 """
@@ -154,6 +157,7 @@ class Perception:
         people: track detected people (False for a variant without poses: the people are then only depth obstacles).
         unseen_s: how long a track that could not have been detected coasts (module docstring; 0 = as any missed
             track, ``max_missed`` frames).
+        scan: measure the depth ``scan`` (False: tracks and forecasts only, for the ``mlp_intention`` head).
         forecaster: the pretrained intention model (:func:`pretrain.intention.load_forecaster`); each reported track
             is then predicted by it from its history and the pose detected on it now, and ``peds_future``
             (``k x S x 2``, robot frame, m) holds where it will be at the lookahead head's times
@@ -162,7 +166,7 @@ class Perception:
     """
 
     def __init__(self, cameras: Sequence, dt_s: float, k: int, rays: int, range_m: float, people: bool = True,
-                 forecaster: IntentionForecaster | None = None, unseen_s: float = 0.0) -> None:
+                 forecaster: IntentionForecaster | None = None, unseen_s: float = 0.0, scan: bool = True) -> None:
         self.forecaster = forecaster if people else None
         history = forecaster.cfg.history if self.forecaster is not None else 8
         if not (isinstance(unseen_s, int | float) and 0.0 <= unseen_s <= 10.0):
@@ -171,7 +175,7 @@ class Perception:
         self.tracker = PedestrianTracker(dt_s, history=history,
                                          max_unseen=int(round(unseen_s / dt_s)) if self.unseen else None)
         self.view_half = max(map(camera_half_view, cameras))
-        self.scan = DepthScan(cameras, rays, range_m)
+        self.scan = DepthScan(cameras, rays, range_m) if scan else None
         self.names = [c.name for c in cameras]
         self.dt_s, self.k, self.people = float(dt_s), int(k), bool(people)
         self.times = lookahead_times(dt_s).numpy()
@@ -180,7 +184,8 @@ class Perception:
 
     def reset(self) -> None:
         self.tracker.reset()
-        self.scan.reset()
+        if self.scan is not None:
+            self.scan.reset()
 
     def __call__(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         pose = np.asarray(obs["odom"], np.float64)
@@ -195,7 +200,8 @@ class Perception:
             out["peds"] = self.tracker.observation(pose, self.k, order=rows)
             if self.forecaster is not None:
                 out["peds_future"] = self.forecast(pose, obs["poses"], obs["pose_mask"], det_index, rows)
-        out["scan"] = self.scan.update(depths, pose, self.dt_s, centres)
+        if self.scan is not None:
+            out["scan"] = self.scan.update(depths, pose, self.dt_s, centres)
         return out
 
     def observable(self, xy: np.ndarray) -> np.ndarray:

@@ -311,7 +311,8 @@ class TrainConfig(BaseStageConfig):
     encoder_precision: str = "fp32"
     # pretrained intention model DATA_DIR/checkpoints/<intention>/ (icrowdnav pretrain-intention): the lookahead head
     # of a variant with poses (full, no_bev) predicts the people it tracks with it; "" = constant velocity (the
-    # ablation). The profiles set it; no_i2 and the mlp head never use it.
+    # ablation); the mlp_intention head's I²Former reads its forecasts. The profiles set it; no_i2 and the mlp head
+    # never use it.
     intention: str = ""
     intention_tune: IntentionTuneConfig = field(default_factory=IntentionTuneConfig)  # frozen (default) | fine-tuned
     sim: SimConfig = field(default_factory=SimConfig)
@@ -322,7 +323,9 @@ class TrainConfig(BaseStageConfig):
     net: dict[str, Any] = field(default_factory=dict)  # student network sizes (rl.networks.StudentExtractor)
     # the student's actor: "lookahead" scores each action by rolling it out against the pedestrians tracked from its
     # detected poses and a depth obstacle scan (rl.perceive, rl.networks.StudentLookaheadExtractor); "mlp" is the
-    # paper's MLP head on z alone (why the default differs: docs/notes/2026-11-paper-mlp-head-student.md)
+    # paper's MLP head on z alone (why the default differs: docs/notes/2026-11-paper-mlp-head-student.md);
+    # "mlp_intention" the same MLP head whose I²Former reads the tracks and the pretrained intention model's forecasts
+    # instead of raw poses (rl.networks.ForecastI2Former; needs train.intention for full and no_bev)
     head: str = "lookahead"
     scorer_bound: float = 3.0  # lookahead head: its learned correction is bounded to ± this many nats (0 = unbounded)
     # lookahead head: the obstacle shield's horizon in s (0 = off): an action whose arc is predicted to come within
@@ -425,6 +428,10 @@ class TrainConfig(BaseStageConfig):
         resolve_precision(d.bc_precision, device, "train.dagger.bc_precision")
         if self.head not in STUDENT_HEADS:
             raise ConfigError(f"train.head: expected one of {list(STUDENT_HEADS)}, got {self.head!r}")
+        if self.head == "mlp_intention" and uses_forecaster(self.variant, self.head) and not self.intention:
+            raise ConfigError(f"train.intention: the mlp_intention head of variant {self.variant!r} reads the "
+                              "pretrained intention model's forecasts; expected a checkpoint name (e.g. intention), "
+                              "got ''")
         if self.scorer_bound < 0:
             raise ConfigError(f"train.scorer_bound: expected >= 0, got {self.scorer_bound}")
         check_shield_s(self.shield_s, "train.shield_s")

@@ -1183,3 +1183,32 @@ def test_an_adaptive_cloning_does_not_stop_on_the_plateau_above_its_floor():
     assert len(clone()) < 9
     assert len(clone(floor=0.85 * np.log(105))) == 9
     assert len(clone(floor=100.0)) == len(clone())  # below the floor from the start: the plain rule
+
+
+def test_the_mlp_intention_head_clones_on_tracks_and_forecasts(tmp_path, teacher_dir):
+    """``train.head mlp_intention``: the DAgger frames hold the perceived tracks and the frozen intention model's
+    forecasts in place of raw poses (no scan), the cloned network's I²Former reads them, and the saved student
+    loads, names its intention model and acts; without an intention model it is one named error before any output."""
+    from pipeline.verbs.train import run
+    from rl.networks import ForecastI2Former
+
+    shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
+    with pytest.raises(ConfigError, match="train.intention: the mlp_intention head"):
+        _train_cfg(tmp_path, "no_bev", head="mlp_intention", intention="")
+    intention = tiny_intention_checkpoint(tmp_path / "checkpoints" / "intention")
+    run(_train_cfg(tmp_path, "no_bev", head="mlp_intention", **{"dagger.iterations": 1,
+                                                                "dagger.episodes_per_iter": 2,
+                                                                "sim.max_episode_s": 6.0}))
+    out = tmp_path / "checkpoints" / "policy" / "no_bev"
+    for ep in (out / "dagger" / "iter_0" / "features").glob("*.npz"):
+        with np.load(ep) as z:
+            assert {"peds", "peds_future", "occ", "state"} <= set(z.files)
+            assert not {"poses", "pose_mask", "scan"} & set(z.files)
+            assert z["peds_future"].shape[1:] == (10, 11, 2) and len(z["peds"]) == len(z["action"])
+    policy, desc = load_policy(out)
+    assert desc["net"]["head"] == "mlp_intention" and desc["intention"] == str(intention)
+    assert set(desc["observation_space"]) == {"occ", "peds", "peds_future", "state"}
+    assert isinstance(policy.features_extractor.i2former, ForecastI2Former)
+    assert json.loads((out / "metrics.json").read_text())["acceptance"]["table"]["hallway@0.1"]["n"] == 1
+    driver = PolicyDriver(out)
+    assert driver.forecaster is not None and driver.mlp_shield_s == 0.0
