@@ -169,13 +169,17 @@ class ForecastI2Former(nn.Module):
 class StudentExtractor(BaseFeaturesExtractor):
     """The visual policy's state embedding ``z`` for one variant (see the module docstring); ``people``: what its
     I²Former reads — ``poses`` (the paper's) or ``forecasts`` (the ``mlp_intention`` head's tracks and forecasts,
-    :class:`ForecastI2Former`)."""
+    :class:`ForecastI2Former`). ``i2_dropout`` (``train.net.i2_dropout``): in training mode (cloning, PPO updates)
+    each sample's I²Former output is zeroed with this probability — modality dropout, so that the fused layers also
+    learn to decide from the map and the state alone; acting and the held-out losses use every input."""
 
     def __init__(self, observation_space: gym.spaces.Dict, variant: str = "full", bev_dim: int = 256,
                  bev_width: int = 32, state_dim: int = 64, fused_dim: int = 256,
-                 i2former: dict[str, Any] | None = None, people: str = "poses") -> None:
+                 i2former: dict[str, Any] | None = None, people: str = "poses", i2_dropout: float = 0.0) -> None:
         if people not in ("poses", "forecasts"):
             raise ConfigError(f"student extractor people: expected 'poses' or 'forecasts', got {people!r}")
+        if not (isinstance(i2_dropout, int | float) and 0.0 <= i2_dropout < 1.0):
+            raise ConfigError(f"train.net.i2_dropout: expected a probability in [0, 1), got {i2_dropout!r}")
         keys = variant_keys(variant, "mlp_intention" if people == "forecasts" else "mlp")
         missing = [k for k in keys if k not in observation_space.spaces]
         if missing:
@@ -183,6 +187,7 @@ class StudentExtractor(BaseFeaturesExtractor):
                               f"{sorted(observation_space.spaces)}")
         super().__init__(observation_space, fused_dim)
         self.variant = variant
+        self.i2_dropout = float(i2_dropout)
         width = 0
         if "bev" in keys:
             c = observation_space["bev"].shape[0]
@@ -215,10 +220,14 @@ class StudentExtractor(BaseFeaturesExtractor):
             parts.append(self.bev((obs["bev"] - self.bev_mean) / self.bev_std))
         if hasattr(self, "occ"):
             parts.append(self.occ(obs["occ"]))
-        if isinstance(getattr(self, "i2former", None), ForecastI2Former):
-            parts.append(self.i2former(obs["peds"], obs["peds_future"], obs["state"]))
-        elif hasattr(self, "i2former"):
-            parts.append(self.i2former(obs["poses"], obs["pose_mask"] > 0.5, obs["state"]))
+        if hasattr(self, "i2former"):
+            if isinstance(self.i2former, ForecastI2Former):
+                z_i2 = self.i2former(obs["peds"], obs["peds_future"], obs["state"])
+            else:
+                z_i2 = self.i2former(obs["poses"], obs["pose_mask"] > 0.5, obs["state"])
+            if self.training and self.i2_dropout > 0.0:  # modality dropout (class docstring)
+                z_i2 = z_i2 * (torch.rand(len(z_i2), 1, device=z_i2.device) >= self.i2_dropout).to(z_i2.dtype)
+            parts.append(z_i2)
         parts.append(self.state_net(normalise_state(obs["state"])))
         return self.fusion(torch.cat(parts, -1))
 

@@ -103,7 +103,7 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
                 "features_extractor_kwargs": ext,
                 "net_arch": {"pi": pi, "vf": list(net.get("vf", [256, 256]))},
                 "share_features_extractor": True}
-    ext = {k: net[k] for k in ("bev_dim", "bev_width", "state_dim", "fused_dim", "i2former") if k in net}
+    ext = {k: net[k] for k in ("bev_dim", "bev_width", "state_dim", "fused_dim", "i2former", "i2_dropout") if k in net}
     pi = list(net.get("pi", [256]))
     cls: type = StudentExtractor
     if net.get("head", "mlp") == "mlp_intention":  # the I²Former reads the intention model's tracks and forecasts

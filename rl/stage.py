@@ -320,7 +320,9 @@ class TrainConfig(BaseStageConfig):
     dagger: DaggerConfig = field(default_factory=DaggerConfig)
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
     acceptance: AcceptanceConfig = field(default_factory=AcceptanceConfig)
-    net: dict[str, Any] = field(default_factory=dict)  # student network sizes (rl.networks.StudentExtractor)
+    # student network sizes and i2_dropout (the I²Former output zeroed per cloning sample with this probability)
+    # (rl.networks.StudentExtractor)
+    net: dict[str, Any] = field(default_factory=dict)
     # the student's actor: "lookahead" scores each action by rolling it out against the pedestrians tracked from its
     # detected poses and a depth obstacle scan (rl.perceive, rl.networks.StudentLookaheadExtractor); "mlp" is the
     # paper's MLP head on z alone (why the default differs: docs/notes/2026-11-paper-mlp-head-student.md);
@@ -432,6 +434,9 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError(f"train.intention: the mlp_intention head of variant {self.variant!r} reads the "
                               "pretrained intention model's forecasts; expected a checkpoint name (e.g. intention), "
                               "got ''")
+        drop = self.net.get("i2_dropout", 0.0)
+        if not (isinstance(drop, int | float) and not isinstance(drop, bool) and 0.0 <= drop < 1.0):
+            raise ConfigError(f"train.net.i2_dropout: expected a probability in [0, 1), got {drop!r}")
         if self.scorer_bound < 0:
             raise ConfigError(f"train.scorer_bound: expected >= 0, got {self.scorer_bound}")
         check_shield_s(self.shield_s, "train.shield_s")

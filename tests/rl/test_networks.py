@@ -82,3 +82,28 @@ def test_the_forecast_i2former_reads_present_tracks_in_any_order_and_their_forec
     nobody = peds.clone()
     nobody[..., 5] = 0.0
     assert torch.isfinite(m(nobody, future, state)).all()
+
+
+@torch.no_grad()
+def test_i2_dropout_zeroes_the_i2former_output_of_some_training_samples_only():
+    """``net.i2_dropout``: in training mode each sample's I²Former output is either kept or zeroed (about the given
+    share zeroed); in eval mode (acting, held-out losses) every sample keeps it. A bad value is a named error."""
+    space = _space(variant_keys("full", "mlp_intention"))
+    policy = build_policy("student", "full", space, {"bev_width": 8, "head": "mlp_intention", "i2_dropout": 0.5})
+    ext = policy.features_extractor
+    obs = {k: torch.as_tensor(np.stack([s.sample() for _ in range(200)])) for k, s in space.spaces.items()}
+    ext.eval()
+    kept = ext(obs)
+    hook = ext.i2former.register_forward_hook(lambda m, i, out: torch.zeros_like(out))
+    without = ext(obs)
+    hook.remove()
+    assert torch.equal(ext(obs), kept)
+    ext.train()
+    torch.manual_seed(0)
+    z = ext(obs)
+    is_kept = torch.isclose(z, kept, atol=1e-5).all(-1)
+    is_dropped = torch.isclose(z, without, atol=1e-5).all(-1)
+    assert bool((is_kept ^ is_dropped).all())
+    assert 60 <= int(is_dropped.sum()) <= 140
+    with pytest.raises(ConfigError, match="i2_dropout"):
+        build_policy("student", "full", space, {"head": "mlp_intention", "i2_dropout": 1.0})

@@ -1195,6 +1195,8 @@ def test_the_mlp_intention_head_clones_on_tracks_and_forecasts(tmp_path, teacher
     shutil.copytree(teacher_dir, tmp_path / "checkpoints" / "policy" / "teacher")
     with pytest.raises(ConfigError, match="train.intention: the mlp_intention head"):
         _train_cfg(tmp_path, "no_bev", head="mlp_intention", intention="")
+    with pytest.raises(ConfigError, match="train.net.i2_dropout"):
+        _train_cfg(tmp_path, "no_bev", head="mlp_intention", **{"net.i2_dropout": 1.5})
     intention = tiny_intention_checkpoint(tmp_path / "checkpoints" / "intention")
     run(_train_cfg(tmp_path, "no_bev", head="mlp_intention", **{"dagger.iterations": 1,
                                                                 "dagger.episodes_per_iter": 2,
