@@ -59,7 +59,6 @@ VARIANT_LABELS = {"full": "iCrowdNav (full)", "no_i2": "w/o I²", "no_bev": "w/o
 # forecasts as the I²Former's people (module docstring), or the lookahead scorer
 STUDENT_HEADS = ("mlp", "mlp_intention", "lookahead")
 MLP_HEADS = ("mlp", "mlp_intention")  # the heads whose actor is SB3's MLP on z
-PEOPLE_INPUTS = {"mlp": "poses", "mlp_intention": "forecasts", "lookahead": "poses"}  # what a head's I²Former reads
 
 
 TEACHER_ENCODERS = ("set", "flat", "lookahead")

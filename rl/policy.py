@@ -32,13 +32,7 @@ from pipeline.core.artifacts import atomic_write_text
 from pipeline.core.errors import CorruptArtifactError, InputMissingError
 from pipeline.core.executor import Bundle
 from pretrain.checkpoint import ENCODER_WEIGHTS, load_safetensors, read_weights, save_safetensors
-from rl.networks import (
-    PEOPLE_INPUTS,
-    StudentExtractor,
-    StudentLookaheadExtractor,
-    TakeScores,
-    teacher_extractor_class,
-)
+from rl.networks import StudentExtractor, StudentLookaheadExtractor, TakeScores, teacher_extractor_class
 
 POLICY_JSON = "policy.json"
 POLICY_WEIGHTS = "policy.safetensors"
@@ -107,7 +101,7 @@ def policy_kwargs(kind: str, variant: str | None, net: dict[str, Any]) -> dict[s
     pi = list(net.get("pi", [256]))
     cls: type = StudentExtractor
     if net.get("head", "mlp") == "mlp_intention":  # the I²Former reads the intention model's tracks and forecasts
-        ext["people"] = PEOPLE_INPUTS["mlp_intention"]
+        ext["people"] = "forecasts"
     if net.get("head", "mlp") == "lookahead":  # the extractor scores the actions (rl.networks.StudentLookaheadExtractor)
         ext.update({k: net[k] for k in ("robot", "dt_s", "scan_range_m", "score_dim", "context_dim", "scorer_bound",
                                         "heading", "map_cost", "map_bounds", "shield_s", "ped_shield_s",
