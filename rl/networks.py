@@ -93,6 +93,12 @@ def variant_keys(variant: str, head: str = "mlp", map_cost: bool = False) -> tup
     return keys
 
 
+def check_i2_dropout(value: Any) -> None:
+    """``train.net.i2_dropout`` must be a probability in [0, 1) (:class:`StudentExtractor`)."""
+    if not (isinstance(value, int | float) and not isinstance(value, bool) and 0.0 <= value < 1.0):
+        raise ConfigError(f"train.net.i2_dropout: expected a probability in [0, 1), got {value!r}")
+
+
 def map_key(variant: str, map_cost: bool) -> str | None:
     """The occupancy map a student's lookahead head samples along its arcs with ``map_cost``: the pretrained BEV's
     prediction (``bev_occ``) for variants with it, the depth occupancy (``occ``, the ``w/o BEV`` substitute) else."""
@@ -177,8 +183,7 @@ class StudentExtractor(BaseFeaturesExtractor):
                  i2former: dict[str, Any] | None = None, people: str = "poses", i2_dropout: float = 0.0) -> None:
         if people not in ("poses", "forecasts"):
             raise ConfigError(f"student extractor people: expected 'poses' or 'forecasts', got {people!r}")
-        if not (isinstance(i2_dropout, int | float) and 0.0 <= i2_dropout < 1.0):
-            raise ConfigError(f"train.net.i2_dropout: expected a probability in [0, 1), got {i2_dropout!r}")
+        check_i2_dropout(i2_dropout)
         keys = variant_keys(variant, "mlp_intention" if people == "forecasts" else "mlp")
         missing = [k for k in keys if k not in observation_space.spaces]
         if missing:

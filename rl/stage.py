@@ -88,7 +88,7 @@ from rl.dagger import (
 from rl.evaluate import evaluate, success_table
 from rl.figures import plot_learning_curve, plot_training
 from rl.lookahead import LINEAR_TERMS, PED_TERMS, check_shield_s
-from rl.networks import STUDENT_HEADS, VARIANTS
+from rl.networks import STUDENT_HEADS, VARIANTS, check_i2_dropout
 from rl.observe import (
     StudentEnv,
     check_encoder_matches,
@@ -434,9 +434,7 @@ class TrainConfig(BaseStageConfig):
             raise ConfigError(f"train.intention: the mlp_intention head of variant {self.variant!r} reads the "
                               "pretrained intention model's forecasts; expected a checkpoint name (e.g. intention), "
                               "got ''")
-        drop = self.net.get("i2_dropout", 0.0)
-        if not (isinstance(drop, int | float) and not isinstance(drop, bool) and 0.0 <= drop < 1.0):
-            raise ConfigError(f"train.net.i2_dropout: expected a probability in [0, 1), got {drop!r}")
+        check_i2_dropout(self.net.get("i2_dropout", 0.0))
         if self.scorer_bound < 0:
             raise ConfigError(f"train.scorer_bound: expected >= 0, got {self.scorer_bound}")
         check_shield_s(self.shield_s, "train.shield_s")
