@@ -44,6 +44,17 @@ were predicted to touch while a free arc existed is the cost's choice (``chose_p
 perception miss. Episodes are deterministic given their seeds; a replay that does not end as the run's row did is
 reported as not reproduced. Hits are replayed ``--workers`` at a time (a process pool), reported in hit order.
 
+``--teacher`` adds to each replayed step what the privileged teacher (``checkpoints/policy/teacher`` of the data
+dir: the policy the students are distilled from) would have done in the same state, from its privileged observation
+(:func:`sim.wrappers.privileged_observation`): its own action and that arc's predicted clearance, its probability of
+the action the policy chose, the share of its action distribution on arcs predicted to touch (what the students'
+soft cloning targets, ``softmax(teacher logits)``, put there), and the policy's own probability of its choice. A hit
+where the policy chose a predicted contact that the teacher would not have chosen is an imitation error; one where
+the teacher's target puts much of its mass on contact arcs is a target that does not teach avoiding them.
+``--other METHOD`` (with ``--teacher``) also asks another student of the data dir, one whose inputs are a subset of
+the replayed policy's (e.g. ``no_i2`` for a ``full`` of the same encoder), which arc it would choose in the same
+states: whether the replayed policy's contact choices are states its ablation also gets wrong.
+
 ``--replay-peds K`` does the same for the first K pedestrian hits and asks whether the policy *perceived* the person
 it hit: at each of the last steps, where that person truly was (range, bearing, inside the cameras' view or not),
 whether one of the policy's reported tracks (``peds``, present) lay within :data:`PED_MATCH_M` of him, the
@@ -92,14 +103,16 @@ from pipeline.core.errors import (
     reports_errors,
 )
 from pipeline.core.executor import map_jobs
+from rl.driver import cached_policy
 from rl.lookahead import ObstacleShield
 from rl.networks import MLP_HEADS
-from rl.policy import obs_to_tensor
+from rl.policy import action_logits, load_policy, obs_to_tensor
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
 from sim.geometry import world_to_robot, world_to_robot_each
 from sim.trace import EpisodeTrace
 from sim.viz import plot_episode_topdown
+from sim.wrappers import privileged_observation
 
 REPLAY_WINDOW_S = 0.6  # --replay: the predicted clearance of an arc is its minimum over the lookahead times up to this
 REPLAY_STEPS = 10  # --replay: the last steps kept per replayed hit
@@ -442,6 +455,8 @@ class ReplayJob:
     run: Path
     spec: MethodSpec
     failure: dict[str, Any]
+    teacher: Path | None = None  # --teacher: the teacher checkpoint that labels each replayed step
+    other: MethodSpec | None = None  # --other: another student asked in the same states
 
 
 @lru_cache(maxsize=4)
@@ -481,10 +496,15 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
              scene_seed=layouts.scene_seeds.get(int(f["seed"])))
     env = make_env(ep)
     u = env.unwrapped
+    teacher = cached_policy(job.teacher)
+    other = cached_driver(job.other).policy if job.other is not None else None
     steps, tracks = [], []
+    priv = None  # --teacher: the privileged observation of the state the policy acts on next
     try:
         for tr in episode_steps(env, driver, ep.seed, reset_options(ep)):
-            o = driver.last_obs  # what the policy saw at the previous step, when it chose tr.action
+            o, seen = driver.last_obs, priv  # what the policy (and the teacher) saw when it chose tr.action
+            if teacher is not None:
+                priv = privileged_observation(env, tr.info.get("waypoint"))
             if tr.step == 0 or o is None:
                 continue
             keys = [*driver.policy.observation_space.spaces, *(("scan",) if "scan" in o else ())]
@@ -502,6 +522,9 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
                 pc = head.pedestrian_clearances(feats, w)[0]  # A x w, m
                 rec.update(ped_predicted_m=float(pc[tr.action].min()),
                            best_free_m=float(torch.minimum(pc, clear).min(-1).values.max()))
+            if teacher is not None:
+                rec.update(teacher_step(teacher, seen, driver.policy, obs, clear.min(-1).values, int(tr.action),
+                                        other))
                 peds = np.asarray(o.get("peds", np.zeros((0, 6))), float)
                 tracks.append(peds[peds[:, 5] > 0.5, :2] if len(peds) else np.zeros((0, 2)))
             steps.append(rec)
@@ -518,6 +541,8 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
            "clearance_error_m": float(np.median(err)) if err else None, "steps": tail}
     if not ped_hit:
         out["chose_predicted_contact"] = any(r["predicted_m"] < 0.0 < r["best_available_m"] for r in tail)
+        if teacher is not None:
+            out.update(teacher_verdict(tail))
     else:
         out["class"] = ped_hit_class(tail)
         out["chose_predicted_contact"] = out["class"] == "chose_predicted_contact"
@@ -529,6 +554,51 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
         out["last_tracked_bearing_deg"] = last["bearing_deg"] if last else None
         out["last_tracked_range_m"] = last["range_m"] if last else None
     return out
+
+
+def teacher_step(teacher: Any, priv: dict[str, np.ndarray], policy: Any, obs: dict[str, torch.Tensor],
+                 clear_m: torch.Tensor, action: int, other: Any = None) -> dict[str, Any]:
+    """One replayed step seen by the teacher (``--teacher``): its action on the privileged observation ``priv`` of
+    the state where the policy chose ``action`` and that arc's predicted clearance (``clear_m``: each action's
+    minimum over the window), its probability of ``action``, the share of its distribution on arcs predicted to
+    touch (< 0 m), the policy's own probability of ``action`` (``obs``: what the policy read), and for a policy that
+    reads people (poses or tracks) the predicted clearance of the action it would choose perceiving nobody (None
+    for one that reads none); with ``other`` (a policy reading a subset of ``obs``), the predicted clearance of
+    its choice."""
+    t = torch.softmax(torch.as_tensor(action_logits(teacher, priv), dtype=torch.float64), -1)
+    keys = policy.observation_space.spaces
+    def logits(o: dict[str, torch.Tensor], pi: Any = policy) -> torch.Tensor:
+        with torch.no_grad():
+            return pi.get_distribution({k: o[k] for k in pi.observation_space.spaces}).distribution.logits[0]
+
+    s = torch.softmax(logits(obs).double(), -1)
+    a_t = int(t.argmax())
+    out = {"teacher_action": a_t, "teacher_predicted_m": float(clear_m[a_t]), "teacher_p_chosen": float(t[action]),
+           "teacher_p_contact": float(t[clear_m < 0.0].sum()), "policy_p_chosen": float(s[action]),
+           "empty_crowd_predicted_m": None,
+           "other_predicted_m": None if other is None else float(clear_m[int(logits(obs, other).argmax())])}
+    empty = {**obs}  # the same state with nobody perceived: no detected pose, no present track
+    if "pose_mask" in keys:
+        empty["pose_mask"] = torch.zeros_like(obs["pose_mask"])
+    if "peds" in keys:
+        empty["peds"] = obs["peds"].clone()
+        empty["peds"][..., 5] = 0.0
+    if any(k in keys for k in ("pose_mask", "peds")):
+        out["empty_crowd_predicted_m"] = float(clear_m[int(logits(empty).argmax())])
+    return out
+
+
+def teacher_verdict(tail: list[dict[str, Any]]) -> dict[str, Any]:
+    """What the teacher says of a replayed obstacle hit's last steps (``--teacher``): the steps where the policy
+    chose an arc predicted to touch while a free one existed (its contact choices), how many of them the teacher
+    would have taken an arc predicted free instead (an imitation error when all), and, over them, the teacher's mean
+    probability of the policy's choice and the mean share of its distribution on contact arcs."""
+    bad = [r for r in tail if r["predicted_m"] < 0.0 < r["best_available_m"]]
+    return {"contact_choices": len(bad),
+            "teacher_free_at_contact_choices": sum(r["teacher_predicted_m"] >= 0.0 for r in bad),
+            "teacher_p_chosen_at_contact_choices": float(np.mean([r["teacher_p_chosen"] for r in bad])) if bad else None,
+            "teacher_p_contact_at_contact_choices": float(np.mean([r["teacher_p_contact"] for r in bad])) if bad
+            else None}
 
 
 def _hit_person(trace: EpisodeTrace, steps: list[dict[str, Any]], tracks: list[np.ndarray], view_deg: float) -> None:
@@ -568,10 +638,12 @@ def ped_hit_class(steps: list[dict[str, Any]]) -> str:
 
 
 def replay_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path | None = None, workers: int = 1,
-                progress: bool = False, pedestrian: bool = False) -> list[dict[str, Any]]:
+                progress: bool = False, pedestrian: bool = False, teacher: bool = False,
+                other: str | None = None) -> list[dict[str, Any]]:
     """The first ``k`` obstacle hits of ``res`` (pedestrian hits with ``pedestrian``) rerun with their method's
     policy (module docstring, ``--replay`` / ``--replay-peds``), ``workers`` episodes at a time (a process pool; each
-    worker loads a method's weights once), in hit order."""
+    worker loads a method's weights once), in hit order; with ``teacher``, each step also seen by the data dir's
+    teacher (``--teacher``) and by the data dir's student ``other`` (``--other``)."""
     run = Path(run)
     data_dir = Path(data_dir) if data_dir is not None else run.parent.parent
     hits = [f for f in res["failures"]
@@ -580,8 +652,22 @@ def replay_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path | None = 
     specs = dict(zip(methods, resolve_methods(methods, data_dir, run_layouts(run).config.get("shield_s")), strict=True))
     for spec in specs.values():  # a method with nothing to read is refused before any episode runs
         replay_head(spec, run_layouts(run).sim, pedestrian)
-    return map_jobs(replay_hit, [ReplayJob(run, specs[f["method"]], f) for f in hits], workers, "replay",
-                    progress)
+    teacher_ck = data_dir / "checkpoints" / "policy" / "teacher" if teacher else None
+    if teacher_ck is not None:
+        load_policy(teacher_ck)  # so is a missing or unreadable teacher (one named error)
+    other_spec = None
+    if other is not None:
+        if not teacher:
+            raise ConfigError("--other: expected with --teacher (it is read at the teacher's steps)")
+        (other_spec,) = resolve_methods([other], data_dir, None)
+        want = set(cached_driver(other_spec).policy.observation_space.spaces)
+        for spec in specs.values():
+            have = set(cached_driver(spec).policy.observation_space.spaces)
+            if not want <= have:
+                raise ConfigError(f"--other: {other!r} reads {sorted(want - have)}, which {spec.name!r} does not "
+                                  f"(expected a subset of {sorted(have)})")
+    return map_jobs(replay_hit, [ReplayJob(run, specs[f["method"]], f, teacher_ck, other_spec) for f in hits],
+                    workers, "replay", progress)
 
 
 def replay_markdown(replays: list[dict[str, Any]]) -> str:
@@ -591,7 +677,29 @@ def replay_markdown(replays: list[dict[str, Any]]) -> str:
             f"{chose} the policy chose, within its last {REPLAY_STEPS} steps, an arc it predicted to touch an "
             f"obstacle within {REPLAY_WINDOW_S:g} s while a free arc existed; median |predicted − true| clearance "
             f"one step ahead within 1 m of obstacles: "
-            + (f"{float(np.median(errs)):.3f} m" if errs else "n/a") + "\n")
+            + (f"{float(np.median(errs)):.3f} m" if errs else "n/a") + "\n"
+            + (teacher_markdown(replays) if replays and "contact_choices" in replays[0] else ""))
+
+
+def teacher_markdown(replays: list[dict[str, Any]]) -> str:
+    """Per method, what the teacher would have done at the replayed obstacle hits' contact choices (``--teacher``)."""
+    lines = ["", "The teacher in the same states (its privileged observation), at the steps where the policy chose an "
+             "arc predicted to touch while a free one existed:", "",
+             "| method | hits with such a choice | choices | teacher's own arc predicted free | teacher's p of the "
+             "policy's choice (mean) | teacher's mass on contact arcs (mean) | policy's p of its choice (mean) | "
+             "policy's arc predicted free when it perceives nobody | the other student's arc predicted free |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for m in dict.fromkeys(r["method"] for r in replays):
+        steps = [s for r in replays if r["method"] == m for s in r["steps"]
+                 if s["predicted_m"] < 0.0 < s["best_available_m"]]
+        hits = sum(r["contact_choices"] > 0 for r in replays if r["method"] == m)
+        means = [f"{float(np.mean([s[k] for s in steps])):.3f}" if steps else "—"
+                 for k in ("teacher_p_chosen", "teacher_p_contact", "policy_p_chosen")]
+        free = [[s[k] >= 0.0 for s in steps if s[k] is not None]
+                for k in ("empty_crowd_predicted_m", "other_predicted_m")]
+        lines.append(f"| {m} | {hits} | {len(steps)} | {sum(s['teacher_predicted_m'] >= 0.0 for s in steps)} | "
+                     + " | ".join(means) + " | " + " | ".join(str(sum(f)) if f else "—" for f in free) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def ped_replay_markdown(replays: list[dict[str, Any]]) -> str:
@@ -636,6 +744,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--replay", type=int, default=0, help="rerun the first K obstacle hits (lookahead-head policies)")
     ap.add_argument("--replay-peds", type=int, default=0, help="rerun the first K pedestrian hits (lookahead-head "
                                                                "policies)")
+    ap.add_argument("--teacher", action="store_true", help="--replay: each step also labelled by the data dir's "
+                                                           "teacher in the same state")
+    ap.add_argument("--other", default=None, metavar="METHOD", help="--teacher: also ask this student of the data "
+                                                                     "dir (inputs a subset of the policy's)")
     ap.add_argument("--scene", default=None, help="only this scene's episodes")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="--replay's episodes run at a time "
                                                                            "(default: the machine's CPUs)")
@@ -657,7 +769,8 @@ def main(argv: list[str] | None = None) -> int:
         res["against"] = paired_by_line(res, base)
         text += paired_markdown(res["against"])
     if args.replay:
-        res["replays"] = replay_hits(args.run, res, args.replay, args.data_dir, args.workers, progress=True)
+        res["replays"] = replay_hits(args.run, res, args.replay, args.data_dir, args.workers, progress=True,
+                                     teacher=args.teacher, other=args.other)
         text += replay_markdown(res["replays"])
     if args.replay_peds:
         res["ped_replays"] = replay_hits(args.run, res, args.replay_peds, args.data_dir, args.workers, progress=True,

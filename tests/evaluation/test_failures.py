@@ -234,13 +234,14 @@ def test_a_trace_that_does_not_match_todays_layout_is_a_named_error(timed_out_ru
         draw(run, analyse(run), tmp_path / "out", per_cause=1)
 
 
-def _straight_teacher(data, sim):
-    """A lookahead teacher whose cost only wants speed (straight ahead at full speed, whatever is in the way), saved
-    as ``checkpoints/policy/teacher`` with its manifest."""
+def _straight_teacher(data, sim, obs_contact=0.0):
+    """A lookahead teacher whose cost only wants speed (straight ahead at full speed, whatever is in the way; with
+    ``obs_contact`` < 0 also away from arcs its scan predicts to touch an obstacle), saved as
+    ``checkpoints/policy/teacher`` with its manifest."""
     import torch
 
     from pipeline.core.manifest import Manifest, hash_tree
-    from rl.lookahead import N_LINEAR
+    from rl.lookahead import LINEAR_TERMS, N_LINEAR
     from rl.policy import build_policy, describe, save_policy
     from rl.teacher import teacher_net
 
@@ -254,6 +255,7 @@ def _straight_teacher(data, sim):
         for p in head.parameters():
             p.zero_()
         head.linear.weight[0, N_LINEAR - 2:] = torch.tensor([1.0, -0.5])  # + speed, - turning
+        head.linear.weight[0, LINEAR_TERMS.index("obs_contact")] = obs_contact
     ck = data / "checkpoints" / "policy" / "teacher"
     save_policy(ck, policy, describe("teacher", None, space, net))
     (ck / "config.yaml").write_text("seed: 0\n")
@@ -287,6 +289,16 @@ def test_replay_finds_a_hit_the_policy_predicted_and_the_shield_prevents_it(tmp_
     assert all(r["reproduced"] and r["chose_predicted_contact"] for r in replays)
     assert all(r["clearance_error_m"] < 0.05 for r in replays)  # the privileged scan: prediction = truth
     assert replay_hits(plain, res, len(hits), workers=2) == replays  # a pool replays the same, in order
+    # --teacher with the run's own teacher: in every state it labels exactly what the policy chose, with the
+    # policy's own probability, so none of its contact choices is one the teacher would have avoided
+    labelled = replay_hits(plain, res, len(hits), teacher=True)
+    for r in labelled:
+        assert r["contact_choices"] > 0 and r["teacher_free_at_contact_choices"] == 0
+        for st in r["steps"]:
+            assert st["teacher_action"] == st["action"]
+            assert st["teacher_p_chosen"] == pytest.approx(st["policy_p_chosen"], abs=1e-6)
+            assert st["teacher_predicted_m"] == st["predicted_m"]
+            assert st["empty_crowd_predicted_m"] == st["predicted_m"]  # its cost reads no pedestrian term
     shielded = analyse(evaluate("shielded", 0.6))
     assert not [f for f in shielded["failures"] if f["cause"].startswith("collision_obstacle")]
 
@@ -375,6 +387,30 @@ def test_replay_reads_the_depth_scan_of_an_mlp_student_and_refuses_its_pedestria
     # static obstacle (a person's body) lie nearer (one of the three hits here)
     assert np.median([r["clearance_error_m"] for r in replays]) < 0.05, replays
     assert f"Replayed obstacle hits: {len(replays)} ({len(replays)} reproduced)" in replay_markdown(replays)
+    # --teacher: none in the data dir is one named error before any episode; with a teacher that avoids predicted
+    # contacts, the student's contact choices are ones it would not have made (its own arc free, the student's
+    # choice improbable to it); --other with the student itself chooses as the student does
+    with pytest.raises(InputMissingError, match="teacher"):
+        replay_hits(out, res, len(hits), teacher=True)
+    with pytest.raises(ConfigError, match="--other: expected with --teacher"):
+        replay_hits(out, res, len(hits), other="no_bev")
+    _straight_teacher(tmp_path, replace(sim, scene="office_lobby"), obs_contact=-50.0)
+    with pytest.raises(ConfigError, match=r"--other: 'teacher' reads \['odom', 'path'"):
+        replay_hits(out, res, len(hits), teacher=True, other="teacher")  # inputs the student does not have
+    labelled = replay_hits(out, res, len(hits), teacher=True, other="no_bev")
+    def plain(r):  # a labelled replay without the teacher's keys: the teacher observes, it does not act
+        return {**{k: r[k] for k in replays[0]}, "steps": [{k: st[k] for k in replays[0]["steps"][0]}
+                                                           for st in r["steps"]]}
+
+    assert [plain(r) for r in labelled] == replays
+    bad = [st for r in labelled for st in r["steps"] if st["predicted_m"] < 0.0 < st["best_available_m"]]
+    assert bad and sum(r["contact_choices"] for r in labelled) == len(bad)
+    assert sum(st["teacher_predicted_m"] >= 0.0 for st in bad) >= 0.8 * len(bad)
+    assert max(st["teacher_p_chosen"] for st in bad) < 0.05 < min(st["policy_p_chosen"] for st in bad)
+    for st in (st for r in labelled for st in r["steps"]):
+        assert st["other_predicted_m"] == st["predicted_m"]  # the same student in the same states
+        assert st["empty_crowd_predicted_m"] == st["predicted_m"]  # its straight bias outweighs any pose
+    assert f"| no_bev | {sum(r['contact_choices'] > 0 for r in labelled)} | {len(bad)} |" in replay_markdown(labelled)
     (spec,) = resolve_methods(["no_bev"], tmp_path, None)
     with pytest.raises(ConfigError, match="--replay-peds: method 'no_bev' has no predicted pedestrian clearances"):
         replay_head(spec, sim, pedestrian=True)
