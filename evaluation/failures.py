@@ -522,11 +522,11 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
                 pc = head.pedestrian_clearances(feats, w)[0]  # A x w, m
                 rec.update(ped_predicted_m=float(pc[tr.action].min()),
                            best_free_m=float(torch.minimum(pc, clear).min(-1).values.max()))
+                peds = np.asarray(o.get("peds", np.zeros((0, 6))), float)
+                tracks.append(peds[peds[:, 5] > 0.5, :2] if len(peds) else np.zeros((0, 2)))
             if teacher is not None:
                 rec.update(teacher_step(teacher, seen, driver.policy, obs, clear.min(-1).values, int(tr.action),
                                         other))
-                peds = np.asarray(o.get("peds", np.zeros((0, 6))), float)
-                tracks.append(peds[peds[:, 5] > 0.5, :2] if len(peds) else np.zeros((0, 2)))
             steps.append(rec)
         trace = u.trace(method=spec.name)
     finally:
@@ -567,6 +567,7 @@ def teacher_step(teacher: Any, priv: dict[str, np.ndarray], policy: Any, obs: di
     its choice."""
     t = torch.softmax(torch.as_tensor(action_logits(teacher, priv), dtype=torch.float64), -1)
     keys = policy.observation_space.spaces
+
     def logits(o: dict[str, torch.Tensor], pi: Any = policy) -> torch.Tensor:
         with torch.no_grad():
             return pi.get_distribution({k: o[k] for k in pi.observation_space.spaces}).distribution.logits[0]
