@@ -398,6 +398,7 @@ def test_replay_reads_the_depth_scan_of_an_mlp_student_and_refuses_its_pedestria
     with pytest.raises(ConfigError, match=r"--other: 'teacher' reads \['odom', 'path'"):
         replay_hits(out, res, len(hits), teacher=True, other="teacher")  # inputs the student does not have
     labelled = replay_hits(out, res, len(hits), teacher=True, other="no_bev")
+
     def plain(r):  # a labelled replay without the teacher's keys: the teacher observes, it does not act
         return {**{k: r[k] for k in replays[0]}, "steps": [{k: st[k] for k in replays[0]["steps"][0]}
                                                            for st in r["steps"]]}
