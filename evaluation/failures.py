@@ -103,10 +103,11 @@ from pipeline.core.errors import (
     reports_errors,
 )
 from pipeline.core.executor import map_jobs
+from pipeline.core.layout import policy_dir
 from rl.driver import cached_policy
 from rl.lookahead import ObstacleShield
 from rl.networks import MLP_HEADS
-from rl.policy import action_logits, load_policy, obs_to_tensor
+from rl.policy import action_logits, obs_to_tensor
 from sim.env import CrowdNavEnv, SimConfig
 from sim.episode import episode_steps
 from sim.geometry import world_to_robot, world_to_robot_each
@@ -525,8 +526,7 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
                 peds = np.asarray(o.get("peds", np.zeros((0, 6))), float)
                 tracks.append(peds[peds[:, 5] > 0.5, :2] if len(peds) else np.zeros((0, 2)))
             if teacher is not None:
-                rec.update(teacher_step(teacher, seen, driver.policy, obs, clear.min(-1).values, int(tr.action),
-                                        other))
+                rec.update(teacher_step(teacher, seen, driver.policy, o, clear.min(-1).values, int(tr.action), other))
             steps.append(rec)
         trace = u.trace(method=spec.name)
     finally:
@@ -556,37 +556,34 @@ def replay_hit(job: ReplayJob) -> dict[str, Any]:
     return out
 
 
-def teacher_step(teacher: Any, priv: dict[str, np.ndarray], policy: Any, obs: dict[str, torch.Tensor],
+def teacher_step(teacher: Any, priv: dict[str, np.ndarray], policy: Any, seen: dict[str, np.ndarray],
                  clear_m: torch.Tensor, action: int, other: Any = None) -> dict[str, Any]:
     """One replayed step seen by the teacher (``--teacher``): its action on the privileged observation ``priv`` of
     the state where the policy chose ``action`` and that arc's predicted clearance (``clear_m``: each action's
     minimum over the window), its probability of ``action``, the share of its distribution on arcs predicted to
-    touch (< 0 m), the policy's own probability of ``action`` (``obs``: what the policy read), and for a policy that
+    touch (< 0 m), the policy's own probability of ``action`` (``seen``: what the policy read), and for a policy that
     reads people (poses or tracks) the predicted clearance of the action it would choose perceiving nobody (None
-    for one that reads none); with ``other`` (a policy reading a subset of ``obs``), the predicted clearance of
+    for one that reads none); with ``other`` (a policy reading a subset of ``seen``), the predicted clearance of
     its choice."""
-    t = torch.softmax(torch.as_tensor(action_logits(teacher, priv), dtype=torch.float64), -1)
-    keys = policy.observation_space.spaces
+    def probs(pi: Any, o: dict[str, np.ndarray]) -> torch.Tensor:
+        return torch.softmax(torch.as_tensor(action_logits(pi, o), dtype=torch.float64), -1)
 
-    def logits(o: dict[str, torch.Tensor], pi: Any = policy) -> torch.Tensor:
-        with torch.no_grad():
-            return pi.get_distribution({k: o[k] for k in pi.observation_space.spaces}).distribution.logits[0]
+    def choice_m(pi: Any, o: dict[str, np.ndarray]) -> float:
+        return float(clear_m[int(np.argmax(action_logits(pi, o)))])
 
-    s = torch.softmax(logits(obs).double(), -1)
+    t, s = probs(teacher, priv), probs(policy, seen)
     a_t = int(t.argmax())
-    out = {"teacher_action": a_t, "teacher_predicted_m": float(clear_m[a_t]), "teacher_p_chosen": float(t[action]),
-           "teacher_p_contact": float(t[clear_m < 0.0].sum()), "policy_p_chosen": float(s[action]),
-           "empty_crowd_predicted_m": None,
-           "other_predicted_m": None if other is None else float(clear_m[int(logits(obs, other).argmax())])}
-    empty = {**obs}  # the same state with nobody perceived: no detected pose, no present track
-    if "pose_mask" in keys:
-        empty["pose_mask"] = torch.zeros_like(obs["pose_mask"])
-    if "peds" in keys:
-        empty["peds"] = obs["peds"].clone()
+    empty = {**seen}  # the same state with nobody perceived: no detected pose, no present track
+    if "pose_mask" in empty:
+        empty["pose_mask"] = np.zeros_like(seen["pose_mask"])
+    if "peds" in empty:
+        empty["peds"] = np.array(seen["peds"], copy=True)
         empty["peds"][..., 5] = 0.0
-    if any(k in keys for k in ("pose_mask", "peds")):
-        out["empty_crowd_predicted_m"] = float(clear_m[int(logits(empty).argmax())])
-    return out
+    reads_people = any(k in policy.observation_space.spaces for k in ("pose_mask", "peds"))
+    return {"teacher_action": a_t, "teacher_predicted_m": float(clear_m[a_t]), "teacher_p_chosen": float(t[action]),
+            "teacher_p_contact": float(t[clear_m < 0.0].sum()), "policy_p_chosen": float(s[action]),
+            "empty_crowd_predicted_m": choice_m(policy, empty) if reads_people else None,
+            "other_predicted_m": None if other is None else choice_m(other, seen)}
 
 
 def teacher_verdict(tail: list[dict[str, Any]]) -> dict[str, Any]:
@@ -653,9 +650,8 @@ def replay_hits(run: Path, res: dict[str, Any], k: int, data_dir: Path | None = 
     specs = dict(zip(methods, resolve_methods(methods, data_dir, run_layouts(run).config.get("shield_s")), strict=True))
     for spec in specs.values():  # a method with nothing to read is refused before any episode runs
         replay_head(spec, run_layouts(run).sim, pedestrian)
-    teacher_ck = data_dir / "checkpoints" / "policy" / "teacher" if teacher else None
-    if teacher_ck is not None:
-        load_policy(teacher_ck)  # so is a missing or unreadable teacher (one named error)
+    teacher_ck = policy_dir(data_dir, "teacher") if teacher else None
+    cached_policy(teacher_ck)  # so is a missing or unreadable teacher (one named error)
     other_spec = None
     if other is not None:
         if not teacher:

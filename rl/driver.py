@@ -25,7 +25,7 @@ from rl.observe import (
     load_student_heads,
     observer_for,
 )
-from rl.policy import act, action_logits, load_policy, read_policy_json
+from rl.policy import POLICY_WEIGHTS, act, action_logits, load_policy, read_policy_json
 
 _CACHE: dict[str, Any] = {}
 SAMPLE_SEED_KEY = 7_919  # mixed with the episode seed: the sampling stream differs from the env's own
@@ -43,7 +43,10 @@ def cached_policy(path: Path | None, shield_s: float | None = None):
     (:func:`rl.policy.load_policy`)."""
     if path is None:
         return None
-    return process_cached(f"policy:{path}:{os.path.getmtime(Path(path) / 'policy.safetensors')}:{shield_s}",
+    weights = Path(path) / POLICY_WEIGHTS
+    if not weights.is_file():  # not cached: load_policy names what is missing
+        return load_policy(path, shield_s)[0]
+    return process_cached(f"policy:{path}:{os.path.getmtime(weights)}:{shield_s}",
                           lambda: load_policy(path, shield_s)[0])
 
 
